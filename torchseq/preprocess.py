@@ -1,0 +1,117 @@
+"""Frame preprocessing shared by both engines: grey, resize, patch normalisation.
+
+All functions are time-first: frames are ``(T, H, W)`` float tensors with grey levels in
+0..255. Colour frames ``(T, H, W, 3)`` are RGB.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from torchseq._checks import check_finite, check_not_empty, check_shape
+
+# ITU-R BT.601 luma weights, as MATLAB's rgb2gray and OpenCV's RGB2GRAY use them.
+BT601 = (0.299, 0.587, 0.114)
+
+
+def to_grey(frames: torch.Tensor) -> torch.Tensor:
+    """Convert frames to float grey levels.
+
+    Args:
+        frames: ``(T, H, W)`` grey or ``(T, H, W, 3)`` RGB, any real dtype.
+
+    Returns:
+        ``(T, H, W)`` float32 (float64 stays float64).
+    """
+    if frames.dim() == 4 and frames.shape[-1] == 3:
+        w = torch.tensor(BT601, dtype=torch.float64, device=frames.device)
+        grey = (frames.to(torch.float64) * w).sum(-1)
+    elif frames.dim() == 3:
+        grey = frames
+    else:
+        raise ValueError(f"frames must be (T, H, W) or (T, H, W, 3), got {tuple(frames.shape)}")
+    dtype = torch.float64 if frames.dtype == torch.float64 else torch.float32
+    return grey.to(dtype)
+
+
+def resize(frames: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Resize frames to ``size = (H, W)``: area averaging when shrinking, bilinear otherwise.
+
+    A no-op when the frames already have that size.
+
+    Args:
+        frames: ``(T, H, W)`` float.
+        size: ``(height, width)`` of the output.
+
+    Returns:
+        ``(T, size[0], size[1])``.
+    """
+    check_shape(frames, ("T", "H", "W"), "frames")
+    h, w = int(size[0]), int(size[1])
+    if h <= 0 or w <= 0:
+        raise ValueError(f"size must be positive, got {size}")
+    if tuple(frames.shape[1:]) == (h, w):
+        return frames
+    x = frames.unsqueeze(1)
+    if h <= frames.shape[1] and w <= frames.shape[2]:
+        x = F.adaptive_avg_pool2d(x, (h, w))
+    else:
+        x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
+    return x.squeeze(1)
+
+
+def patch_normalise(frames: torch.Tensor, patch: int = 8, mode: str = "seqslam") -> torch.Tensor:
+    """Normalise each non-overlapping ``patch x patch`` block to zero mean and unit std.
+
+    ``mode="seqslam"`` reproduces OpenSeqSLAM: each pixel becomes
+    ``127 + round((p - mean) / std)`` with the block's sample std, clamped to 0..255.
+    ``mode="zscore"`` returns the float z-scores ``(p - mean) / std``. A flat block (std 0)
+    maps to 127 (or 0 in z-score mode) instead of NaN. Uses only ops that export to ONNX.
+
+    Args:
+        frames: ``(T, H, W)`` float, ``H`` and ``W`` multiples of ``patch``.
+        patch: block side in pixels.
+        mode: ``"seqslam"`` or ``"zscore"``.
+
+    Returns:
+        ``(T, H, W)`` float, same dtype as the input.
+    """
+    check_shape(frames, ("T", "H", "W"), "frames")
+    t, h, w = frames.shape
+    if h % patch or w % patch:
+        raise ValueError(f"frame size {h}x{w} is not a multiple of the patch side {patch}")
+    if mode not in ("seqslam", "zscore"):
+        raise ValueError(f"mode must be 'seqslam' or 'zscore', got {mode!r}")
+    blocks = frames.reshape(t, h // patch, patch, w // patch, patch)
+    mean = blocks.mean(dim=(2, 4), keepdim=True)
+    dev = blocks - mean
+    var = (dev * dev).sum(dim=(2, 4), keepdim=True) / (patch * patch - 1)
+    std = var.sqrt()
+    z = torch.where(std > 0, dev / torch.where(std > 0, std, torch.ones_like(std)), 0.0 * dev)
+    if mode == "seqslam":
+        z = (127.0 + torch.round(z)).clamp(0.0, 255.0)
+    return z.reshape(t, h, w)
+
+
+def preprocess(
+    frames: torch.Tensor, size: tuple[int, int], patch: int = 8, mode: str = "seqslam"
+) -> torch.Tensor:
+    """Grey, resize and patch-normalise a traverse, then flatten to descriptors.
+
+    Args:
+        frames: ``(T, H, W)`` or ``(T, H, W, 3)``.
+        size: ``(height, width)`` to resize to, e.g. ``(32, 64)`` for OpenSeqSLAM.
+        patch: patch normalisation side (0 disables it).
+        mode: see :func:`patch_normalise`.
+
+    Returns:
+        ``(T, size[0] * size[1])`` float descriptors.
+    """
+    check_not_empty(frames, "frames")
+    grey = to_grey(frames)
+    check_finite(grey, "frames")
+    small = resize(grey, size)
+    if patch:
+        small = patch_normalise(small, patch, mode)
+    return small.reshape(small.shape[0], -1)

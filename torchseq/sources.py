@@ -1,0 +1,168 @@
+"""Load a traverse from wherever it lives: an image folder, a video, an array, an event file.
+
+Every loader returns grey frames ``(T, H, W)`` float32 in 0..255 (event files: accumulated
+event frames, see :mod:`torchseq.events`).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Union
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
+VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v"}
+EVENT_SUFFIXES = {".aedat", ".aedat4", ".raw", ".dat", ".csv", ".txt", ".npz", ".npy", ".h5"}
+
+Source = Union[str, Path, np.ndarray, torch.Tensor]
+
+
+class TraverseError(ValueError):
+    """A traverse could not be loaded; the message says why in one line."""
+
+
+@dataclass
+class EventFrameOptions:
+    """How event files become frames (see :func:`torchseq.events.load_event_frames`).
+
+    Attributes:
+        window_ms: accumulation window in milliseconds (ignored when ``event_count`` is set).
+        event_count: accumulate a fixed number of events per frame instead of a time window.
+        frame_size: ``(H, W)`` to downsample the frames to by area pooling, or None.
+    """
+
+    window_ms: float = 10.0
+    event_count: int | None = None
+    frame_size: tuple[int, int] | None = None
+
+
+def natural_key(name: str) -> list:
+    """Sort key that orders ``img2`` before ``img10``."""
+    return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", name)]
+
+
+def _grey_uint(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)  # ITU-R 601 weights
+    if image.ndim != 2:
+        raise TraverseError(f"unsupported image layout {image.shape}")
+    return image.astype(np.float32)
+
+
+def load_image_folder(folder: Path, progress: bool = True) -> torch.Tensor:
+    """Load every image of a folder in natural sort order as ``(T, H, W)`` float32 grey."""
+    files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
+                   key=lambda p: natural_key(p.name))
+    if not files:
+        raise TraverseError(f"no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in folder {folder}")
+    frames = []
+    for f in tqdm(files, desc=f"reading {folder.name}", disable=not progress, leave=False):
+        image = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise TraverseError(f"cannot read image {f}")
+        grey = _grey_uint(image)
+        if frames and grey.shape != frames[0].shape:
+            raise TraverseError(
+                f"mixed image sizes in {folder}: {files[0].name} is {frames[0].shape[1]}x"
+                f"{frames[0].shape[0]} but {f.name} is {grey.shape[1]}x{grey.shape[0]}")
+        frames.append(grey)
+    return torch.from_numpy(np.stack(frames))
+
+
+def load_video(path: Path, progress: bool = True) -> torch.Tensor:
+    """Load every frame of a video file as ``(T, H, W)`` float32 grey."""
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise TraverseError(f"cannot open video {path}")
+    frames = []
+    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+    with tqdm(total=total, desc=f"reading {path.name}", disable=not progress, leave=False) as bar:
+        while True:
+            ok, image = cap.read()
+            if not ok:
+                break
+            frames.append(_grey_uint(image))
+            bar.update(1)
+    cap.release()
+    if not frames:
+        raise TraverseError(f"video {path} has no readable frames")
+    return torch.from_numpy(np.stack(frames))
+
+
+def frames_from_array(array: np.ndarray | torch.Tensor, name: str = "array") -> torch.Tensor:
+    """Check and convert a ``(T, H, W)`` or ``(T, H, W, 3)`` RGB array to grey float32 frames."""
+    from torchseq.preprocess import to_grey
+
+    x = torch.as_tensor(array)
+    if x.dim() not in (3, 4) or (x.dim() == 4 and x.shape[-1] != 3):
+        raise TraverseError(f"{name} must be (T, H, W) or (T, H, W, 3), got {tuple(x.shape)}")
+    if x.shape[0] == 0:
+        raise TraverseError(f"{name} has no frames")
+    if x.dtype == torch.bool or x.is_complex():
+        raise TraverseError(f"{name} has unsupported dtype {x.dtype}")
+    x = to_grey(x).to(torch.float32)
+    if not bool(torch.isfinite(x).all()):
+        raise TraverseError(f"{name} holds NaN or infinite values")
+    return x
+
+
+def _is_event_file(path: Path) -> bool:
+    if path.suffix.lower() == ".npy":
+        return np.load(path, mmap_mode="r", allow_pickle=False).dtype.names is not None
+    if path.suffix.lower() == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            return "frames" not in z.files
+    return path.suffix.lower() in EVENT_SUFFIXES
+
+
+def load_traverse(source: Source, events: EventFrameOptions | None = None,
+                  progress: bool = True) -> torch.Tensor:
+    """Load a traverse as grey frames.
+
+    Args:
+        source: an image folder, a video file, an event file (``.aedat``, ``.aedat4``,
+            ``.raw``, ``.npy``/``.npz`` event arrays, ``.csv``/``.txt`` ``t,x,y,p``), a frame
+            array file (``.npy`` ``(T, H, W)`` or ``.npz`` with a ``frames`` key), or an
+            in-memory ``(T, H, W)`` / ``(T, H, W, 3)`` array or tensor.
+        events: how event files are accumulated into frames.
+        progress: show a progress bar for long reads.
+
+    Returns:
+        ``(T, H, W)`` float32 frames.
+    """
+    if isinstance(source, (np.ndarray, torch.Tensor)):
+        return frames_from_array(source)
+    path = Path(source)
+    if not path.exists():
+        raise TraverseError(f"no such file or folder: {path}")
+    if path.is_dir():
+        return load_image_folder(path, progress)
+    suffix = path.suffix.lower()
+    if suffix in VIDEO_SUFFIXES:
+        return load_video(path, progress)
+    try:
+        is_events = _is_event_file(path)
+    except (ValueError, OSError) as err:
+        raise TraverseError(f"cannot read {path}: {err}") from err
+    if is_events:
+        from torchseq.events import load_event_frames
+
+        opts = events or EventFrameOptions()
+        return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
+                                 frame_size=opts.frame_size)
+    if suffix == ".npy":
+        return frames_from_array(np.load(path, allow_pickle=False), str(path))
+    if suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            return frames_from_array(z["frames"], str(path))
+    if suffix in IMAGE_SUFFIXES:
+        raise TraverseError(f"{path} is a single image; give the folder that holds the traverse")
+    raise TraverseError(f"unknown traverse format: {path}")
