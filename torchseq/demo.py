@@ -130,8 +130,10 @@ def make_demo(
         size: ``(H, W)`` of the frames.
         step: reference camera motion per frame, in pixels.
         tolerance: ground-truth tolerance in reference frames.
-        gain, gamma, gradient, noise: the query's appearance change (see :func:`relight`);
-            the reference gets mild noise only.
+        gain: the query's brightness gain (see :func:`relight`).
+        gamma: the query's gamma.
+        gradient: the query's left-to-right brightness ramp.
+        noise: the query's sensor noise std in grey levels (the reference gets 2.0).
         seed: random seed; the same seed gives the same traverses.
 
     Returns:
