@@ -61,11 +61,17 @@ def resize(frames: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return x.squeeze(1)
 
 
+def round_half_away(x: torch.Tensor) -> torch.Tensor:
+    """Round halves away from zero, as MATLAB's ``round`` does (``torch.round`` rounds to even)."""
+    return torch.sign(x) * torch.floor(x.abs() + 0.5)
+
+
 def patch_normalise(frames: torch.Tensor, patch: int = 8, mode: str = "seqslam") -> torch.Tensor:
     """Normalise each non-overlapping ``patch x patch`` block to zero mean and unit std.
 
     ``mode="seqslam"`` reproduces OpenSeqSLAM: each pixel becomes
-    ``127 + round((p - mean) / std)`` with the block's sample std, clamped to 0..255.
+    ``127 + round((p - mean) / std)`` with the block's sample std, clamped to 0..255, rounding
+    halves away from zero like MATLAB.
     ``mode="zscore"`` returns the float z-scores ``(p - mean) / std``. A flat block (std 0)
     maps to 127 (or 0 in z-score mode) instead of NaN. Uses only ops that export to ONNX.
 
@@ -90,7 +96,7 @@ def patch_normalise(frames: torch.Tensor, patch: int = 8, mode: str = "seqslam")
     std = var.sqrt()
     z = torch.where(std > 0, dev / torch.where(std > 0, std, torch.ones_like(std)), 0.0 * dev)
     if mode == "seqslam":
-        z = (127.0 + torch.round(z)).clamp(0.0, 255.0)
+        z = (127.0 + round_half_away(z)).clamp(0.0, 255.0)
     return z.reshape(t, h, w)
 
 

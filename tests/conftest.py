@@ -1,0 +1,17 @@
+from pathlib import Path
+
+import pytest
+import torch
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="CUDA is not available on this machine"))]
+
+
+def shared_data(*parts: str) -> Path:
+    """Path under ../shared/data, skipping the test with a clear reason when it is absent."""
+    path = DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"real data not found at {path} (the ../shared/data folder is absent)")
+    return path

@@ -1,0 +1,91 @@
+import numpy as np
+import pytest
+import torch
+
+from torchseq import metrics
+from torchseq.matches import Matches
+
+
+def brute_force_pr(ref, conf, gt):
+    """Precision/recall by trying every threshold with plain loops (independent reference)."""
+    positives = sum(1 for q in range(gt.shape[1]) if gt[:, q].any())
+    points = []
+    for thr in sorted({c for r, c in zip(ref, conf) if r >= 0}, reverse=True):
+        tp = fp = 0
+        for q, (r, c) in enumerate(zip(ref, conf)):
+            if r >= 0 and c >= thr:
+                if gt[r, q]:
+                    tp += 1
+                else:
+                    fp += 1
+        points.append((tp / (tp + fp), tp / positives))
+    return points
+
+
+def random_case(seed, n_ref=30, n_query=40):
+    rng = np.random.default_rng(seed)
+    gt = np.zeros((n_ref, n_query), bool)
+    for q in range(n_query):
+        if q % 7:  # some queries have no admissible reference
+            c = rng.integers(0, n_ref)
+            gt[max(0, c - 1):c + 2, q] = True
+    ref = np.where(rng.random(n_query) < 0.1, -1, rng.integers(0, n_ref, n_query))
+    ref = np.where(rng.random(n_query) < 0.5, gt.argmax(0), ref)  # half of them right
+    ref[0] = -1
+    score = rng.random(n_query).round(2)  # ties in the score on purpose
+    return ref, score, gt
+
+
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("lower", [True, False])
+def test_pr_curve_matches_brute_force(seed, lower):
+    ref, score, gt = random_case(seed)
+    m = Matches(torch.tensor(ref), torch.tensor(score), lower_is_better=lower)
+    curve = metrics.precision_recall_curve(m, gt)
+    conf = -score if lower else score
+    expected = brute_force_pr(ref, conf, gt)
+    assert len(curve.precision) == len(expected)
+    np.testing.assert_allclose(curve.precision, [p for p, _ in expected])
+    np.testing.assert_allclose(curve.recall, [r for _, r in expected])
+    # AUC by step integration of the brute-force points
+    area, prev = 0.0, 0.0
+    for p, r in expected:
+        area += (r - prev) * p
+        prev = r
+    assert metrics.auc(curve) == pytest.approx(area)
+    # recall at 100% precision: the largest recall among the leading perfect points
+    r100 = 0.0
+    for p, r in expected:
+        if p < 1:
+            break
+        r100 = r
+    assert metrics.recall_at_100_precision(curve) == pytest.approx(r100)
+
+
+def test_recall_at_k_and_coverage():
+    gt = np.eye(4, dtype=bool)
+    ranked = np.array([[0, 1], [0, 1], [3, -1], [-1, -1]])
+    assert metrics.recall_at_k(ranked, gt, 1) == pytest.approx(1 / 4)
+    assert metrics.recall_at_k(ranked, gt, 2) == pytest.approx(2 / 4)
+    m = Matches(torch.tensor([0, 0, 3, -1]), torch.tensor([0.1, 0.2, 0.3, float("nan")]), True)
+    assert metrics.coverage(m) == pytest.approx(0.75)
+    assert metrics.coverage(m, gt) == pytest.approx(0.25)
+    out = metrics.evaluate(m, gt, ranked)
+    assert out["recall_at_1"] == pytest.approx(0.25)
+    assert out["recall_at_5"] == pytest.approx(0.5)
+    assert out["n_matched"] == 3
+    with pytest.raises(ValueError):
+        metrics.evaluate(m, np.eye(4, 5, dtype=bool))
+
+
+def test_perfect_matches_give_unit_scores():
+    gt = np.eye(6, dtype=bool)
+    m = Matches(torch.arange(6), torch.linspace(0.1, 0.6, 6), lower_is_better=True)
+    out = metrics.evaluate(m, gt)
+    assert out["recall_at_1"] == 1.0 and out["auc"] == 1.0
+    assert out["recall_at_100_precision"] == 1.0
+
+
+def test_matches_shape_check():
+    with pytest.raises(ValueError):
+        Matches(torch.zeros(3, dtype=torch.long), torch.zeros(4), True)

@@ -1,0 +1,155 @@
+"""Figures for reports and TensorBoard: difference matrices, PR curves, rasters, frame pairs.
+
+Every ``plot_*`` function returns a matplotlib figure; :func:`save_figure` writes it atomically
+as PNG and :func:`figure_to_array` turns it into an ``(H, W, 3)`` uint8 image for TensorBoard.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from torchseq.atomic import atomic_path  # noqa: E402
+from torchseq.matches import Matches  # noqa: E402
+from torchseq.metrics import PRCurve  # noqa: E402
+
+
+def _np(x) -> np.ndarray:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def plot_difference_matrix(matrix, matches: Matches | None = None, gt: np.ndarray | None = None,
+                           title: str = "contrast-enhanced difference matrix") -> plt.Figure:
+    """Show a ``(R, Q)`` difference matrix with ground truth and matches overlaid.
+
+    Args:
+        matrix: ``(R, Q)`` reference rows by query columns (lower = more similar).
+        matches: the engine's matches (drawn as dots: green correct, red wrong).
+        gt: ``(R, Q)`` bool ground truth (drawn as a faint band).
+        title: figure title.
+    """
+    m = _np(matrix).astype(np.float64)
+    fig, ax = plt.subplots(figsize=(6, 5), dpi=100)
+    finite = m[np.isfinite(m)]
+    lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0, 1))
+    ax.imshow(m, cmap="gray", aspect="auto", vmin=lo, vmax=hi, interpolation="nearest")
+    if gt is not None:
+        rows, cols = np.nonzero(gt)
+        ax.scatter(cols, rows, s=1, c="tab:blue", alpha=0.15, marker="s", label="ground truth")
+    if matches is not None:
+        ref = _np(matches.reference)
+        q = np.nonzero(ref >= 0)[0]
+        ok = np.zeros(len(q), bool)
+        if gt is not None:
+            valid = ref[q] < gt.shape[0]
+            ok[valid] = gt[ref[q][valid], q[valid]]
+        ax.scatter(q[ok], ref[q][ok], s=4, c="tab:green", label="correct match")
+        ax.scatter(q[~ok], ref[q][~ok], s=4, c="tab:red", label="wrong match")
+    ax.set_xlabel("query frame")
+    ax.set_ylabel("reference frame")
+    ax.set_title(title)
+    if matches is not None or gt is not None:
+        ax.legend(loc="upper left", fontsize=7, markerscale=3)
+    fig.tight_layout()
+    return fig
+
+
+def plot_pr_curves(curves: dict[str, PRCurve]) -> plt.Figure:
+    """Precision-recall curves, one line per engine."""
+    fig, ax = plt.subplots(figsize=(5, 4), dpi=100)
+    for name, c in curves.items():
+        ax.plot(np.r_[0.0, c.recall], np.r_[c.precision[:1] if len(c.precision) else [1.0],
+                                            c.precision], label=name)
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    ax.set_title("precision-recall")
+    fig.tight_layout()
+    return fig
+
+
+def plot_activity_raster(activity, winners=None, title: str = "output activity") -> plt.Figure:
+    """Output-unit activity over time with the winning unit marked (the seed's Figures 7 and 9).
+
+    Args:
+        activity: ``(T, N)`` unit activity per frame.
+        winners: ``(T,)`` winning unit per frame (default: the argmax).
+        title: figure title.
+    """
+    a = _np(activity).astype(np.float64)
+    w = _np(winners) if winners is not None else a.argmax(1)
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
+    ax.imshow(a.T, cmap="magma", aspect="auto", origin="lower", interpolation="nearest")
+    ax.plot(np.arange(len(w)), w, ".", ms=2, c="cyan", label="winner")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("output unit")
+    ax.set_title(title)
+    ax.legend(loc="upper left", fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def plot_matrix(matrix, title: str, cmap: str = "viridis") -> plt.Figure:
+    """A plain heat map, e.g. the learnt ring shift matrix."""
+    fig, ax = plt.subplots(figsize=(5, 5), dpi=100)
+    im = ax.imshow(_np(matrix), cmap=cmap, interpolation="nearest")
+    fig.colorbar(im, ax=ax, fraction=0.046)
+    ax.set_title(title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None = None,
+                       n: int = 6, title: str = "matched frames") -> plt.Figure:
+    """Query frames beside the reference frames they matched (the seed's Figure 10).
+
+    Args:
+        reference: ``(R, H, W)`` reference frames.
+        query: ``(Q, H, W)`` query frames.
+        matches: matches of the query traverse.
+        gt: ``(R, Q)`` ground truth, to label pairs correct or wrong.
+        n: number of pairs, evenly spaced over the matched queries.
+        title: figure title.
+    """
+    ref, qry, idx = _np(reference), _np(query), _np(matches.reference)
+    matched = np.nonzero(idx >= 0)[0]
+    pick = matched[np.linspace(0, len(matched) - 1, min(n, len(matched))).round().astype(int)] \
+        if len(matched) else np.array([], int)
+    fig, axes = plt.subplots(2, max(len(pick), 1), figsize=(2 * max(len(pick), 1), 4.2), dpi=100,
+                             squeeze=False)
+    for col, q in enumerate(pick):
+        r = int(idx[q])
+        good = bool(gt[r, q]) if gt is not None and r < gt.shape[0] else None
+        colour = {True: "green", False: "red", None: "black"}[good]
+        axes[0, col].imshow(qry[q], cmap="gray")
+        axes[0, col].set_title(f"query {q}", fontsize=8)
+        axes[1, col].imshow(ref[r], cmap="gray")
+        axes[1, col].set_title(f"reference {r}", fontsize=8, color=colour)
+    for ax in axes.ravel():
+        ax.axis("off")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def figure_to_array(fig: plt.Figure) -> np.ndarray:
+    """Render a figure to an ``(H, W, 3)`` uint8 RGB array."""
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+
+
+def save_figure(fig: plt.Figure, path: str | Path, close: bool = True) -> None:
+    """Save a figure as PNG atomically."""
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    if close:
+        plt.close(fig)
