@@ -1,0 +1,20 @@
+"""Neural SeqSLAM: a rate-coded network of ``nn.Module`` s whose memory is bounded."""
+
+from torchseq.neural.config import NeuralConfig, NeuralError
+from torchseq.neural.model import (
+    NeuralFitLog,
+    NeuralResult,
+    NeuralSeqSLAM,
+    NeuralStep,
+    seqslam_bytes,
+)
+
+__all__ = [
+    "NeuralConfig",
+    "NeuralError",
+    "NeuralFitLog",
+    "NeuralResult",
+    "NeuralSeqSLAM",
+    "NeuralStep",
+    "seqslam_bytes",
+]

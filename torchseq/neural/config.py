@@ -1,0 +1,122 @@
+"""``NeuralConfig``: every setting of a Neural SeqSLAM model (defaults = the seed's Table 1)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+
+class NeuralError(ValueError):
+    """Bad input or a bad checkpoint for Neural SeqSLAM."""
+
+
+@dataclass
+class NeuralConfig:
+    """Settings of :class:`torchseq.neural.NeuralSeqSLAM`.
+
+    Attributes:
+        input_size: ``(H, W)`` the frames are resized to (L1 has ``H * W`` units).
+        patch_size: patch-normalisation block side (0 disables it).
+        patch_mode: ``"zscore"`` (float z-scores) or ``"seqslam"`` (OpenSeqSLAM rounding).
+        hidden: L2 units.
+        density: connection density of L1 -> L2.
+        density_out: connection density of L2 -> L3.
+        k_fraction: fraction of L2 units that win the k-WTA.
+        n_output: most L3 units; a route of ``R`` frames uses ``min(R, n_output)``.
+        ring_decay: weight of the shifted old activity in the ring.
+        ring_gain: weight of the new evidence (None: ``1 - ring_decay``).
+        ring_spread: largest lag that learns in the shift matrix.
+        ring_spread_decay: weight ratio between successive lags.
+        ring_stay: weight of lag 0 (a unit onto itself: slower repeats).
+        ring_wrap: the route is a closed loop (last place leads to the first).
+        n_cohorts: evidence is z-scored within this many contiguous blocks of units.
+        hebbian: ``"mean"`` (a unit's weights = mean code of its frames) or ``"centred"``
+            (minus the mean code of the whole route).
+        uniqueness_window: units around the winner ignored by the confidence margin.
+        eps: numerical floor of normalisations.
+        chunk: frames per batch in ``fit`` and ``run`` (memory bound, not a result change).
+        seed: seed of the random masks and L1 weights.
+    """
+
+    input_size: tuple[int, int] = (24, 32)
+    patch_size: int = 8
+    patch_mode: str = "zscore"
+    hidden: int = 3072
+    density: float = 0.2
+    density_out: float = 0.2
+    k_fraction: float = 0.05
+    n_output: int = 555
+    ring_decay: float = 0.9
+    ring_gain: float | None = None
+    ring_spread: int = 2
+    ring_spread_decay: float = 0.5
+    ring_stay: float = 0.5
+    ring_wrap: bool = False
+    n_cohorts: int = 1
+    hebbian: str = "mean"
+    uniqueness_window: int = 5
+    eps: float = 1e-6
+    chunk: int = 256
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        self.input_size = (int(self.input_size[0]), int(self.input_size[1]))
+
+    @property
+    def n_input(self) -> int:
+        """L1 units: ``H * W``."""
+        return self.input_size[0] * self.input_size[1]
+
+    @property
+    def k(self) -> int:
+        """L2 winners: ``max(1, round(k_fraction * hidden))``."""
+        return max(1, int(round(self.k_fraction * self.hidden)))
+
+    @property
+    def gain(self) -> float:
+        """Evidence weight in the ring."""
+        return 1.0 - self.ring_decay if self.ring_gain is None else float(self.ring_gain)
+
+    def validate(self) -> NeuralConfig:
+        """Raise :class:`NeuralError` with a one-line reason for any bad setting; return self."""
+        h, w = self.input_size
+        if h < 1 or w < 1:
+            raise NeuralError(f"input_size must be positive, got {self.input_size}")
+        p = self.patch_size
+        if p < 0 or (p and (h % p or w % p)):
+            raise NeuralError(f"input_size {self.input_size} is not a multiple of patch_size "
+                              f"{self.patch_size}")
+        if self.patch_mode not in ("zscore", "seqslam"):
+            raise NeuralError(f"patch_mode must be 'zscore' or 'seqslam', got {self.patch_mode!r}")
+        if self.hidden < 1 or self.n_output < 1:
+            raise NeuralError("hidden and n_output must be >= 1")
+        for name in ("density", "density_out", "k_fraction"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise NeuralError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+        if not 0.0 <= self.ring_decay < 1.0:
+            raise NeuralError(f"ring_decay must be in [0, 1), got {self.ring_decay}")
+        if self.gain <= 0:
+            raise NeuralError(f"ring_gain must be > 0, got {self.ring_gain}")
+        if self.ring_spread < 1 or self.ring_spread_decay < 0 or self.ring_stay < 0:
+            raise NeuralError("need ring_spread >= 1, ring_spread_decay >= 0, ring_stay >= 0")
+        if self.n_cohorts < 1:
+            raise NeuralError(f"n_cohorts must be >= 1, got {self.n_cohorts}")
+        if self.hebbian not in ("mean", "centred"):
+            raise NeuralError(f"hebbian must be 'mean' or 'centred', got {self.hebbian!r}")
+        if self.uniqueness_window < 0 or self.eps <= 0 or self.chunk < 1:
+            raise NeuralError("need uniqueness_window >= 0, eps > 0 and chunk >= 1")
+        return self
+
+    def to_dict(self) -> dict:
+        """Plain dict (JSON- and ``weights_only``-safe)."""
+        d = asdict(self)
+        d["input_size"] = list(self.input_size)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> NeuralConfig:
+        """Build from :meth:`to_dict` output; unknown keys raise :class:`NeuralError`."""
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise NeuralError(f"unknown NeuralConfig keys: {sorted(unknown)}")
+        return cls(**d).validate()

@@ -1,0 +1,381 @@
+"""``NeuralSeqSLAM``: a rate-coded place-recognition network whose memory is bounded.
+
+L1 (patch-normalised pixels) -> fixed random ``MaskedLinear`` -> L2 binary k-WTA code ->
+Hebbian ``MaskedLinear`` -> L3 evidence, z-scored within cohorts -> ``OutputRing`` that
+shifts activity along the learnt route -> the most active unit is the place. The exact
+equations of one step are in ``docs/neural.md`` ("Step maths").
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from torchseq.layers import KWinnersTakeAll, MaskedLinear, OutputRing, RingState
+from torchseq.layers.functional import cohort_normalise
+from torchseq.matches import Matches
+from torchseq.neural.config import NeuralConfig, NeuralError
+from torchseq.neural.learning import (
+    cohort_membership,
+    decide,
+    hebbian_weights,
+    recruit_units,
+)
+from torchseq.preprocess import patch_normalise, resize, to_grey
+
+FORMAT = "torchseq.neural/1"
+
+
+class NeuralStep(NamedTuple):
+    """Output of one streaming step.
+
+    Attributes:
+        reference: ``(B,)`` int64 reference frame of the winning unit (centre of its stretch).
+        confidence: ``(B,)`` float, higher = more confident (winner minus best rival).
+        activity: ``(B, N)`` output-ring activity.
+    """
+
+    reference: torch.Tensor
+    confidence: torch.Tensor
+    activity: torch.Tensor
+
+
+@dataclass
+class NeuralResult:
+    """A query traverse through the network.
+
+    Attributes:
+        matches: per-frame decisions (``lower_is_better=False``).
+        activity: ``(T, N)`` output-ring activity (a raster).
+        seconds: wall time of :meth:`NeuralSeqSLAM.run`.
+    """
+
+    matches: Matches
+    activity: torch.Tensor
+    seconds: float
+
+
+@dataclass
+class NeuralFitLog:
+    """What :meth:`NeuralSeqSLAM.fit` learnt.
+
+    Attributes:
+        winners: ``(T,)`` int64 unit recruited for each reference frame (firing order).
+        evidence: ``(T, N)`` normalised feed-forward evidence of each reference frame after
+            learning (a raster; its argmax should equal ``winners``).
+        unit_to_reference: ``(N, 2)`` int64 first and one-past-last reference frame per unit.
+        seconds: wall time of the fit.
+    """
+
+    winners: torch.Tensor
+    evidence: torch.Tensor
+    unit_to_reference: torch.Tensor
+    seconds: float
+
+
+class NeuralSeqSLAM(nn.Module):
+    """Neural SeqSLAM: learn a route in one pass with local rules, recognise it streaming.
+
+    Args:
+        config: settings (None: :class:`NeuralConfig` defaults).
+        device: where buffers live.
+    """
+
+    def __init__(self, config: NeuralConfig | None = None, device=None) -> None:
+        super().__init__()
+        self.config = (config or NeuralConfig()).validate()
+        cfg = self.config
+        self.l1 = MaskedLinear(cfg.n_input, cfg.hidden, cfg.density, bias=False, seed=cfg.seed,
+                               device=device)
+        self.l1.weight.requires_grad_(False)
+        self.l2 = KWinnersTakeAll(k=cfg.k, binary=True)
+        self.l3: MaskedLinear | None = None
+        self.ring: OutputRing | None = None
+        self._device = torch.device(device) if device is not None else torch.device("cpu")
+        self._folded: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    # ------------------------------------------------------------------ structure
+    @property
+    def n_units(self) -> int:
+        """Output units in use (0 before :meth:`fit`)."""
+        return 0 if self.l3 is None else self.l3.out_features
+
+    @property
+    def fitted(self) -> bool:
+        """True once the model has learnt a route."""
+        return self.l3 is not None
+
+    def _build_output(self, n_units: int) -> None:
+        cfg, dev = self.config, self.l1.weight.device
+        self.l3 = MaskedLinear(cfg.hidden, n_units, cfg.density_out, bias=False,
+                               seed=cfg.seed + 1, device=dev)
+        self.l3.weight.requires_grad_(False)
+        self.ring = OutputRing(n_units, cfg.ring_decay, cfg.gain, cfg.ring_spread,
+                               cfg.ring_spread_decay, cfg.ring_stay, cfg.ring_wrap, device=dev)
+        self.register_buffer("cohorts", cohort_membership(n_units, cfg.n_cohorts).to(dev))
+        self.register_buffer("unit_to_reference", torch.zeros(n_units, 2, dtype=torch.int64,
+                                                              device=dev))
+        self.register_buffer("unit_centre", torch.zeros(n_units, dtype=torch.int64, device=dev))
+        self._folded = None
+
+    def _require_fit(self) -> None:
+        if not self.fitted:
+            raise NeuralError("the model has not learnt a route yet: call fit(reference) first")
+
+    # ------------------------------------------------------------------ the step maths
+    def encode(self, frames: torch.Tensor) -> torch.Tensor:
+        """Preprocess raw frames into L1 activity.
+
+        Args:
+            frames: ``(B, H, W)`` grey or ``(B, H, W, 3)`` RGB, any size, 0..255.
+
+        Returns:
+            ``(B, input_size[0] * input_size[1])`` float32.
+        """
+        cfg = self.config
+        if frames.dim() not in (3, 4) or (frames.dim() == 4 and frames.shape[-1] != 3):
+            raise NeuralError(f"frames must be (B, H, W) or (B, H, W, 3), got "
+                              f"{tuple(frames.shape)}")
+        if frames.shape[0] == 0:
+            raise NeuralError("frames are empty (no frame in the batch)")
+        x = to_grey(frames.to(self.l1.weight.device)).to(torch.float32)
+        if not bool(torch.isfinite(x).all()):
+            raise NeuralError("frames hold NaN or infinite values")
+        x = resize(x, cfg.input_size)
+        if cfg.patch_size:
+            x = patch_normalise(x, cfg.patch_size, cfg.patch_mode)
+        return x.reshape(x.shape[0], -1)
+
+    def code(self, x: torch.Tensor) -> torch.Tensor:
+        """L1 -> L2: random masked projection then binary k-WTA. ``(B, 768) -> (B, hidden)``."""
+        w1 = self._folded[0] if self._folded is not None else None
+        h = torch.nn.functional.linear(x, w1) if w1 is not None else self.l1(x)
+        return self.l2(h)
+
+    def evidence(self, code: torch.Tensor) -> torch.Tensor:
+        """L2 -> L3 evidence, z-scored within cohorts. ``(B, hidden) -> (B, N)``."""
+        w3 = self._folded[1] if self._folded is not None else None
+        e = torch.nn.functional.linear(code, w3) if w3 is not None else self.l3(code)
+        return cohort_normalise(e, self.cohorts, self.config.eps)
+
+    def step(self, frames: torch.Tensor,
+             state: RingState | None = None) -> tuple[NeuralStep, RingState]:
+        """One streaming step for ``B`` independent streams.
+
+        Args:
+            frames: ``(B, H, W)`` (or ``(B, H, W, 3)``) one new frame per stream.
+            state: ring state from the previous step (None: start of the streams).
+
+        Returns:
+            ``(NeuralStep, new state)``.
+        """
+        self._require_fit()
+        if state is not None and (state.activity.dim() != 2
+                                  or state.activity.shape[1] != self.n_units
+                                  or state.activity.shape[0] != frames.shape[0]):
+            raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
+                              f"{tuple(state.activity.shape)}")
+        x = self.encode(frames)  # (B, 768)
+        e = self.evidence(self.code(x))  # (B, N)
+        activity, state = self.ring(e, state)
+        reference, confidence = decide(activity, self.unit_centre,
+                                       self.config.uniqueness_window)
+        return NeuralStep(reference, confidence, activity), state
+
+    forward = step
+
+    # ------------------------------------------------------------------ learning
+    @torch.no_grad()
+    def fit(self, reference: torch.Tensor, progress: bool = False,
+            log: bool = True) -> NeuralFitLog:
+        """Learn a route from one pass over its reference traverse (local rules, no backprop).
+
+        Units are recruited along the route in order (unit ``u`` stands for a contiguous
+        stretch of frames); L2 -> L3 weights take the mean L2 code of the unit's frames
+        within the mask (Hebbian, rows normalised); the ring's shift matrix learns from the
+        order in which units fired.
+
+        Args:
+            reference: ``(T, H, W)`` or ``(T, H, W, 3)`` frames, any size, 0..255, ``T >= 2``.
+            progress: show a progress bar.
+            log: also compute the reference evidence raster (a second feed-forward pass).
+
+        Returns:
+            :class:`NeuralFitLog`.
+        """
+        t0 = time.perf_counter()
+        if reference.dim() not in (3, 4) or reference.shape[0] < 2:
+            raise NeuralError(f"reference must be (T, H, W) with T >= 2 frames, got "
+                              f"{tuple(reference.shape)}")
+        cfg = self.config
+        t_len = reference.shape[0]
+        n_units = min(t_len, cfg.n_output)
+        self._build_output(n_units)
+        unit_of_frame, spans = recruit_units(t_len, n_units)
+        dev = self.l1.weight.device
+        sums = torch.zeros(n_units, cfg.hidden, device=dev)
+        total = torch.zeros(cfg.hidden, device=dev)
+        for lo in _chunks(t_len, cfg.chunk, progress, "fit"):
+            hi = min(lo + cfg.chunk, t_len)
+            c = self.code(self.encode(reference[lo:hi]))
+            sums.index_add_(0, unit_of_frame[lo:hi].to(dev), c)
+            total += c.sum(0)
+        counts = (spans[:, 1] - spans[:, 0]).to(dev, torch.float32)
+        w = hebbian_weights(sums, counts, total / t_len, self.l3.mask, cfg.hebbian, cfg.eps)
+        self.l3.weight.copy_(w)
+        self.ring.learn(unit_of_frame)
+        self.unit_to_reference.copy_(spans.to(dev))
+        self.unit_centre.copy_(((spans[:, 0] + spans[:, 1] - 1) // 2).to(dev))
+        evidence = torch.empty(0, n_units)
+        if log:
+            parts = [self.evidence(self.code(self.encode(reference[lo:lo + cfg.chunk])))
+                     for lo in range(0, t_len, cfg.chunk)]
+            evidence = torch.cat(parts).cpu()
+        return NeuralFitLog(unit_of_frame, evidence, spans, time.perf_counter() - t0)
+
+    # ------------------------------------------------------------------ recognition
+    @torch.inference_mode()
+    def run(self, query: torch.Tensor, progress: bool = False) -> NeuralResult:
+        """Stream a whole query traverse through the network (one stream).
+
+        The feed-forward part runs in batches of ``config.chunk`` frames (it does not
+        depend on the state); the ring then steps frame by frame. Same numbers as calling
+        :meth:`step` once per frame.
+
+        Args:
+            query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames.
+            progress: show a progress bar.
+
+        Returns:
+            :class:`NeuralResult`.
+        """
+        t0 = time.perf_counter()
+        self._require_fit()
+        if query.dim() not in (3, 4) or query.shape[0] == 0:
+            raise NeuralError(f"query must be a non-empty (T, H, W), got {tuple(query.shape)}")
+        cfg = self.config
+        self.fold()
+        ring, shift = self.ring, self.ring.shift
+        decay, gain = ring.params
+        activity = torch.empty(query.shape[0], self.n_units, device=shift.device)
+        a = torch.zeros(1, self.n_units, device=shift.device)
+        for lo in _chunks(query.shape[0], cfg.chunk, progress, "run"):
+            e = self.evidence(self.code(self.encode(query[lo:lo + cfg.chunk])))  # (b, N)
+            e = e * gain
+            for i in range(e.shape[0]):  # the ring: a_t = decay * a_{t-1} @ S.T + gain * e_t
+                a = torch.addmm(e[i:i + 1], a, shift.T, alpha=decay)
+                activity[lo + i] = a[0]
+        reference, confidence = decide(activity, self.unit_centre, cfg.uniqueness_window)
+        matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
+        return NeuralResult(matches, activity.cpu(), time.perf_counter() - t0)
+
+    def fold(self) -> None:
+        """Cache ``weight * mask`` of both masked layers as dense tensors (fast inference).
+
+        Called by :meth:`run`; cleared by :meth:`fit` and :meth:`load_state_dict`.
+        """
+        self._require_fit()
+        if self._folded is None:
+            with torch.inference_mode(False), torch.no_grad():
+                self._folded = (self.l1.folded_weight(), self.l3.folded_weight())
+
+    def unfold(self) -> None:
+        """Drop the folded weights (the next call recomputes ``weight * mask``)."""
+        self._folded = None
+
+    # ------------------------------------------------------------------ persistence
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Load a state dict, first sizing the output layers from it."""
+        if "unit_to_reference" in state_dict:
+            n = int(state_dict["unit_to_reference"].shape[0])
+            if n != self.n_units:
+                self._build_output(n)
+        self._folded = None
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    def save(self, path: str | Path, extra: dict | None = None) -> None:
+        """Write the model atomically: ``{"format", "config", "state_dict", "extra"}``.
+
+        Args:
+            path: target file.
+            extra: anything ``torch.load(weights_only=True)`` can read back (plain types).
+        """
+        self._require_fit()
+        path = Path(path)
+        blob = {"format": FORMAT, "config": self.config.to_dict(),
+                "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
+                "extra": dict(extra or {})}
+        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent or ".")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                torch.save(blob, f)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    @classmethod
+    def load(cls, path: str | Path, map_location=None) -> NeuralSeqSLAM:
+        """Read a model written by :meth:`save` (the config travels with it).
+
+        Raises:
+            NeuralError: missing or unreadable file, or an unknown format.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise NeuralError(f"no such checkpoint: {path}")
+        try:
+            blob = torch.load(path, map_location=map_location, weights_only=True)
+        except Exception as err:  # truncated or foreign file
+            raise NeuralError(f"{path}: not a readable torchseq checkpoint ({err})") from err
+        if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+            got = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
+            raise NeuralError(f"{path}: format {got!r} is not {FORMAT!r}")
+        cfg = NeuralConfig.from_dict(blob["config"])
+        sd = blob["state_dict"]
+        device = sd["l1.weight"].device if map_location is not None else None
+        model = cls(cfg, device=device)
+        model.load_state_dict(sd)
+        model.extra = blob.get("extra", {})
+        return model
+
+    # ------------------------------------------------------------------ memory
+    def model_bytes(self, masked_only: bool = False) -> int:
+        """Bytes of everything the model stores (``state_dict``).
+
+        Args:
+            masked_only: count only the weights inside the masks (as a sparse store would,
+                value only) plus every other buffer, instead of the dense tensors.
+        """
+        total = 0
+        for name, t in self.state_dict().items():
+            if masked_only and name.endswith(".weight"):
+                mask = self.state_dict()[name[: -len("weight")] + "mask"]
+                total += int(mask.sum()) * t.element_size()
+            elif masked_only and name.endswith(".mask"):
+                continue
+            else:
+                total += t.numel() * t.element_size()
+        return total
+
+
+def seqslam_bytes(n_reference: int, descriptor: int = 2048, itemsize: int = 4) -> int:
+    """Bytes classic SeqSLAM keeps for a route: ``R x descriptor`` float32 descriptors."""
+    return int(n_reference) * int(descriptor) * int(itemsize)
+
+
+def _chunks(n: int, size: int, progress: bool, desc: str):
+    starts = range(0, n, size)
+    if progress:
+        from tqdm import tqdm
+
+        return tqdm(starts, desc=desc, unit="chunk")
+    return starts
