@@ -1,0 +1,131 @@
+"""A plain, loop-based SeqSLAM written from the OpenSeqSLAM description (NumPy, float64).
+
+Independent of ``torchseq.seqslam`` on purpose (it must not import it): it mirrors the MATLAB
+structure (loop over queries, then starts, then velocities) and serves as the tests' oracle
+and the benchmark's "loop" baseline.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def oracle_difference(ref: np.ndarray, query: np.ndarray, metric: str = "l1") -> np.ndarray:
+    """(R, D), (Q, D) -> (R, Q) distances, one pair at a time."""
+    ref = np.asarray(ref, np.float64)
+    query = np.asarray(query, np.float64)
+    out = np.zeros((len(ref), len(query)))
+    for i in range(len(ref)):
+        for j in range(len(query)):
+            a, b = ref[i], query[j]
+            if metric == "l1":
+                out[i, j] = np.sum(np.abs(a - b))
+            elif metric == "l2":
+                out[i, j] = math.sqrt(np.sum((a - b) ** 2))
+            elif metric == "cosine":
+                na, nb = np.linalg.norm(a), np.linalg.norm(b)
+                out[i, j] = 1.0 - (float(a @ b) / (na * nb) if na > 0 and nb > 0 else 0.0)
+            else:
+                raise ValueError(metric)
+    return out
+
+
+def oracle_enhance(d: np.ndarray, window: int = 10, subtract_min: bool = True) -> np.ndarray:
+    """Local contrast enhancement, one entry at a time (std 0 -> 0)."""
+    d = np.asarray(d, np.float64)
+    n_ref, n_query = d.shape
+    out = np.zeros_like(d)
+    half = window // 2
+    for i in range(n_ref):
+        a, b = max(0, i - half), min(n_ref - 1, i + half)
+        for j in range(n_query):
+            vals = d[a:b + 1, j]
+            mean = vals.sum() / len(vals)
+            std = math.sqrt(((vals - mean) ** 2).sum() / (len(vals) - 1))
+            out[i, j] = 0.0 if std == 0 else (d[i, j] - mean) / std
+    if subtract_min:
+        out = out - out.min()
+    return out
+
+
+def oracle_velocities(ds: int, vmin: float, vmax: float) -> list[tuple[int, int]]:
+    """Velocities as exact fractions ``(m, ds)``, m from ceil(vmin ds) to floor(vmax ds)."""
+    lo = math.ceil(round(vmin * ds, 6))
+    hi = math.floor(round(vmax * ds, 6))
+    return [(m, ds) for m in range(lo, hi + 1)]
+
+
+def _scores_for_window(dext: np.ndarray, col0: int, ds: int, vels):
+    """Scores of every start 0..R (dext has the inf row R) and the best velocity index."""
+    n_rows = dext.shape[0]  # R + 1
+    score = np.full(n_rows, np.inf)
+    best_v = np.zeros(n_rows, dtype=int)
+    for s in range(n_rows):
+        for vi, (m, den) in enumerate(vels):
+            cost = 0.0
+            for k in range(ds + 1):
+                row = min(s + (k * m) // den, n_rows - 1)
+                cost += dext[row, col0 + k]
+            if cost < score[s]:
+                score[s], best_v[s] = cost, vi
+    return score, best_v
+
+
+def _uniqueness(score: np.ndarray, s: int, rwindow: int) -> float:
+    half = rwindow // 2
+    outside = [score[x] for x in range(len(score)) if not (s - half <= x <= s + half)]
+    second = min(outside) if outside else np.inf
+    if second == 0:
+        return 1.0
+    return float(score[s] / second)
+
+
+def oracle_seqslam(enhanced: np.ndarray, ds: int = 10, vmin: float = 0.8, vmax: float = 1.2,
+                   rwindow: int = 10, top_k: int = 10):
+    """OpenSeqSLAM's findMatches with loops. Returns match, best score, uniqueness, ranked."""
+    ds = ds + ds % 2
+    n_ref, n_query = enhanced.shape
+    dext = np.vstack([np.asarray(enhanced, np.float64), np.full((1, n_query), np.inf)])
+    vels = oracle_velocities(ds, vmin, vmax)
+    match = np.full(n_query, -1)
+    best = np.full(n_query, np.nan)
+    uniq = np.full(n_query, np.nan)
+    ranked = np.full((n_query, top_k), -1)
+    for n in range(ds // 2, n_query - ds // 2):
+        score, _ = _scores_for_window(dext, n - ds // 2, ds, vels)
+        s = int(np.argmin(score))
+        best[n] = score[s]
+        order = np.argsort(score, kind="stable")[:top_k]
+        for r, x in enumerate(order):
+            if np.isfinite(score[x]):
+                ranked[n, r] = min(x + ds // 2, n_ref - 1)
+        if not np.isfinite(score[s]):
+            continue
+        match[n] = min(s + ds // 2, n_ref - 1)
+        uniq[n] = _uniqueness(score, s, rwindow)
+    return match, best, uniq, ranked
+
+
+def oracle_streaming(difference: np.ndarray, ds: int = 10, vmin: float = 0.8,
+                     vmax: float = 1.2, rwindow: int = 10, window: int = 10):
+    """Trailing-window rule: enhancement per column, column-minimum subtraction, and the
+    reference at the trajectory end. Returns (Q,) reference and uniqueness."""
+    ds = ds + ds % 2
+    e = oracle_enhance(difference, window, subtract_min=False)
+    e = e - e.min(axis=0, keepdims=True)
+    n_ref, n_query = e.shape
+    dext = np.vstack([e, np.full((1, n_query), np.inf)])
+    vels = oracle_velocities(ds, vmin, vmax)
+    ref = np.full(n_query, -1)
+    uniq = np.full(n_query, np.nan)
+    for t in range(ds, n_query):
+        score, best_v = _scores_for_window(dext, t - ds, ds, vels)
+        s = int(np.argmin(score))
+        if not np.isfinite(score[s]):
+            continue
+        m, den = vels[best_v[s]]
+        ref[t] = min(s + (ds * m) // den, n_ref - 1)
+        uniq[t] = _uniqueness(score, s, rwindow)
+    return ref, uniq

@@ -1,0 +1,93 @@
+"""Parameters of the classic SeqSLAM engine, with OpenSeqSLAM's meanings and defaults."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+METRICS = ("l1", "l2", "cosine")
+
+
+@dataclass
+class SeqSLAMConfig:
+    """Everything the classic engine needs; ``dataclasses.asdict`` gives a JSON-ready dict.
+
+    Attributes:
+        image_size: ``(height, width)`` frames are resized to (OpenSeqSLAM: 32 x 64).
+        patch_size: patch-normalisation block side in pixels; 0 disables it.
+        metric: ``"l1"`` (sum of absolute differences, OpenSeqSLAM), ``"l2"`` (Euclidean) or
+            ``"cosine"`` (1 - cosine similarity).
+        enhance_window: local contrast enhancement window R in reference rows (0 = off).
+        ds: sequence length in query frames; odd values are rounded up to even.
+        vmin: slowest trajectory velocity, reference frames per query frame.
+        vmax: fastest trajectory velocity.
+        speed_ratio: if set, a known speed ratio (reference frames per query frame) that
+            replaces ``vmin``/``vmax`` by ``ratio * (1 -+ speed_tolerance)``.
+        speed_tolerance: fractional tolerance around ``speed_ratio``.
+        rwindow: uniqueness exclusion window Rwindow, in starts around the best one.
+        top_k: ranked candidates kept per query (for recall@K).
+        max_chunk_elements: memory budget, in elements of the working dtype, of every chunked
+            temporary (difference blocks, enhancement blocks, trajectory scores).
+    """
+
+    image_size: tuple[int, int] = (32, 64)
+    patch_size: int = 8
+    metric: str = "l1"
+    enhance_window: int = 10
+    ds: int = 10
+    vmin: float = 0.8
+    vmax: float = 1.2
+    speed_ratio: float | None = None
+    speed_tolerance: float = 0.2
+    rwindow: int = 10
+    top_k: int = 10
+    max_chunk_elements: int = 2**26
+
+    def validate(self) -> SeqSLAMConfig:
+        """Raise ``ValueError`` on nonsense values; return ``self`` for chaining."""
+        h, w = self.image_size
+        if h <= 0 or w <= 0:
+            raise ValueError(f"image_size must be positive, got {self.image_size}")
+        p = self.patch_size
+        if p < 0 or (p and (h % p or w % p)):
+            raise ValueError(
+                f"patch_size {self.patch_size} must be 0 or divide image_size {self.image_size}")
+        if self.metric not in METRICS:
+            raise ValueError(f"metric must be one of {METRICS}, got {self.metric!r}")
+        if self.enhance_window == 1 or self.enhance_window < 0:
+            raise ValueError(f"enhance_window must be 0 (off) or >= 2, got {self.enhance_window}")
+        if self.ds < 2:
+            raise ValueError(f"ds must be >= 2, got {self.ds}")
+        if self.speed_ratio is not None:
+            if not math.isfinite(self.speed_ratio) or self.speed_ratio <= 0:
+                raise ValueError(f"speed_ratio must be > 0, got {self.speed_ratio}")
+            if not 0 <= self.speed_tolerance < 1:
+                raise ValueError(f"speed_tolerance must be in [0, 1), got {self.speed_tolerance}")
+        vmin, vmax = self.velocity_range
+        if not (math.isfinite(vmin) and math.isfinite(vmax)) or vmin <= 0:
+            raise ValueError(f"vmin must be > 0, got {vmin}")
+        if vmin > vmax:
+            raise ValueError(f"vmin {vmin} must not exceed vmax {vmax}")
+        if self.rwindow < 0:
+            raise ValueError(f"rwindow must be >= 0, got {self.rwindow}")
+        if self.top_k < 1:
+            raise ValueError(f"top_k must be >= 1, got {self.top_k}")
+        if self.max_chunk_elements < 1:
+            raise ValueError(f"max_chunk_elements must be >= 1, got {self.max_chunk_elements}")
+        from torchseq.seqslam.search import velocities
+
+        velocities(self.sequence_length, vmin, vmax)  # raises when the range holds no step
+        return self
+
+    @property
+    def sequence_length(self) -> int:
+        """``ds`` rounded up to even, as OpenSeqSLAM uses it."""
+        return int(self.ds) + int(self.ds) % 2
+
+    @property
+    def velocity_range(self) -> tuple[float, float]:
+        """``(vmin, vmax)`` after applying ``speed_ratio`` when it is set."""
+        if self.speed_ratio is None:
+            return float(self.vmin), float(self.vmax)
+        r, tol = float(self.speed_ratio), float(self.speed_tolerance)
+        return r * (1.0 - tol), r * (1.0 + tol)

@@ -1,0 +1,179 @@
+"""Sequence search: score every straight trajectory through the enhanced difference matrix.
+
+For query centre ``N`` the trajectory of start ``s`` and velocity ``v`` visits reference row
+``min(s + floor(k v), R)`` at query column ``N - ds/2 + k``, ``k = 0..ds``; row ``R`` is an
+appended row of ``+inf`` (OpenSeqSLAM), so trajectories that run off the reference score
+``inf``. Tensorised as shifted slices: for a block of queries, velocity ``v`` and step ``k``
+the costs of all starts of all queries are one slice ``D'^T[cols + k, off_k : off_k + L]``
+of the query-major matrix, summed over ``k`` (no gather, no Python loop over frames or
+references; only the handful of velocities and the ``ds + 1`` steps are looped).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from tqdm import tqdm
+
+from torchseq._checks import check_not_empty, check_shape
+
+_EPS = 1e-9
+# Score blocks on CPU are kept about this size (elements) so they stay in the L2 cache.
+CPU_BLOCK_ELEMENTS = 2**18
+
+
+def velocities(ds: int, vmin: float = 0.8, vmax: float = 1.2) -> list[float]:
+    """Trajectory velocities ``m / ds`` for every integer ``m`` in ``[vmin ds, vmax ds]``.
+
+    Args:
+        ds: sequence length (already even).
+        vmin: slowest velocity, reference frames per query frame.
+        vmax: fastest velocity.
+
+    Returns:
+        Increasing list of velocities (``0.8*10`` counts as 8 thanks to a small epsilon).
+    """
+    if ds < 1 or not vmin > 0 or not vmax >= vmin:
+        raise ValueError(f"need ds >= 1 and 0 < vmin <= vmax, got ds={ds}, [{vmin}, {vmax}]")
+    lo, hi = math.ceil(vmin * ds - _EPS), math.floor(vmax * ds + _EPS)
+    if hi < lo:
+        raise ValueError(f"no velocity m/{ds} lies in [{vmin}, {vmax}]: widen the range")
+    return [m / ds for m in range(lo, hi + 1)]
+
+
+def trajectory_offsets(ds: int, speeds: Sequence[float]) -> list[list[int]]:
+    """``floor(k v)`` for ``k = 0..ds``, one list per velocity."""
+    return [[math.floor(k * v + _EPS) for k in range(ds + 1)] for v in speeds]
+
+
+def trajectory_scores(
+    d_t: torch.Tensor, first: int, last: int, ds: int, offsets: list[list[int]],
+    with_velocity: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Best (over velocities) score of every start for query centres ``first .. last - 1``.
+
+    Args:
+        d_t: ``(Q, R)`` query-major enhanced difference matrix.
+        first: first query centre (``>= ds / 2``).
+        last: one past the last centre (``<= Q - ds / 2``).
+        ds: even sequence length.
+        offsets: per velocity, the row offsets of the ``ds + 1`` steps.
+        with_velocity: also return the index of the best velocity (ties -> slowest).
+
+    Returns:
+        ``(C, R + 1)`` scores (start ``R`` is the appended inf row) and ``(C, R + 1)`` int64
+        velocity indices or None.
+    """
+    n_ref = d_t.shape[1]
+    rows = last - first
+    base = first - ds // 2
+    best = torch.full((rows, n_ref + 1), math.inf, dtype=d_t.dtype, device=d_t.device)
+    best_v = None
+    if with_velocity:
+        best_v = torch.zeros(best.shape, dtype=torch.int64, device=d_t.device)
+    acc = torch.empty_like(best)
+    for vi, off in enumerate(offsets):
+        width = max(0, n_ref - off[-1])  # starts whose whole trajectory stays inside
+        acc.fill_(math.inf)
+        if width:
+            head = acc[:, :width]
+            head.copy_(d_t[base:base + rows, off[0]:off[0] + width])
+            for k in range(1, ds + 1):
+                head += d_t[base + k:base + k + rows, off[k]:off[k] + width]
+        if with_velocity:
+            best_v.masked_fill_(acc < best, vi)
+        torch.minimum(best, acc, out=best)
+    return best, best_v
+
+
+def rank_scores(
+    scores: torch.Tensor, ds: int, n_ref: int, rwindow: int, top_k: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Best start, uniqueness ratio and top-K candidates from ``(C, R + 1)`` start scores.
+
+    Returns:
+        ``(C,)`` best start, ``(C,)`` best score, ``(C,)`` uniqueness (best / best outside
+        ``start +- rwindow // 2``; 0 when everything outside is inf, 1 when it is 0, NaN when
+        the best is inf) and ``(C, top_k)`` ranked references (``start + ds / 2`` clamped to
+        ``R - 1``, ``-1`` for inf scores).
+    """
+    rows, n_starts = scores.shape
+    start = scores.argmin(dim=1)  # first minimum: ties -> lowest start
+    best = scores.gather(1, start[:, None])[:, 0]
+    idx = torch.arange(n_starts, device=scores.device)
+    half = rwindow // 2
+    inside = (idx[None] >= (start - half)[:, None]) & (idx[None] <= (start + half)[:, None])
+    second = scores.masked_fill(inside, math.inf).min(dim=1).values
+    ratio = torch.where(second > 0, best / torch.where(second > 0, second, 1.0),
+                        torch.ones_like(best))  # 0 / 0: nothing is distinctive -> 1
+    ratio = torch.where(torch.isfinite(best), ratio, torch.full_like(ratio, math.nan))
+    k = min(top_k, n_starts)
+    vals, cand = torch.topk(scores, k, dim=1, largest=False, sorted=True)
+    order = cand.argsort(dim=1)  # make ties come out lowest start first
+    cand, vals = cand.gather(1, order), vals.gather(1, order)
+    order = vals.argsort(dim=1, stable=True)
+    cand, vals = cand.gather(1, order), vals.gather(1, order)
+    ranked = torch.where(torch.isfinite(vals), (cand + ds // 2).clamp_max(n_ref - 1), -1)
+    if k < top_k:
+        ranked = torch.cat([ranked, ranked.new_full((rows, top_k - k), -1)], dim=1)
+    return start, best, ratio, ranked
+
+
+def search(
+    enhanced: torch.Tensor,
+    ds: int,
+    speeds: Sequence[float],
+    rwindow: int = 10,
+    top_k: int = 10,
+    max_chunk_elements: int = 2**26,
+    progress: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Match every query by its best trajectory (OpenSeqSLAM's ``findMatches``).
+
+    Args:
+        enhanced: ``(R, Q)`` contrast-enhanced difference matrix.
+        ds: sequence length; odd values are rounded up to even.
+        speeds: trajectory velocities (see :func:`velocities`).
+        rwindow: uniqueness exclusion window.
+        top_k: ranked candidates per query.
+        max_chunk_elements: bound on the elements of each ``(C, R + 1)`` score block.
+        progress: show a progress bar over query blocks.
+
+    Returns:
+        ``match (Q,)`` int64 reference (``-1`` when unscored or no finite trajectory),
+        ``best_score (Q,)`` (NaN when unscored), ``uniqueness (Q,)`` (NaN when no match) and
+        ``ranked (Q, top_k)`` int64 (``-1`` when none), all on the input's device.
+    """
+    check_shape(enhanced, ("R", "Q"), "enhanced difference matrix")
+    check_not_empty(enhanced, "enhanced difference matrix")
+    if len(speeds) == 0 or min(speeds) <= 0:
+        raise ValueError("speeds must be a non-empty list of positive velocities")
+    ds = int(ds) + int(ds) % 2
+    n_ref, n_query = enhanced.shape
+    if n_query < ds + 1:
+        raise ValueError(f"need at least ds + 1 = {ds + 1} query frames, got {n_query}")
+    d_t = enhanced.T.contiguous()  # (Q, R); free when the input is a transposed view
+    offsets = trajectory_offsets(ds, speeds)
+    dev, dtype = enhanced.device, enhanced.dtype
+    match = torch.full((n_query,), -1, dtype=torch.int64, device=dev)
+    best_score = torch.full((n_query,), math.nan, dtype=dtype, device=dev)
+    uniqueness = torch.full((n_query,), math.nan, dtype=dtype, device=dev)
+    ranked = torch.full((n_query, top_k), -1, dtype=torch.int64, device=dev)
+    budget = max_chunk_elements
+    if dev.type != "cuda":
+        budget = min(budget, CPU_BLOCK_ELEMENTS)
+    rows = max(1, budget // (n_ref + 1))
+    first, stop = ds // 2, n_query - ds // 2
+    for c0 in tqdm(range(first, stop, rows), desc="sequence search", disable=not progress,
+                   leave=False):
+        c1 = min(c0 + rows, stop)
+        scores, _ = trajectory_scores(d_t, c0, c1, ds, offsets)
+        start, best, ratio, rank = rank_scores(scores, ds, n_ref, rwindow, top_k)
+        ok = torch.isfinite(best)
+        match[c0:c1] = torch.where(ok, (start + ds // 2).clamp_max(n_ref - 1), -1)
+        best_score[c0:c1] = best
+        uniqueness[c0:c1] = ratio
+        ranked[c0:c1] = rank
+    return match, best_score, uniqueness, ranked
