@@ -1,0 +1,188 @@
+"""jAER AEDAT 2.0: ``#`` text header lines, then big-endian (int32 address, int32 time in us).
+
+Address layouts (jAER's own extractors; x is mirrored by jAER, y counts up from the bottom):
+
+- DVS128: ``x_raw = (a >> 1) & 0x7F``, ``y_raw = (a >> 8) & 0x7F``, bit 0 set = OFF;
+  bit 15 marks external/sync events, which are skipped.
+- DAVIS: bit 31 clear = DVS event (bit 31 set = APS sample or IMU sample, skipped; bit 10 set
+  with bit 31 clear = external input event, skipped); ``y_raw`` bits 22..30, ``x_raw`` bits
+  12..21, bit 11 set = ON.
+
+torchseq stores ``x = W - 1 - x_raw`` (jAER's mirror) and ``y = H - 1 - y_raw`` (rows counted
+from the top, as in images) unless ``flip_y=False``. Timestamps are read as unsigned 32-bit
+and unwrapped: a backward jump of more than 2**31 us is a counter wrap and adds 2**32.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from torchseq.events.atomic import atomic_write
+from torchseq.events.stream import EventFormatError, EventStream, make_events
+
+MAGIC = b"#!AER-DAT2.0"
+RECORD = np.dtype([("a", ">u4"), ("t", ">u4")])
+WRAP = 1 << 32
+CHIPS = {  # AEChip/HardwareInterface name fragment -> (layout, (W, H))
+    "DVS128": ("dvs128", (128, 128)),
+    "DAVIS240": ("davis", (240, 180)),
+    "DAVIS346": ("davis", (346, 260)),
+    "DAVIS128": ("davis", (128, 128)),
+    "DAVIS640": ("davis", (640, 480)),
+}
+_TEXT = set(range(0x20, 0x7F)) | {0x09, 0x0D}
+
+
+def read_header(f) -> tuple[int, list[str]]:
+    """Read the ``#`` header lines of an open binary file; returns (byte length, lines)."""
+    lines, size = [], 0
+    while True:
+        pos = f.tell()
+        line = f.readline(65536)
+        # a header line is '#' + printable ASCII + newline; a binary record that happens to
+        # start with '#' (0x23) fails this test, so it is not swallowed as a header line
+        if not line.startswith(b"#") or not line.endswith(b"\n") or not set(line[:-1]) <= _TEXT:
+            f.seek(pos)
+            return size, lines
+        lines.append(line.decode("ascii").rstrip("\r\n"))
+        size += len(line)
+
+
+def detect_chip(lines: list[str]) -> tuple[str, tuple[int, int]] | None:
+    """``(layout, (W, H))`` from the header's torchseq/AEChip/HardwareInterface lines."""
+    for line in lines:
+        m = re.match(r"#\s*torchseq layout: (\w+) sensor_size: (\d+)x(\d+)", line)
+        if m:
+            return m.group(1), (int(m.group(2)), int(m.group(3)))
+    for key in ("AEChip", "HardwareInterface"):
+        for line in lines:
+            if re.match(rf"#\s*{key}\s*:", line):
+                for frag, chip in CHIPS.items():
+                    if frag.lower() in line.lower():
+                        return chip
+    return None
+
+
+def decode(records: np.ndarray, layout: str, sensor_size: tuple[int, int],
+           flip_y: bool, state: dict) -> np.ndarray:
+    """Decode ``(N,)`` :data:`RECORD` rows to events; ``state`` carries the time unwrap."""
+    a = records["a"].astype(np.int64)
+    t = records["t"].astype(np.int64)
+    if len(t):
+        prev = np.r_[state.get("last", t[0]), t[:-1]]
+        wraps = np.cumsum(t - prev < -(1 << 31)) + state.get("wraps", 0)
+        state["last"], state["wraps"] = int(t[-1]), int(wraps[-1])
+        t = t + wraps * WRAP
+    w, h = sensor_size
+    if layout == "dvs128":
+        keep = (a & 0xFFFF8000) == 0
+        x_raw, y_raw, p = (a >> 1) & 0x7F, (a >> 8) & 0x7F, 1 - (a & 1)
+    elif layout == "davis":
+        keep = (a & ((1 << 31) | (1 << 10))) == 0
+        x_raw, y_raw, p = (a >> 12) & 0x3FF, (a >> 22) & 0x1FF, (a >> 11) & 1
+    else:
+        raise EventFormatError(f"unknown AEDAT 2.0 layout {layout!r} (use 'dvs128' or 'davis')")
+    x_raw, y_raw = x_raw[keep], y_raw[keep]
+    y = h - 1 - y_raw if flip_y else y_raw
+    return make_events(t[keep], w - 1 - x_raw, y, p[keep])
+
+
+def iter_aedat2(path: str | Path, chunk_events: int = 1 << 20,
+                sensor_size: tuple[int, int] | None = None, layout: str | None = None,
+                flip_y: bool = True, truncated: str = "error") -> Iterator[EventStream]:
+    """Stream an AEDAT 2.0 file in chunks of ``chunk_events`` records (APS/IMU dropped).
+
+    Args:
+        path: the ``.aedat`` file.
+        chunk_events: records read per chunk.
+        sensor_size: ``(W, H)`` override (needed when the header names no known chip).
+        layout: ``"dvs128"`` or ``"davis"``; default from the header.
+        flip_y: store rows from the top (image convention) instead of jAER's bottom-up rows.
+        truncated: a partial last record: ``"error"`` (default) or ``"drop"`` with a warning.
+
+    Yields:
+        :class:`EventStream` chunks, time order not yet checked (see ``read_events``).
+    """
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(len(MAGIC))
+        if head != MAGIC:
+            raise EventFormatError(f"{path}: not an AEDAT 2.0 file (starts {head!r})")
+        f.seek(0)
+        header_len, lines = read_header(f)
+        chip = detect_chip(lines)
+        if layout is None:
+            if chip is None and sensor_size is None:
+                raise EventFormatError(f"{path}: header names no known chip; pass layout= "
+                                       f"('dvs128' or 'davis') and sensor_size=")
+            layout = chip[0] if chip else ("dvs128" if tuple(sensor_size) == (128, 128)
+                                           else "davis")
+        size = tuple(sensor_size) if sensor_size is not None else (
+            chip[1] if chip else (128, 128) if layout == "dvs128" else None)
+        if size is None:
+            raise EventFormatError(f"{path}: pass sensor_size= for a DAVIS file of unknown chip")
+        body = path.stat().st_size - header_len
+        if body % RECORD.itemsize:
+            msg = (f"{path}: truncated, {body % RECORD.itemsize} trailing byte(s) after "
+                   f"{body // RECORD.itemsize} whole 8-byte records")
+            if truncated != "drop":
+                raise EventFormatError(msg + "; pass truncated='drop' to ignore them")
+            warnings.warn(msg + ", dropped", stacklevel=2)
+        n_left, state = body // RECORD.itemsize, {}
+        while True:
+            n = min(chunk_events, n_left)
+            records = np.fromfile(f, RECORD, n)
+            if len(records) < n:
+                raise EventFormatError(f"{path}: file shrank while reading")
+            n_left -= n
+            if n == 0 and state:
+                return
+            yield EventStream(decode(records, layout, size, flip_y, state), size)
+            if n_left == 0:
+                return
+
+
+def write_aedat2(path: str | Path, stream: EventStream, layout: str = "dvs128",
+                 flip_y: bool = True) -> None:
+    """Write events as AEDAT 2.0 (atomically), inverting :func:`iter_aedat2`'s conventions.
+
+    Args:
+        path: output ``.aedat`` file.
+        stream: events; ``t`` must be >= 0 and is stored modulo 2**32 (the reader unwraps it).
+        layout: ``"dvs128"`` (needs a 128x128 sensor) or ``"davis"`` (up to 1024x512).
+        flip_y: the events' rows count from the top (as :func:`iter_aedat2` returns them).
+    """
+    ev, (w, h) = stream.events, stream.sensor_size
+    stream.validate()
+    if len(ev) and ev["t"][0] < 0:
+        raise EventFormatError("AEDAT 2.0 timestamps must be >= 0")
+    x_raw = (w - 1 - ev["x"]).astype(np.int64)
+    y_raw = (h - 1 - ev["y"] if flip_y else ev["y"]).astype(np.int64)
+    p = ev["p"].astype(np.int64)
+    if layout == "dvs128":
+        if (w, h) != (128, 128):
+            raise EventFormatError(f"the DVS128 layout needs a 128x128 sensor, got {w}x{h}")
+        addr = (y_raw << 8) | (x_raw << 1) | (1 - p)
+        chip = "ch.unizh.ini.jaer.chip.retina.DVS128"
+    elif layout == "davis":
+        if w > 1024 or h > 512:
+            raise EventFormatError(f"the DAVIS layout holds at most 1024x512, got {w}x{h}")
+        addr = (y_raw << 22) | (x_raw << 12) | (p << 11)
+        chip = "eu.seebetter.ini.chips.davis.DAVIS240C" if (w, h) == (240, 180) else "unknown"
+    else:
+        raise EventFormatError(f"unknown AEDAT 2.0 layout {layout!r} (use 'dvs128' or 'davis')")
+    records = np.empty(len(ev), RECORD)
+    records["a"], records["t"] = addr, ev["t"] % WRAP
+    header = "".join(f"{line}\r\n" for line in (
+        MAGIC.decode(), "# This is a raw AE data file written by torchseq",
+        "# Data format is int32 address, int32 timestamp (8 bytes total), repeated for each event",
+        "# Timestamps tick is 1 us", f"# AEChip: {chip}",
+        f"# torchseq layout: {layout} sensor_size: {w}x{h}"))
+    with atomic_write(path) as f:
+        f.write(header.encode("ascii"))
+        f.write(records.tobytes())

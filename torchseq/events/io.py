@@ -1,0 +1,133 @@
+"""One entry point for event files: :func:`read_events` and the chunked :func:`iter_events`.
+
+The format is found from the file's first bytes (magic), then its suffix:
+
+| format | detected by | streams in chunks |
+|---|---|---|
+| jAER AEDAT 2.0 | ``#!AER-DAT2.0`` | yes |
+| AEDAT 4.0 | ``#!AER-DAT4.0`` | yes (whole packets) |
+| Prophesee EVT 3.0 / 2.0 ``.raw`` | ``%`` header naming ``evt 3.0`` / ``evt 2.0`` | yes |
+| NumPy ``.npy`` structured array | NumPy magic | yes (memory map) |
+| NumPy ``.npz`` | zip magic | no |
+| CSV / text ``t,x,y,p`` | ``.csv`` / ``.txt`` suffix | no |
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from torchseq.events.aedat2 import iter_aedat2
+from torchseq.events.aedat4 import iter_aedat4
+from torchseq.events.plain import iter_npy, read_csv, read_npz
+from torchseq.events.prophesee import iter_raw
+from torchseq.events.stream import EventFormatError, EventStream, order_events, validate_events
+
+DEFAULT_CHUNK = 1 << 20
+
+
+def detect_format(path: str | Path) -> str:
+    """Name the event format of ``path``: aedat2, aedat4, raw, npy, npz or csv."""
+    path = Path(path)
+    if not path.is_file():
+        raise EventFormatError(f"no such event file: {path}")
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if not head:
+        raise EventFormatError(f"{path}: empty file")
+    if head.startswith(b"#!AER-DAT2"):
+        return "aedat2"
+    if head.startswith(b"#!AER-DAT4"):
+        return "aedat4"
+    if head.startswith(b"#!AER-DAT"):
+        raise EventFormatError(f"{path}: unsupported AEDAT version {head[:13]!r}")
+    if head.startswith(b"%"):
+        return "raw"
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    if head.startswith(b"PK"):
+        return "npz"
+    if path.suffix.lower() in (".csv", ".txt"):
+        return "csv"
+    raise EventFormatError(f"{path}: unknown event file format (starts {head[:12]!r})")
+
+
+def _chunks(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict):
+    if fmt == "aedat2":
+        return iter_aedat2(path, chunk_events, sensor_size, **options)
+    if fmt == "aedat4":
+        return iter_aedat4(path, chunk_events, sensor_size, **options)
+    if fmt == "raw":
+        return iter_raw(path, chunk_events, sensor_size, **options)
+    if options:
+        raise TypeError(f"options {sorted(options)} do not apply to {fmt} files")
+    if fmt == "npy":
+        return iter_npy(path, chunk_events, sensor_size)
+    return iter([read_npz(path, sensor_size) if fmt == "npz" else read_csv(path, sensor_size)])
+
+
+def iter_events(path: str | Path, chunk_events: int = DEFAULT_CHUNK,
+                sensor_size: tuple[int, int] | None = None,
+                **options) -> Iterator[EventStream]:
+    """Stream an event file in chunks without loading it whole (see the module table).
+
+    Every chunk is checked: coordinates inside the sensor and time never going backwards,
+    within and across chunks (reorder with ``read_events(..., sort=True)``).
+
+    Args:
+        path: the event file.
+        chunk_events: about how many events (or raw records/words) per chunk.
+        sensor_size: ``(W, H)`` override of the size the file states or implies.
+        **options: format options: ``layout``, ``flip_y`` (AEDAT 2.0), ``truncated``
+            (``"error"``/``"drop"``; AEDAT 2.0/4.0, ``.raw``), ``evt3_time`` (``.raw``).
+
+    Yields:
+        :class:`EventStream` chunks with the same ``sensor_size``.
+
+    Raises:
+        EventFormatError: unknown or malformed file, events outside the sensor, time going
+            backwards.
+    """
+    if chunk_events < 1:
+        raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
+    path = Path(path)
+    last = None
+    for chunk in _chunks(path, detect_format(path), chunk_events, sensor_size, options):
+        try:
+            validate_events(chunk.events, chunk.sensor_size)
+        except EventFormatError as err:
+            raise EventFormatError(f"{path}: {err}") from None
+        if len(chunk) and last is not None and chunk.events["t"][0] < last:
+            raise EventFormatError(f"{path}: timestamps go backwards between chunks ({last} -> "
+                                   f"{chunk.events['t'][0]} us); use read_events(sort=True)")
+        if len(chunk):
+            last = chunk.events["t"][-1]
+        yield chunk
+
+
+def read_events(path: str | Path, sensor_size: tuple[int, int] | None = None,
+                sort: bool = False, chunk_events: int = DEFAULT_CHUNK,
+                **options) -> EventStream:
+    """Read a whole event file (any format of the module table) as one :class:`EventStream`.
+
+    Args:
+        path: the event file.
+        sensor_size: ``(W, H)`` override.
+        sort: reorder events whose timestamps go backwards (stable, with a warning) instead
+            of raising.
+        chunk_events: read granularity (memory peak is about the output plus one chunk).
+        **options: format options, see :func:`iter_events`.
+
+    Returns:
+        The events, time-ordered and checked against the sensor size.
+    """
+    path = Path(path)
+    chunks = list(_chunks(path, detect_format(path), chunk_events, sensor_size, options))
+    events = np.concatenate([c.events for c in chunks])
+    stream = EventStream(order_events(events, sort, str(path)), chunks[0].sensor_size)
+    try:
+        return stream.validate()
+    except EventFormatError as err:
+        raise EventFormatError(f"{path}: {err}") from None
