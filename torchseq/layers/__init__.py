@@ -11,7 +11,7 @@ from torchseq.layers.functional import (
     ring_step,
 )
 from torchseq.layers.k_winners import KWinnersTakeAll
-from torchseq.layers.masked_linear import MaskedLinear
+from torchseq.layers.masked import MaskedLinear
 from torchseq.layers.output_ring import OutputRing
 
 __all__ = [

@@ -1,0 +1,203 @@
+import numpy as np
+import pytest
+import torch
+from conftest import DEVICES
+
+from torchseq.demo import make_demo
+from torchseq.neural import NeuralConfig, NeuralError, NeuralResult, NeuralSeqSLAM, NeuralStep
+from torchseq.neural.model import seqslam_bytes
+
+SMALL = dict(hidden=1024, n_output=555)
+
+
+@pytest.fixture(scope="module")
+def route():
+    return make_demo(n_reference=80, size=(48, 64), seed=3)
+
+
+@pytest.fixture(scope="module")
+def fitted(route):
+    model = NeuralSeqSLAM(NeuralConfig(**SMALL))
+    log = model.fit(route.reference)
+    return model, log
+
+
+def test_fit_log_and_buffers(fitted, route):
+    model, log = fitted
+    r = route.reference.shape[0]
+    assert model.n_units == r and log.winners.tolist() == list(range(r))
+    assert log.evidence.shape == (r, r)
+    assert torch.equal(log.evidence.argmax(1), log.winners)  # each frame excites its own unit
+    assert torch.equal(model.unit_to_reference[:, 0], torch.arange(r))
+    assert torch.equal(model.unit_to_reference[:, 1], torch.arange(1, r + 1))
+    sd = model.state_dict()
+    for name in ("l1.weight", "l1.mask", "l3.weight", "l3.mask", "ring.shift", "cohorts",
+                 "unit_to_reference", "unit_centre"):
+        assert name in sd
+    # Hebbian weights live inside the mask only
+    assert (sd["l3.weight"][sd["l3.mask"] == 0] == 0).all()
+
+
+def test_exact_replay_is_recognised_exactly(fitted, route):
+    model, _ = fitted
+    res = model.run(route.reference)
+    assert isinstance(res, NeuralResult) and res.activity.shape == (80, 80)
+    assert not res.matches.lower_is_better
+    assert torch.equal(res.matches.reference, torch.arange(80))
+    assert (res.matches.score > 0).all()
+
+
+def test_step_equals_run_and_batches_are_independent(fitted, route):
+    model, _ = fitted
+    q = route.query[:30]
+    res = model.run(q)
+    state, refs, acts = None, [], []
+    for t in range(30):
+        # stream 0 sees the query, stream 1 the reference backwards: independent streams
+        frames = torch.stack([q[t], route.reference[79 - t]])
+        out, state = model.step(frames, state)
+        assert isinstance(out, NeuralStep) and out.activity.shape == (2, 80)
+        refs.append(out.reference)
+        acts.append(out.activity[0])
+    torch.testing.assert_close(torch.stack(acts), res.activity, atol=1e-5, rtol=1e-5)
+    assert torch.equal(torch.stack(refs)[:, 0], res.matches.reference)
+
+
+def stretched(frames, speed):
+    idx = np.floor(np.arange(0, frames.shape[0] - 1e-9, speed)).astype(np.int64)
+    return frames[torch.from_numpy(idx)], idx
+
+
+@pytest.mark.parametrize("speed,floor", [(0.5, 0.95), (0.7, 0.95), (1.4, 0.95), (2.0, 0.9)])
+def test_time_stretched_replay(fitted, route, speed, floor):
+    model, _ = fitted
+    query, idx = stretched(route.reference, speed)
+    ref = model.run(query).matches.reference.numpy()
+    hit = np.abs(ref - idx) <= 2
+    assert hit.mean() >= floor, (speed, hit.mean())
+
+
+def test_demo_query_recall(fitted, route):
+    model, _ = fitted
+    ref = model.run(route.query).matches.reference.numpy()
+    ok = route.ground_truth[ref, np.arange(len(ref))]
+    assert ok.mean() >= 0.95
+
+
+def test_more_frames_than_units(route):
+    model = NeuralSeqSLAM(NeuralConfig(hidden=1024, n_output=30))
+    model.fit(route.reference)
+    assert model.n_units == 30
+    spans = model.unit_to_reference
+    assert int(spans[0, 0]) == 0 and int(spans[-1, 1]) == 80
+    assert torch.equal(spans[1:, 0], spans[:-1, 1])
+    res = model.run(route.reference)
+    unit = res.activity.argmax(1)
+    t = torch.arange(80)
+    inside = (spans[unit, 0] <= t) & (t < spans[unit, 1])
+    assert inside.float().mean() >= 0.95
+    assert torch.equal(res.matches.reference, model.unit_centre[unit])
+
+
+def test_checkpoint_round_trip(fitted, route, tmp_path):
+    model, _ = fitted
+    path = tmp_path / "m.pt"
+    model.save(path, extra={"route": "demo", "n": 80})
+    assert not list(tmp_path.glob("*.tmp"))
+    back = NeuralSeqSLAM.load(path)
+    assert back.extra == {"route": "demo", "n": 80}
+    assert back.config == model.config
+    for (k, a), (k2, b) in zip(model.state_dict().items(), back.state_dict().items()):
+        assert k == k2 and torch.equal(a, b)
+    a, b = model.run(route.query), back.run(route.query)
+    assert torch.equal(a.activity, b.activity)
+    assert torch.equal(a.matches.reference, b.matches.reference)
+
+
+def test_checkpoint_errors(fitted, tmp_path):
+    model, _ = fitted
+    with pytest.raises(NeuralError, match="no such"):
+        NeuralSeqSLAM.load(tmp_path / "missing.pt")
+    path = tmp_path / "m.pt"
+    model.save(path)
+    data = path.read_bytes()
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(NeuralError, match="not a readable"):
+        NeuralSeqSLAM.load(tmp_path / "cut.pt")
+    torch.save({"format": "torchseq.neural/99"}, tmp_path / "v99.pt")
+    with pytest.raises(NeuralError, match="format"):
+        NeuralSeqSLAM.load(tmp_path / "v99.pt")
+    with pytest.raises(NeuralError, match="not learnt"):
+        NeuralSeqSLAM(NeuralConfig(**SMALL)).save(tmp_path / "x.pt")
+
+
+def test_deterministic_under_seed(route):
+    ref = route.reference[:30]
+    a = NeuralSeqSLAM(NeuralConfig(hidden=512, seed=7))
+    b = NeuralSeqSLAM(NeuralConfig(hidden=512, seed=7))
+    c = NeuralSeqSLAM(NeuralConfig(hidden=512, seed=8))
+    for m in (a, b, c):
+        m.fit(ref, log=False)
+    for k, v in a.state_dict().items():
+        assert torch.equal(v, b.state_dict()[k])
+    assert not torch.equal(a.l1.mask, c.l1.mask)
+    assert torch.equal(a.run(route.query[:20]).activity, b.run(route.query[:20]).activity)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_and_colour_input(route, device):
+    model = NeuralSeqSLAM(NeuralConfig(hidden=512), device=device)
+    model.fit(route.reference[:20], log=False)
+    rgb = route.reference[:20, :, :, None].expand(-1, -1, -1, 3)
+    out = model.run(rgb)
+    assert torch.equal(out.matches.reference, torch.arange(20))
+
+
+def test_errors(fitted, route):
+    model, _ = fitted
+    fresh = NeuralSeqSLAM(NeuralConfig(hidden=256))
+    with pytest.raises(NeuralError, match="fit"):
+        fresh.step(route.query[:1])
+    with pytest.raises(NeuralError, match="fit"):
+        fresh.run(route.query)
+    with pytest.raises(NeuralError, match="T >= 2"):
+        fresh.fit(route.reference[:1])
+    with pytest.raises(NeuralError, match="T >= 2"):
+        fresh.fit(route.reference[:0])
+    with pytest.raises(NeuralError, match=r"\(T, H, W\)"):
+        fresh.fit(route.reference[0])
+    with pytest.raises(NeuralError, match="empty"):
+        model.run(route.query[:0])
+    with pytest.raises(NeuralError, match=r"\(B, H, W\)"):
+        model.step(route.query[0])
+    bad = route.query[:3].clone()
+    bad[1, 5, 5] = float("nan")
+    with pytest.raises(NeuralError, match="NaN"):
+        model.run(bad)
+    with pytest.raises(NeuralError, match="NaN"):
+        fresh.fit(torch.cat([route.reference[:4], bad]))
+    _, state = model.step(route.query[:2])
+    with pytest.raises(NeuralError, match="state"):
+        model.step(route.query[:3], state)
+
+
+def test_config_validation_and_dict():
+    cfg = NeuralConfig()
+    assert cfg.n_input == 768 and cfg.k == 154 and cfg.n_output == 555 and cfg.density == 0.2
+    assert NeuralConfig.from_dict(cfg.to_dict()) == cfg
+    for bad in (dict(input_size=(25, 32)), dict(patch_mode="x"), dict(density=0.0),
+                dict(k_fraction=1.5), dict(ring_decay=1.0), dict(n_cohorts=0),
+                dict(hebbian="x"), dict(hidden=0), dict(ring_spread=0)):
+        with pytest.raises(NeuralError):
+            NeuralConfig(**bad).validate()
+    with pytest.raises(NeuralError, match="unknown"):
+        NeuralConfig.from_dict({"bogus": 1})
+
+
+def test_model_bytes(fitted):
+    model, _ = fitted
+    dense = model.model_bytes()
+    sparse = model.model_bytes(masked_only=True)
+    expect = sum(t.numel() * t.element_size() for t in model.state_dict().values())
+    assert dense == expect and sparse < dense
+    assert seqslam_bytes(80) == 80 * 2048 * 4
