@@ -1,0 +1,43 @@
+"""Event cameras: read and write event files, accumulate frames, simulate events from video.
+
+Events are a structured NumPy array ``(t int64 us, x int16, y int16, p uint8)`` with the
+sensor size ``(W, H)``: an :class:`EventStream`. See ``docs/events.md``.
+"""
+
+from torchseq.events.aedat2 import iter_aedat2, write_aedat2
+from torchseq.events.aedat4 import iter_aedat4
+from torchseq.events.filters import hot_pixel_mask, refractory_mask
+from torchseq.events.frames import accumulate
+from torchseq.events.io import detect_format, iter_events, read_events
+from torchseq.events.plain import read_csv, read_npz, write_npz
+from torchseq.events.prophesee import iter_raw
+from torchseq.events.stream import (
+    EVENT_DTYPE,
+    EventFormatError,
+    EventStream,
+    as_event_array,
+    make_events,
+)
+from torchseq.events.traverse import load_event_frames
+
+__all__ = [
+    "EVENT_DTYPE",
+    "EventFormatError",
+    "EventStream",
+    "accumulate",
+    "as_event_array",
+    "detect_format",
+    "hot_pixel_mask",
+    "iter_aedat2",
+    "iter_aedat4",
+    "iter_events",
+    "iter_raw",
+    "load_event_frames",
+    "make_events",
+    "read_csv",
+    "read_events",
+    "read_npz",
+    "refractory_mask",
+    "write_aedat2",
+    "write_npz",
+]
