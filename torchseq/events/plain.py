@@ -101,7 +101,7 @@ def read_csv(path: str | Path, sensor_size: tuple[int, int] | None = None) -> Ev
     if not re.match(r"^-?\d", first[0]):  # a header line
         alias = {"timestamp": "t", "time": "t", "ts": "t", "polarity": "p", "pol": "p", "on": "p"}
         first = [alias.get(c, c) for c in first]
-        if sorted(first) != order:
+        if sorted(first) != sorted(order):
             raise EventFormatError(f"{path}: header must name t, x, y, p, got {lines[0]!r}")
         order, lines = first, lines[1:]
     try:
