@@ -13,6 +13,10 @@ class NeuralError(ValueError):
 class NeuralConfig:
     """Settings of :class:`torchseq.neural.NeuralSeqSLAM`.
 
+    The architecture defaults are the seed's Table 1 (32x24 input, 20% masks, 3072 L2 units,
+    555 output units); ``patch_size=4``, ``ring_decay=0.95`` and ``hebbian="centred"`` were
+    chosen by measurement (``experiments/neural_quality.py --ablation``, ``docs/neural.md``).
+
     Attributes:
         input_size: ``(H, W)`` the frames are resized to (L1 has ``H * W`` units).
         patch_size: patch-normalisation block side (0 disables it).
@@ -38,21 +42,21 @@ class NeuralConfig:
     """
 
     input_size: tuple[int, int] = (24, 32)
-    patch_size: int = 8
+    patch_size: int = 4
     patch_mode: str = "zscore"
     hidden: int = 3072
     density: float = 0.2
     density_out: float = 0.2
     k_fraction: float = 0.05
     n_output: int = 555
-    ring_decay: float = 0.9
+    ring_decay: float = 0.95
     ring_gain: float | None = None
     ring_spread: int = 2
     ring_spread_decay: float = 0.5
     ring_stay: float = 0.5
     ring_wrap: bool = False
     n_cohorts: int = 1
-    hebbian: str = "mean"
+    hebbian: str = "centred"
     uniqueness_window: int = 5
     eps: float = 1e-6
     chunk: int = 256

@@ -1,0 +1,176 @@
+"""Neural SeqSLAM quality: recall@1 / AUC on the demo, corridor and LENS DAVIS data.
+
+One command (from the repository root):
+
+    .venv/bin/python experiments/neural_quality.py [--out experiments/results] [--ablation]
+
+Writes ``neural_quality.json`` and ``neural_quality.md`` (a Markdown table) under ``--out``
+and prints the table. With ``--ablation`` it also runs the ablation over the model's
+settings and the harder demo variants (appearance change, repetitive scenery).
+Classic SeqSLAM (``torchseq.seqslam``, default settings) runs beside it on the same data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from torchseq.demo import make_demo  # noqa: E402
+from torchseq.ground_truth import load_ground_truth  # noqa: E402
+from torchseq.metrics import evaluate  # noqa: E402
+from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
+from torchseq.sources import load_traverse  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data"
+
+
+def datasets(names=("demo", "corridor", "lens")) -> dict:
+    """``name -> (reference (R,H,W), query (Q,H,W), gt (R,Q) bool)``; absent data are skipped."""
+    out = {}
+    if "demo" in names:
+        d = make_demo()
+        out["demo"] = (d.reference, d.query, d.ground_truth)
+    if "corridor" in names and (DATA / "corridor").exists():
+        r = load_traverse(DATA / "corridor" / "ref", progress=False)
+        q = load_traverse(DATA / "corridor" / "query", progress=False)
+        out["corridor"] = (r, q, load_ground_truth(DATA / "corridor" / "ground_truth.csv",
+                                                   len(r), len(q)))
+    lens = DATA / "lens-davis128"
+    if "lens" in names and lens.exists():
+        r = load_traverse(lens / "example-reference", progress=False)
+        q = load_traverse(lens / "example-query", progress=False)
+        out["lens"] = (r, q, load_ground_truth(lens / "example-reference_example-query_GT.npy",
+                                               len(r), len(q)))
+    return out
+
+
+def hard_demos() -> dict:
+    """Demo variants: stronger appearance change, and repetitive scenery."""
+    out = {}
+    for name, kw in {"demo-light": dict(gain=0.6, gamma=1.8, gradient=0.3, noise=12.0),
+                     "demo-severe": dict(gain=0.45, gamma=2.4, gradient=0.45, noise=20.0),
+                     "demo-speed1.3": dict(speed=1.3)}.items():
+        d = make_demo(**kw)
+        out[name] = (d.reference, d.query, d.ground_truth)
+    try:
+        d = make_demo(repeat=3)
+        out["demo-repeat"] = (d.reference, d.query, d.ground_truth)
+    except TypeError:  # make_demo without the repeat option
+        pass
+    return out
+
+
+def run_neural(cfg: NeuralConfig, ref, query, gt) -> dict:
+    model = NeuralSeqSLAM(cfg)
+    t0 = time.perf_counter()
+    model.fit(ref, log=False)
+    fit_s = time.perf_counter() - t0
+    res = model.run(query)
+    m = evaluate(res.matches, gt)
+    return {"recall_at_1": m["recall_at_1"], "auc": m["auc"],
+            "recall_at_100_precision": m["recall_at_100_precision"],
+            "fit_s": fit_s, "run_s": res.seconds, "bytes": model.model_bytes()}
+
+
+def run_seqslam(ref, query, gt) -> dict | None:
+    try:
+        from torchseq.seqslam import SeqSLAM
+    except ImportError:
+        return None
+    res = SeqSLAM().match(ref, query)
+    m = evaluate(res.matches, gt)
+    return {"recall_at_1": m["recall_at_1"], "auc": m["auc"],
+            "recall_at_100_precision": m["recall_at_100_precision"]}
+
+
+ABLATION = {
+    "default": {},
+    "patch seqslam rounding": dict(patch_mode="seqslam"),
+    "no ring (decay 0)": dict(ring_decay=0.0, ring_gain=1.0),
+    "ring decay 0.8": dict(ring_decay=0.8),
+    "ring decay 0.95": dict(ring_decay=0.95),
+    "spread 1, no stay": dict(ring_spread=1, ring_stay=0.0),
+    "spread 3": dict(ring_spread=3),
+    "hebbian centred": dict(hebbian="centred"),
+    "k 2%": dict(k_fraction=0.02),
+    "k 10%": dict(k_fraction=0.10),
+    "density_out 1.0": dict(density_out=1.0),
+    "cohorts 4": dict(n_cohorts=4),
+    "cohorts 8": dict(n_cohorts=8),
+}
+
+
+def table(rows: list[dict], cols: list[str]) -> str:
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        cells = [f"{r[c]:.3f}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=ROOT / "experiments" / "results")
+    p.add_argument("--ablation", action="store_true")
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    base = NeuralConfig()
+    data = datasets()
+    results = {"config": base.to_dict(), "main": [], "ablation": []}
+    for name, (ref, query, gt) in data.items():
+        row = {"data": name, "R": len(ref), "Q": len(query)}
+        n = run_neural(base, ref, query, gt)
+        row.update({f"neural {k}": v for k, v in n.items()})
+        s = run_seqslam(ref, query, gt)
+        if s is not None:
+            row.update({f"seqslam {k}": v for k, v in s.items()})
+        results["main"].append(row)
+        print(row, flush=True)
+    cols = ["data", "R", "Q", "neural recall_at_1", "neural auc",
+            "neural recall_at_100_precision", "seqslam recall_at_1", "seqslam auc",
+            "seqslam recall_at_100_precision"]
+    md = "### Recall@1 and AUC, default settings\n\n" + table(results["main"], cols) + "\n"
+    if args.ablation:
+        data.update(hard_demos())
+        for label, kw in ABLATION.items():
+            cfg = replace(base, **kw).validate()
+            row = {"setting": label}
+            for name, (ref, query, gt) in data.items():
+                row[name] = run_neural(cfg, ref, query, gt)["recall_at_1"]
+            results["ablation"].append(row)
+            print(row, flush=True)
+        row = {"setting": "classic SeqSLAM"}
+        for name, (ref, query, gt) in data.items():
+            s = run_seqslam(ref, query, gt)
+            row[name] = s["recall_at_1"] if s else ""
+        results["ablation"].append(row)
+        md += "\n### Ablation: recall@1\n\n" + table(results["ablation"],
+                                                    ["setting", *data.keys()]) + "\n"
+    write_atomic(args.out / "neural_quality.json", json.dumps(results, indent=1, default=float))
+    write_atomic(args.out / "neural_quality.md", md)
+    print(md)
+    return results
+
+
+if __name__ == "__main__":
+    main()
