@@ -201,3 +201,18 @@ def test_model_bytes(fitted):
     expect = sum(t.numel() * t.element_size() for t in model.state_dict().values())
     assert dense == expect and sparse < dense
     assert seqslam_bytes(80) == 80 * 2048 * 4
+
+
+def test_wrapped_ring_run_equals_steps(route):
+    model = NeuralSeqSLAM(NeuralConfig(hidden=512, ring_wrap=True))
+    model.fit(route.reference[:30], log=False)
+    assert model.ring.shift[0, 29] > 0  # the loop closes: last place leads to the first
+    query = torch.cat([route.reference[20:30], route.reference[:10]])
+    res = model.run(query)
+    state, acts = None, []
+    for t in range(len(query)):
+        out, state = model.step(query[t:t + 1], state)
+        acts.append(out.activity[0])
+    torch.testing.assert_close(torch.stack(acts), res.activity, atol=1e-5, rtol=1e-5)
+    expect = torch.cat([torch.arange(20, 30), torch.arange(10)])
+    assert (res.matches.reference == expect).float().mean() >= 0.9

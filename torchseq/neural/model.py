@@ -22,6 +22,7 @@ from torchseq.layers import KWinnersTakeAll, MaskedLinear, OutputRing, RingState
 from torchseq.layers.functional import cohort_normalise
 from torchseq.matches import Matches
 from torchseq.neural.config import NeuralConfig, NeuralError
+from torchseq.neural.fast import band_diagonals, feedforward, ring_scan
 from torchseq.neural.learning import (
     cohort_membership,
     decide,
@@ -99,7 +100,7 @@ class NeuralSeqSLAM(nn.Module):
         self.l3: MaskedLinear | None = None
         self.ring: OutputRing | None = None
         self._device = torch.device(device) if device is not None else torch.device("cpu")
-        self._folded: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._folded: dict[str, torch.Tensor | None] | None = None
 
     # ------------------------------------------------------------------ structure
     @property
@@ -155,13 +156,13 @@ class NeuralSeqSLAM(nn.Module):
 
     def code(self, x: torch.Tensor) -> torch.Tensor:
         """L1 -> L2: random masked projection then binary k-WTA. ``(B, 768) -> (B, hidden)``."""
-        w1 = self._folded[0] if self._folded is not None else None
+        w1 = self._folded["w1"] if self._folded is not None else None
         h = torch.nn.functional.linear(x, w1) if w1 is not None else self.l1(x)
         return self.l2(h)
 
     def evidence(self, code: torch.Tensor) -> torch.Tensor:
         """L2 -> L3 evidence, z-scored within cohorts. ``(B, hidden) -> (B, N)``."""
-        w3 = self._folded[1] if self._folded is not None else None
+        w3 = self._folded["w3"] if self._folded is not None else None
         e = torch.nn.functional.linear(code, w3) if w3 is not None else self.l3(code)
         return cohort_normalise(e, self.cohorts, self.config.eps)
 
@@ -246,8 +247,9 @@ class NeuralSeqSLAM(nn.Module):
         """Stream a whole query traverse through the network (one stream).
 
         The feed-forward part runs in batches of ``config.chunk`` frames (it does not
-        depend on the state); the ring then steps frame by frame. Same numbers as calling
-        :meth:`step` once per frame.
+        depend on the state) with folded weights (:mod:`torchseq.neural.fast`); the ring then
+        steps frame by frame. Same numbers as calling :meth:`step` once per frame, up to
+        float rounding.
 
         Args:
             query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames.
@@ -262,16 +264,14 @@ class NeuralSeqSLAM(nn.Module):
             raise NeuralError(f"query must be a non-empty (T, H, W), got {tuple(query.shape)}")
         cfg = self.config
         self.fold()
-        ring, shift = self.ring, self.ring.shift
-        decay, gain = ring.params
-        activity = torch.empty(query.shape[0], self.n_units, device=shift.device)
-        a = torch.zeros(1, self.n_units, device=shift.device)
-        for lo in _chunks(query.shape[0], cfg.chunk, progress, "run"):
-            e = self.evidence(self.code(self.encode(query[lo:lo + cfg.chunk])))  # (b, N)
-            e = e * gain
-            for i in range(e.shape[0]):  # the ring: a_t = decay * a_{t-1} @ S.T + gain * e_t
-                a = torch.addmm(e[i:i + 1], a, shift.T, alpha=decay)
-                activity[lo + i] = a[0]
+        f = self._folded
+        decay, gain = self.ring.params
+        parts = [feedforward(self.encode(query[lo:lo + cfg.chunk]), f["w1_t"], f["w3_t"],
+                             cfg.k, self.cohorts, cfg.eps)
+                 for lo in _chunks(query.shape[0], cfg.chunk, progress, "run")]
+        drive = torch.cat(parts) * gain  # (T, N)
+        a0 = torch.zeros(self.n_units, device=drive.device)
+        activity = ring_scan(drive, a0, self.ring.shift, decay, f["diagonals"])
         reference, confidence = decide(activity, self.unit_centre, cfg.uniqueness_window)
         matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
         return NeuralResult(matches, activity.cpu(), time.perf_counter() - t0)
@@ -284,7 +284,11 @@ class NeuralSeqSLAM(nn.Module):
         self._require_fit()
         if self._folded is None:
             with torch.inference_mode(False), torch.no_grad():
-                self._folded = (self.l1.folded_weight(), self.l3.folded_weight())
+                w1, w3 = self.l1.folded_weight(), self.l3.folded_weight()
+                self._folded = {
+                    "w1": w1, "w3": w3, "w1_t": w1.T.contiguous(), "w3_t": w3.T.contiguous(),
+                    "diagonals": None if self.config.ring_wrap else band_diagonals(
+                        self.ring.shift, self.config.ring_spread)}
 
     def unfold(self) -> None:
         """Drop the folded weights (the next call recomputes ``weight * mask``)."""

@@ -1,0 +1,52 @@
+import pytest
+import torch
+
+from torchseq.layers import MaskedLinear, cohort_normalise, kwta, learn_shift_matrix
+from torchseq.neural.fast import band_diagonals, feedforward, ring_scan, winners
+
+
+def test_winners_fast_and_tie_fallback():
+    h = torch.randn(4, 300, generator=torch.Generator().manual_seed(0))
+    idx = winners(h, 15)
+    dense = torch.zeros_like(h).scatter_(1, idx, 1.0)
+    assert torch.equal(dense, kwta(h, 15, binary=True))
+    assert winners(torch.zeros(2, 10), 3) is None  # ties: caller must use exact kwta
+
+
+@pytest.mark.parametrize("ties", [False, True])
+def test_feedforward_equals_eager_layers(ties):
+    l1 = MaskedLinear(48, 200, 0.2, seed=0, dtype=torch.float64)
+    l3 = MaskedLinear(200, 30, 0.3, seed=1, dtype=torch.float64)
+    x = torch.randn(6, 48, dtype=torch.float64)
+    if ties:
+        x[2] = 0.0  # an all-zero input: every L2 unit ties
+    cohorts = torch.nn.functional.one_hot(torch.arange(30) // 10, 3).to(torch.float64)
+    got = feedforward(x, l1.folded_weight().T.contiguous(), l3.folded_weight().T.contiguous(),
+                      10, cohorts, 1e-6)
+    want = cohort_normalise(l3(kwta(l1(x), 10, binary=True)), cohorts, 1e-6)
+    torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ring_scan_band_equals_dense_and_loop(dtype):
+    winners_seq = torch.arange(40).repeat_interleave(2)[:75]
+    shift = learn_shift_matrix(winners_seq, 40, spread=2, stay=0.5).to(dtype)
+    diag = band_diagonals(shift, 2)
+    assert diag is not None and diag.shape == (3, 40)
+    drive = torch.randn(25, 40, dtype=dtype)
+    a0 = torch.randn(40, dtype=dtype)
+    band = ring_scan(drive, a0, shift, 0.9, diag)
+    dense = ring_scan(drive, a0, shift, 0.9, None)
+    a, loop = a0.clone(), []
+    for t in range(25):  # independent reference
+        a = torch.tensor([0.9 * sum(float(shift[i, j]) * float(a[j]) for j in range(40))
+                          + float(drive[t, i]) for i in range(40)], dtype=dtype)
+        loop.append(a)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(band, torch.stack(loop), atol=tol, rtol=tol)
+    torch.testing.assert_close(dense, torch.stack(loop), atol=tol, rtol=tol)
+
+
+def test_band_diagonals_rejects_wrap():
+    shift = learn_shift_matrix(torch.arange(10), 10, spread=2, wrap=True)
+    assert band_diagonals(shift, 2) is None

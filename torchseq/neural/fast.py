@@ -1,0 +1,107 @@
+"""Fast inference paths of Neural SeqSLAM (same maths as ``NeuralSeqSLAM.step``).
+
+- :func:`feedforward`: preprocessing, L1 -> L2 -> L3 and cohort normalisation for a batch
+  of frames with folded (dense) weights; the binary k-WTA code is never materialised: the
+  L3 evidence is the sum of the ``k`` winners' columns of ``l3.weight * l3.mask``.
+- :func:`ring_scan`: the ring recurrence over a whole single-stream sequence; when the shift
+  matrix is banded (units recruited in order, no wrap) it runs on diagonals instead of an
+  ``N x N`` product per step.
+
+Results equal the step-by-step path up to float rounding (sums in another order).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchseq.layers.functional import cohort_normalise, kwta
+
+
+def winners(h: torch.Tensor, k: int) -> torch.Tensor | None:
+    """Indices ``(B, k)`` of the k-WTA winners, or None on a tie at the threshold.
+
+    A tie needs the exact lowest-index rule of :func:`torchseq.layers.kwta`.
+
+    Args:
+        h: ``(B, M)`` L2 input.
+        k: winners per row.
+    """
+    vals, idx = torch.topk(h, k, dim=1, sorted=False)
+    thr = vals.min(dim=1, keepdim=True).values
+    if bool(((h >= thr).sum(1) == k).all()):
+        return idx
+    return None
+
+
+def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
+                cohorts: torch.Tensor, eps: float) -> torch.Tensor:
+    """Normalised L3 evidence of preprocessed frames.
+
+    Args:
+        x: ``(B, D)`` L1 activity (after patch normalisation).
+        w1_t: ``(D, M)`` ``(l1.weight * l1.mask).T``, contiguous.
+        w3_t: ``(M, N)`` ``(l3.weight * l3.mask).T``, contiguous.
+        k: L2 winners.
+        cohorts: ``(N, C)`` membership.
+        eps: normalisation floor.
+
+    Returns:
+        ``(B, N)`` z-scored evidence.
+    """
+    h = x @ w1_t  # (B, M)
+    idx = winners(h, k)
+    if idx is None:  # exact tie handling
+        e = kwta(h, k, binary=True) @ w3_t
+    else:
+        b, n = idx.shape[0], w3_t.shape[1]
+        e = torch.index_select(w3_t, 0, idx.reshape(-1)).reshape(b, k, n).sum(1)
+    return cohort_normalise(e, cohorts, eps)
+
+
+def band_diagonals(shift: torch.Tensor, max_lag: int) -> torch.Tensor | None:
+    """Diagonals ``(L + 1, N)`` of a banded shift matrix, or None when it is not banded.
+
+    ``d[l, i] = shift[i, i - l]``; None unless every non-zero entry has a lag
+    ``0 <= i - j <= max_lag``.
+    """
+    n = shift.shape[0]
+    i = torch.arange(n, device=shift.device)
+    lag = i[:, None] - i[None, :]  # (N, N) next - current
+    if bool((shift[(lag < 0) | (lag > max_lag)] != 0).any()):
+        return None
+    d = torch.zeros(max_lag + 1, n, dtype=shift.dtype, device=shift.device)
+    for m in range(max_lag + 1):
+        d[m, m:] = torch.diagonal(shift, -m)
+    return d
+
+
+def ring_scan(drive: torch.Tensor, activity: torch.Tensor, shift: torch.Tensor, decay: float,
+              diagonals: torch.Tensor | None = None) -> torch.Tensor:
+    """Run ``a_t = decay * a_{t-1} @ shift.T + drive_t`` over a single stream.
+
+    Args:
+        drive: ``(T, N)`` ``gain * evidence``.
+        activity: ``(N,)`` activity before the first step.
+        shift: ``(N, N)``.
+        decay: ring decay.
+        diagonals: output of :func:`band_diagonals` (None: dense products).
+
+    Returns:
+        ``(T, N)`` activity after each step.
+    """
+    out = torch.empty_like(drive)
+    a = activity
+    if diagonals is None:
+        for t in range(drive.shape[0]):
+            a = torch.addmv(drive[t], shift, a, alpha=decay)
+            out[t] = a
+        return out
+    d = diagonals * decay  # (L + 1, N)
+    lags = range(1, d.shape[0])
+    for t in range(drive.shape[0]):
+        m = torch.addcmul(drive[t], d[0], a)
+        for lag in lags:
+            m[lag:].addcmul_(d[lag, lag:], a[:-lag])
+        a = m
+        out[t] = a
+    return out
