@@ -40,16 +40,18 @@ def _l1_thermometer(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor,
                     lo: float, levels: int, budget: int) -> None:
     """Fill ``out_t (Q, R)`` with exact L1 distances through thermometer codes."""
     width = ref.shape[1] * levels
-    block = max(1, (4 * budget) // width)  # int8 codes: 4 bytes of budget per element
+    # int8 codes: a block of rows holds budget * 4 bytes (the bytes of budget float32s);
+    # the int32 product of two blocks holds block**2 elements: keep it within budget too
+    block = max(1, min((4 * budget) // width, int(budget**0.5)))
     ref_norm = (ref - lo).sum(1)  # (R,) = |A|_1
     query_norm = (query - lo).sum(1)
     for r0 in range(0, ref.shape[0], block):
         a = _thermometer(ref[r0:r0 + block], lo, levels)
         for q0 in range(0, query.shape[0], block):
             b = _thermometer(query[q0:q0 + block], lo, levels)
-            dot = _int_matmul(b, a).to(out_t.dtype)  # (q, r)
-            out_t[q0:q0 + block, r0:r0 + block] = (
-                query_norm[q0:q0 + block, None] + ref_norm[None, r0:r0 + block] - 2 * dot)
+            out = out_t[q0:q0 + block, r0:r0 + block]  # (q, r), filled in place
+            out.copy_(_int_matmul(b, a)).mul_(-2)
+            out.add_(query_norm[q0:q0 + block, None]).add_(ref_norm[None, r0:r0 + block])
 
 
 def _small_integer_range(ref: torch.Tensor, query: torch.Tensor) -> tuple[float, int] | None:

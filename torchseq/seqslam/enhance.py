@@ -6,6 +6,10 @@ import torch
 
 from torchseq._checks import check_finite, check_not_empty, check_shape
 
+# On CPU, blocks of about this many elements stay in the L2 cache (measured: 5x faster at
+# 20000 x 20000 than 64M-element blocks, which spend their time in page faults).
+CPU_BLOCK_ELEMENTS = 2**18
+
 
 def _enhance_rows(d_t: torch.Tensor, half: int) -> torch.Tensor:
     """Z-score each entry of ``d_t (C, R)`` against its window along the last axis.
@@ -72,8 +76,11 @@ def enhance_contrast(
     d_t = difference.T  # (Q, R): windows run along the last, contiguous axis
     out_t = torch.empty(n_query, n_ref, dtype=difference.dtype, device=difference.device)
     half = window // 2
-    # about six (C, R) temporaries live at once
-    cols = max(1, max_chunk_elements // (6 * (n_ref + 2 * half)))
+    # about six (C, R) temporaries live at once; on CPU blocks are kept cache-sized
+    budget = max_chunk_elements // 6
+    if difference.device.type != "cuda":
+        budget = min(budget, CPU_BLOCK_ELEMENTS)
+    cols = max(1, budget // (n_ref + 2 * half))
     for q0 in range(0, n_query, cols):
         block = d_t[q0:q0 + cols]
         out_t[q0:q0 + cols] = _enhance_rows(block, half) if window else block
