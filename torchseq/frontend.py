@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import sys
 from pathlib import Path
 from typing import Callable
@@ -36,25 +37,52 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     return h, w
 
 
-def add_config_flags(parser: argparse.ArgumentParser, config_cls: type, help: dict[str, str]):
-    """Add one ``--flag`` per dataclass field, defaulting to the dataclass default."""
+def _flag_type(annotation: object, default: object) -> type:
+    """The argparse type of a dataclass field, from its annotation (``"float | None"``)."""
+    text = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
+    for name, kind in (("tuple", str), ("bool", bool), ("float", float), ("int", int)):
+        if name in str(text):
+            return kind
+    return type(default) if default is not None else str
+
+
+def docstring_help(config_cls: type) -> dict[str, str]:
+    """Field descriptions from a Google-style class docstring (``name: text`` lines)."""
+    found: dict[str, str] = {}
+    current = None
+    for line in (config_cls.__doc__ or "").splitlines():
+        m = re.match(r"^\s{4,8}(\w+): (.*)$", line)
+        if m:
+            current = m.group(1)
+            found[current] = m.group(2).strip()
+        elif current and line.startswith(" " * 12) and line.strip():
+            found[current] += " " + line.strip()
+        else:
+            current = None
+    return found
+
+
+def add_config_flags(parser, config_cls: type, help: dict[str, str]) -> None:
+    """Add one ``--flag`` per dataclass field, defaulting to the dataclass default.
+
+    Tuple fields (sizes) take ``HxW`` strings; booleans get ``--flag/--no-flag``.
+    """
+    help = {**docstring_help(config_cls), **help}
     for f in dataclasses.fields(config_cls):
         flag = "--" + f.name.replace("_", "-")
         default = f.default if f.default is not dataclasses.MISSING else None
-        text = help.get(f.name, "") + f" (default: {default})"
-        if isinstance(default, bool):
+        shown = "x".join(map(str, default)) if isinstance(default, tuple) else default
+        text = help.get(f.name, f.name.replace("_", " ")) + f" (default: {shown})"
+        kind = _flag_type(f.type, default)
+        if kind is bool:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default,
                                 help=text)
         else:
-            kind = type(default) if default is not None and not isinstance(default, tuple) \
-                else str
-            if f.name in ("frame_size", "image_size"):
-                kind = str
             parser.add_argument(flag, type=kind, default=default, help=text)
 
 
 def config_from_args(config_cls: type, args: argparse.Namespace):
-    """Build the dataclass from parsed flags (sizes given as ``HxW`` strings are parsed)."""
+    """Build the dataclass from parsed flags (``HxW`` strings of size fields are parsed)."""
     values = {}
     for f in dataclasses.fields(config_cls):
         v = getattr(args, f.name)

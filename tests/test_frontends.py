@@ -1,0 +1,141 @@
+"""End-to-end runs of eval.py and train.py as a user runs them (subprocess, small demo)."""
+
+import csv
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import shared_data
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_script(name):
+    """Import eval.py / train.py as a module, to call its main in-process (fast)."""
+    spec = importlib.util.spec_from_file_location(f"{name}_script", ROOT / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def run_inprocess(name, capsys, *args):
+    """Run a script's main as its __main__ does; return (exit code, stderr)."""
+    from torchseq.frontend import run_main
+
+    module = load_script(name)
+    code = run_main(module.main, f"{name}.py", [*args, "--no-progress"])
+    return code, capsys.readouterr().err
+
+
+def run(script, *args, check=True):
+    proc = subprocess.run([sys.executable, str(ROOT / script), *args, "--no-progress"],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{script} failed ({proc.returncode}):\n{proc.stderr}")
+    return proc
+
+
+@pytest.mark.slow
+def test_eval_seqslam_on_demo_writes_every_output(tmp_path):
+    out = tmp_path / "out"
+    run("eval.py", "--engine", "seqslam", "--demo-frames", "80", "--out", str(out))
+    metrics = json.loads((out / "metrics.json").read_text())
+    s = metrics["seqslam"]
+    assert s["n_queries"] == 99  # floor(79 / 0.8) + 1 query frames
+    assert s["n_matched"] == 89  # ds/2 = 5 queries at either end cannot be matched
+    assert s["recall_at_1"] >= 0.85  # measured 89/99: every matched query is correct
+    assert 0 < s["auc"] <= 1 and s["parameters"]["ds"] == 10
+    rows = list(csv.DictReader(open(out / "matches.csv")))
+    assert len(rows) == 99 and {r["engine"] for r in rows} == {"seqslam"}
+    assert rows[0]["reference"] == ""  # the first ds/2 queries get no match
+    assert int(rows[50]["reference"]) in range(80)
+    for png in ("seqslam_difference_matrix", "seqslam_matched_pairs", "pr_curve"):
+        assert (out / f"{png}.png").stat().st_size > 1000
+    assert any((out / "tensorboard").iterdir())
+    assert json.loads((out / "config.json").read_text())["engine"] == "seqslam"
+
+
+@pytest.mark.slow
+def test_eval_on_corridor_with_csv_ground_truth(tmp_path):
+    data = shared_data("corridor")
+    run("eval.py", "--engine", "seqslam", "--reference", str(data / "ref"), "--query",
+        str(data / "query"), "--ground-truth", str(data / "ground_truth.csv"),
+        "--out", str(tmp_path), "--no-tensorboard")
+    m = json.loads((tmp_path / "metrics.json").read_text())["seqslam"]
+    # measured 0.378 with OpenSeqSLAM's defaults on this fisheye corridor (tolerance +-2 frames)
+    assert m["n_queries"] == 111 and m["recall_at_1"] > 0.3
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--reference", "/nonexistent/ref", "--query", "/nonexistent/q"], "no such file"),
+    (["--reference", "x"], "give both --reference and --query"),
+    (["--engine", "bogus"], "--engine must be one of"),
+    (["--demo-frames", "30", "--ds", "1000", "--engine", "seqslam"], ""),
+])
+def test_eval_bad_input_is_one_line(tmp_path, capsys, args, message):
+    code, err = run_inprocess("eval", capsys, *args, "--out", str(tmp_path))
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("eval.py: error: ") and message in lines[0]
+
+
+def test_eval_ground_truth_that_does_not_fit(tmp_path, capsys):
+    bad = tmp_path / "gt.npy"
+    np.save(bad, np.eye(5, dtype=np.int64))
+    frames = tmp_path / "frames.npy"
+    np.save(frames, np.random.default_rng(0).integers(0, 255, (30, 32, 64)).astype(np.uint8))
+    code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--reference", str(frames),
+                              "--query", str(frames), "--ground-truth", str(bad),
+                              "--out", str(tmp_path))
+    assert code == 2 and "(30, 30)" in err
+
+
+def test_eval_help_explains_every_flag(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        load_script("eval").main(["--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    for flag in ("--reference", "--query", "--ground-truth", "--tolerance", "--engine", "--ds",
+                 "--vmin", "--vmax", "--speed-ratio", "--metric", "--out", "--window-ms",
+                 "--event-count", "--frame-size", "--checkpoint"):
+        assert flag in out
+
+
+@pytest.mark.slow
+def test_train_then_eval_neural_checkpoint(tmp_path):
+    import torch
+
+    from torchseq.neural import NeuralSeqSLAM
+
+    run("train.py", "--demo-frames", "60", "--hidden", "512", "--n-output", "60",
+        "--out", str(tmp_path / "train"))
+    ckpt = tmp_path / "train" / "model.pt"
+    saved = torch.load(ckpt, weights_only=True)
+    assert saved["config"]["hidden"] == 512  # the checkpoint carries its config
+    assert NeuralSeqSLAM.load(ckpt).n_units == 60
+    for png in ("reference_activity", "ring_shift_matrix"):
+        assert (tmp_path / "train" / f"{png}.png").stat().st_size > 1000
+    assert any((tmp_path / "train" / "tensorboard").iterdir())
+    out = tmp_path / "eval"
+    run("eval.py", "--engine", "both", "--checkpoint", str(ckpt), "--demo-frames", "60",
+        "--out", str(out))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["neural"]["recall_at_1"] >= 0.95
+    assert metrics["neural"]["parameters"]["hidden"] == 512
+    assert {r["engine"] for r in csv.DictReader(open(out / "matches.csv"))} == \
+        {"seqslam", "neural"}
+    assert (out / "neural_activity.png").exists()
+
+
+def test_train_bad_input_is_one_line(tmp_path, capsys):
+    code, err = run_inprocess("train", capsys, "--reference", str(tmp_path / "nothing"),
+                              "--out", str(tmp_path))
+    assert code == 2 and err.startswith("train.py: error: ")
+    assert len(err.strip().splitlines()) == 1
+    code, err = run_inprocess("train", capsys, "--hidden", "-3", "--out", str(tmp_path))
+    assert code == 2 and "hidden" in err
