@@ -120,6 +120,7 @@ def make_demo(
     gradient: float = 0.15,
     noise: float = 6.0,
     seed: int = 0,
+    repeat: int = 1,
 ) -> DemoRoute:
     """Make a reference and a query traverse of one synthetic route.
 
@@ -135,14 +136,27 @@ def make_demo(
         gradient: the query's left-to-right brightness ramp.
         noise: the query's sensor noise std in grey levels (the reference gets 2.0).
         seed: random seed; the same seed gives the same traverses.
+        repeat: repetitive scenery: with ``repeat = r >= 2`` the middle half of the route
+            (from 25% to 75% of the reference frames) shows ``r`` identical copies of one
+            stretch of scenery (a whole number of reference frames long; with integer
+            ``step``, frames one copy apart are identical up to sensor noise), so places
+            there differ only by where the route came from.
+            ``1`` (the default) leaves the world as drawn.
 
     Returns:
         A :class:`DemoRoute`.
     """
     if n_reference < 2 or speed <= 0 or step <= 0:
         raise ValueError("need n_reference >= 2, speed > 0 and step > 0")
+    if int(repeat) != repeat or repeat < 1:
+        raise ValueError(f"repeat must be a positive integer, got {repeat}")
     h, w = size
     world = make_world(int(np.ceil(n_reference * step)) + w + 2, h, seed)
+    if repeat > 1:
+        lo = int(round(round(0.25 * n_reference) * step))
+        seg = int(round(max(1, round(0.5 * n_reference / repeat)) * step))
+        for i in range(1, int(repeat)):
+            world[:, lo + i * seg: lo + (i + 1) * seg] = world[:, lo: lo + seg]
     rng = np.random.default_rng(seed + 1)
     ref_pos = np.arange(n_reference, dtype=np.float64)
     n_query = int(np.floor((n_reference - 1) / speed)) + 1
