@@ -176,6 +176,9 @@ class NeuralSeqSLAM(nn.Module):
 
         Returns:
             ``(NeuralStep, new state)``.
+
+        After :meth:`fold` (done by :meth:`run`) and with gradients off, the feed-forward
+        part takes the fast path of :func:`torchseq.neural.fast.feedforward`.
         """
         self._require_fit()
         if state is not None and (state.activity.dim() != 2
@@ -183,8 +186,13 @@ class NeuralSeqSLAM(nn.Module):
                                   or state.activity.shape[0] != frames.shape[0]):
             raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
                               f"{tuple(state.activity.shape)}")
-        x = self.encode(frames)  # (B, 768)
-        e = self.evidence(self.code(x))  # (B, N)
+        x = self.encode(frames)  # (B, D)
+        f = self._folded
+        if f is not None and not torch.is_grad_enabled():  # same maths, fewer memory reads
+            e = feedforward(x, f["w1_t"], f["w3_t"], self.config.k, self.cohorts,
+                            self.config.eps)  # (B, N)
+        else:
+            e = self.evidence(self.code(x))  # (B, N)
         activity, state = self.ring(e, state)
         reference, confidence = decide(activity, self.unit_centre,
                                        self.config.uniqueness_window)
