@@ -1,0 +1,111 @@
+"""Convert a fitted float :class:`~torchseq.neural.NeuralSeqSLAM` into an :class:`IntegerModel`.
+
+The fixed-point design (bit widths, shifts, constants) is specified in
+``docs/integer_format.md``; every integer comes from :mod:`torchseq.export.quantise`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from torchseq.export.int_format import (
+    INPUT_RAW,
+    INPUT_ZSCORE,
+    IntegerFormatError,
+    IntegerModel,
+)
+from torchseq.export.quantise import fixed_point, fixed_point_array, quantise
+
+SQRT_FRAC = 8  # fractional bits of the patch standard deviation
+STATE_FRAC = 16  # fractional bits of the ring activity (int32)
+RING_FRAC = 15  # fractional bits of decay * shift (int16)
+ROW_SCALE_FRAC = 15  # fractional bits of the L3 per-row scale ratios (int32)
+GAIN_BITS = 24  # the gain constant stays below 2**GAIN_BITS
+
+
+def _rows(mask: torch.Tensor) -> np.ndarray:
+    """``(rows, fan_in)`` sorted column indices of a mask with equal ones per row."""
+    m = mask.detach().cpu().numpy() != 0
+    counts = m.sum(1)
+    if counts.size and (counts != counts[0]).any():
+        raise IntegerFormatError("mask rows hold different numbers of connections")
+    return np.nonzero(m)[1].reshape(m.shape[0], -1)
+
+
+def integer_model(model) -> IntegerModel:
+    """Quantise a fitted Neural SeqSLAM model into the integer format.
+
+    Args:
+        model: a fitted :class:`torchseq.neural.NeuralSeqSLAM`.
+
+    Returns:
+        A checked :class:`IntegerModel`.
+
+    Raises:
+        IntegerFormatError: the model is unfitted or uses a setting the format cannot hold.
+    """
+    if not getattr(model, "fitted", False):
+        raise IntegerFormatError("the model has not learnt a route yet (fit it first)")
+    cfg = model.config
+    if cfg.patch_size and cfg.patch_mode != "zscore":
+        raise IntegerFormatError(f"patch_mode {cfg.patch_mode!r} has no integer form "
+                                 "(use 'zscore' or patch_size=0)")
+    h, w = cfg.input_size
+    n_units = model.n_units
+    if max(cfg.n_input, cfg.hidden, n_units) > 32767:
+        raise IntegerFormatError("n_input, hidden and n_units must each be below 32768")
+    patch = int(cfg.patch_size)
+    p = {"height": h, "width": w, "patch": patch, "n_input": cfg.n_input, "hidden": cfg.hidden,
+         "k": cfg.k, "n_units": n_units, "window": int(cfg.uniqueness_window),
+         "sqrt_frac": SQRT_FRAC, "state_frac": STATE_FRAC, "ring_frac": RING_FRAC}
+    if patch:
+        n = patch * patch
+        z_max = (n - 1) / math.sqrt(n)  # largest |z| a block of n samples can hold
+        p["x_frac"] = int(math.floor(math.log2(127 / z_max)))
+        p["input_mode"] = INPUT_ZSCORE
+        p["norm_const"] = fixed_point(math.sqrt((n - 1) / n), p["x_frac"] + SQRT_FRAC, 32)
+    else:
+        p.update(x_frac=0, input_mode=INPUT_RAW, norm_const=0)
+    a = {}
+    # L1 -> L2: one per-tensor scale (the k-WTA only needs the order of the sums).
+    cols1 = _rows(model.l1.mask)
+    w1 = model.l1.folded_weight().detach().cpu().numpy()
+    q1 = quantise(np.take_along_axis(w1, cols1, 1), bits=8)
+    a["l1.cols"], a["l1.values"] = cols1.astype("<u2"), q1.values
+    p["l1_fan_in"] = cols1.shape[1]
+    # L2 -> L3: per-row scales, stored as ratios to the largest on a 2**-15 grid.
+    cols3 = _rows(model.l3.mask)
+    w3 = model.l3.folded_weight().detach().cpu().numpy()
+    q3 = quantise(np.take_along_axis(w3, cols3, 1), bits=8, per_row=True)
+    nonzero = np.abs(q3.values).max(1) > 0
+    top = q3.scale[nonzero].max() if nonzero.any() else 1.0
+    ratio = np.where(nonzero, q3.scale / top, 0.0)
+    a["l3.cols"], a["l3.values"] = cols3.astype("<u2"), q3.values
+    a["l3.row_scale"] = fixed_point_array(ratio, ROW_SCALE_FRAC, 32)
+    p["l3_fan_in"] = cols3.shape[1]
+    p["e_shift"] = ROW_SCALE_FRAC + max(0, math.ceil(math.log2(cfg.k * 127 / 32767)))
+    # cohorts and the gain: g = gain * z on the activity grid.
+    a["cohort"] = model.cohorts.detach().cpu().numpy().argmax(1).astype("<u2")
+    p["n_cohorts"] = int(model.cohorts.shape[1])
+    gain = float(model.ring.params.gain)
+    p["gain_shift"] = GAIN_BITS - 1 - STATE_FRAC - math.floor(math.log2(gain))
+    if p["gain_shift"] < 0:
+        raise IntegerFormatError(f"ring gain {gain} is too large for the integer format")
+    p["gain_const"] = fixed_point(gain, STATE_FRAC + p["gain_shift"], GAIN_BITS + 1)
+    # the ring: decay * shift on a 2**-15 grid, stored row by row as (cols, values) lists.
+    ring = fixed_point_array(model.ring.params.decay * model.ring.shift.detach().cpu().double(),
+                             RING_FRAC, 16)
+    width = max(1, int((ring != 0).sum(1).max()))
+    cols = np.tile(np.arange(n_units)[:, None], (1, width))  # padding: own column, value 0
+    vals = np.zeros((n_units, width), "<i2")
+    for u in range(n_units):
+        nz = np.nonzero(ring[u])[0]
+        cols[u, :nz.size], vals[u, :nz.size] = nz, ring[u, nz]
+    a["ring.cols"], a["ring.values"] = cols.astype("<u2"), vals
+    p["ring_width"] = width
+    a["unit_centre"] = model.unit_centre.detach().cpu().numpy().astype("<i4")
+    a["unit_to_ref"] = model.unit_to_reference.detach().cpu().numpy().astype("<i4")
+    return IntegerModel({k: int(v) for k, v in p.items()}, a).check()

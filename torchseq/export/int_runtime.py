@@ -1,0 +1,187 @@
+"""Pure NumPy integer reference runtime of the integer format (no floats in the step path).
+
+Implements the arithmetic of ``docs/integer_format.md`` ("One step") literally, with
+integer dtypes only; the integer ONNX graph (:mod:`torchseq.export.int_onnx`) must agree
+with it bit for bit.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from torchseq.export.int_format import INPUT_ZSCORE, IntegerModel, read_integer_model
+
+ISQRT_BITS = 31  # isqrt handles 0 <= v < 2**62; result bits 30..0
+INT32_MAX = 2**31 - 1
+
+
+class IntegerStep(NamedTuple):
+    """Output of one integer step.
+
+    Attributes:
+        reference: ``(B,)`` int64 reference frame of the winning unit.
+        confidence: ``(B,)`` int64 winner minus best rival, on the ``2**-state_frac`` grid.
+        activity: ``(B, N)`` int32 ring activity (also the new state).
+    """
+
+    reference: np.ndarray
+    confidence: np.ndarray
+    activity: np.ndarray
+
+
+def round_div(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a / b`` rounded half away from zero, for int64 ``a`` and ``b > 0`` (``|a| < 2**61``)."""
+    a = np.asarray(a, np.int64)
+    b = np.asarray(b, np.int64)
+    q = (2 * np.abs(a) + b) // (2 * b)
+    return np.where(a < 0, -q, q)
+
+
+def isqrt(v: np.ndarray) -> np.ndarray:
+    """Integer square root ``floor(sqrt(v))`` for int64 ``0 <= v < 2**62``, bit by bit."""
+    v = np.asarray(v, np.int64)
+    r = np.zeros_like(v)
+    for bit in range(ISQRT_BITS - 1, -1, -1):
+        cand = r + np.int64(1 << bit)
+        r = np.where(cand * cand <= v, cand, r)
+    return r
+
+
+def input_stage(frames: np.ndarray, p: dict) -> np.ndarray:
+    """uint8 frames ``(B, h, w)`` -> int32 L1 activity ``(B, h*w)`` (integer patch z-scores)."""
+    b, h, w = frames.shape
+    pix = frames.astype(np.int64)
+    if p["input_mode"] != INPUT_ZSCORE:
+        return pix.reshape(b, h * w).astype(np.int32)
+    s = p["patch"]
+    n = s * s
+    blocks = pix.reshape(b, h // s, s, w // s, s)
+    total = blocks.sum(axis=(2, 4), keepdims=True)  # S
+    squares = (blocks * blocks).sum(axis=(2, 4), keepdims=True)  # Q
+    var = n * squares - total * total  # V = n Q - S^2 >= 0
+    root = isqrt(var << (2 * p["sqrt_frac"]))  # ~ sqrt(V) * 2**F
+    dev = n * blocks - total  # d = n p - S
+    z = round_div(dev * p["norm_const"], np.maximum(root, 1))
+    x = np.where(var > 0, np.clip(z, -127, 127), 0)
+    return x.reshape(b, h * w).astype(np.int32)
+
+
+def kwta_int(hidden: np.ndarray, k: int) -> np.ndarray:
+    """Binary k-WTA of int32 ``(B, M)``: the ``k`` largest, ties to the lowest indices."""
+    m = hidden.shape[1]
+    kth = np.partition(hidden, m - k, axis=1)[:, m - k:m - k + 1]  # k-th largest value
+    greater = hidden > kth
+    equal = hidden == kth
+    room = k - greater.sum(1, keepdims=True)
+    return greater | (equal & (np.cumsum(equal, axis=1) <= room))
+
+
+class IntegerRuntime:
+    """Run an integer model step by step (NumPy, integer dtypes only).
+
+    Args:
+        model: an :class:`IntegerModel` or a path to a ``.tsq`` file.
+    """
+
+    def __init__(self, model: IntegerModel | str | Path) -> None:
+        if not isinstance(model, IntegerModel):
+            model = read_integer_model(model)
+        self.model = model.check()
+        p, a = model.params, model.arrays
+        self.params = p
+        self.l1_cols = a["l1.cols"].astype(np.int64)
+        self.l1_values = a["l1.values"].astype(np.int32)
+        w3 = np.zeros((p["hidden"], p["n_units"]), np.int32)  # (M, N) dense for row gathers
+        rows = np.repeat(np.arange(p["n_units"]), p["l3_fan_in"])
+        w3[a["l3.cols"].astype(np.int64).ravel(), rows] = a["l3.values"].ravel()
+        self.l3_t = w3
+        self.row_scale = a["l3.row_scale"].astype(np.int64)
+        self.cohort = a["cohort"].astype(np.int64)
+        self.members = np.eye(p["n_cohorts"], dtype=np.int64)[self.cohort]  # (N, C)
+        self.cohort_size = self.members.sum(0)  # (C,)
+        self.ring_cols = a["ring.cols"].astype(np.int64)
+        self.ring_values = a["ring.values"].astype(np.int64)
+        self.unit_centre = a["unit_centre"].astype(np.int64)
+
+    @property
+    def n_units(self) -> int:
+        """Output units ``N``."""
+        return self.params["n_units"]
+
+    def initial_state(self, batch: int) -> np.ndarray:
+        """Zero activity ``(batch, N)`` int32."""
+        return np.zeros((batch, self.n_units), np.int32)
+
+    def hidden(self, x: np.ndarray, chunk: int = 16) -> np.ndarray:
+        """L1 -> L2 sums ``(B, M)`` int32 through the stored index lists."""
+        out = np.empty((x.shape[0], self.params["hidden"]), np.int32)
+        for lo in range(0, x.shape[0], chunk):
+            g = x[lo:lo + chunk][:, self.l1_cols]  # (b, M, fan_in)
+            out[lo:lo + chunk] = (g * self.l1_values).sum(-1, dtype=np.int32)
+        return out
+
+    def evidence(self, win: np.ndarray) -> np.ndarray:
+        """Binary code ``(B, M)`` -> per-row rescaled evidence ``E`` ``(B, N)`` int64."""
+        idx = np.nonzero(win)[1].reshape(win.shape[0], self.params["k"])  # (B, k)
+        e = self.l3_t[idx].sum(1, dtype=np.int64)  # (B, N)
+        return round_div(e * self.row_scale, np.int64(1) << self.params["e_shift"])
+
+    def gain_z(self, e: np.ndarray) -> np.ndarray:
+        """Cohort z-score times gain on the activity grid, ``(B, N)`` int64."""
+        p = self.params
+        total = e @ self.members  # (B, C)
+        var = self.cohort_size * ((e * e) @ self.members) - total * total  # (B, C)
+        root = isqrt(var)
+        dev = self.cohort_size[self.cohort] * e - total[:, self.cohort]  # (B, N)
+        div = np.maximum(root[:, self.cohort], 1) << p["gain_shift"]
+        return np.where(var[:, self.cohort] > 0, round_div(dev * p["gain_const"], div), 0)
+
+    def step(self, frames: np.ndarray,
+             state: np.ndarray | None = None) -> tuple[IntegerStep, np.ndarray]:
+        """One streaming step.
+
+        Args:
+            frames: ``(B, h, w)`` uint8 at the model's input size.
+            state: ``(B, N)`` int32 previous activity (None: zeros).
+
+        Returns:
+            ``(IntegerStep, new state (B, N) int32)``.
+        """
+        p = self.params
+        frames = np.asarray(frames)
+        if frames.dtype != np.uint8 or frames.shape[1:] != (p["height"], p["width"]):
+            raise ValueError(f"frames must be uint8 (B, {p['height']}, {p['width']}), got "
+                             f"{frames.dtype} {frames.shape}")
+        if state is None:
+            state = self.initial_state(frames.shape[0])
+        if state.dtype != np.int32 or state.shape != (frames.shape[0], self.n_units):
+            raise ValueError(f"state must be int32 ({frames.shape[0]}, {self.n_units}), got "
+                             f"{state.dtype} {state.shape}")
+        win = kwta_int(self.hidden(input_stage(frames, p)), p["k"])
+        g = self.gain_z(self.evidence(win))
+        moved = (state.astype(np.int64)[:, self.ring_cols] * self.ring_values).sum(-1)
+        a = np.clip(round_div(moved, np.int64(1) << p["ring_frac"]) + g, -INT32_MAX, INT32_MAX)
+        a = a.astype(np.int32)
+        unit = a.argmax(1)  # first index on ties
+        best = a[np.arange(a.shape[0]), unit].astype(np.int64)
+        rival = np.abs(np.arange(self.n_units)[None, :] - unit[:, None]) > p["window"]
+        second = np.where(rival, a, a.min(1, keepdims=True)).max(1).astype(np.int64)
+        return IntegerStep(self.unit_centre[unit], best - second, a), a
+
+    def run(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stream a traverse ``(T, h, w)`` uint8 (one stream).
+
+        Returns:
+            ``(reference (T,) int64, confidence (T,) int64, activity (T, N) int32)``.
+        """
+        state = self.initial_state(1)
+        refs, confs, acts = [], [], []
+        for t in range(frames.shape[0]):
+            out, state = self.step(frames[t:t + 1], state)
+            refs.append(out.reference)
+            confs.append(out.confidence)
+            acts.append(out.activity)
+        return np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
