@@ -1,5 +1,6 @@
 """torchseq: sequence-based visual place recognition for ordinary and event cameras."""
 
+from torchseq import metrics
 from torchseq.demo import DemoRoute, make_demo
 from torchseq.ground_truth import alignment_ground_truth, load_ground_truth
 from torchseq.matches import Matches
@@ -17,6 +18,7 @@ __all__ = [
     "load_ground_truth",
     "load_traverse",
     "make_demo",
+    "metrics",
     "patch_normalise",
     "preprocess",
     "resize",
