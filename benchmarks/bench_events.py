@@ -1,0 +1,177 @@
+"""Event benchmarks: accumulation throughput and reader throughput, one thread, one run.
+
+    .venv/bin/python benchmarks/bench_events.py            # prints Markdown tables
+    .venv/bin/python benchmarks/bench_events.py --write-docs   # also updates docs/events.md
+
+Accumulation: torchseq's bincount ``accumulate`` against a straightforward NumPy version
+(``np.add.at`` per window in a Python loop over windows), a plain Python per-event loop (on
+a slice, extrapolated per event) and tonic's ``to_frame_numpy`` when tonic is installed
+(benchmark only; loaded without its dataset dependencies). Readers: events per second on
+the real files (best of 3 passes, each a whole file read) and on a 4M-event AEDAT 2.0 file
+written to a temporary folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import tempfile
+import time
+import types
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchseq.events import EventStream, accumulate, make_events, read_events, write_aedat2
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "events"
+DOC = ROOT / "docs" / "events.md"
+BEGIN, END = "<!-- bench_events:begin -->", "<!-- bench_events:end -->"
+
+
+def timed(fn, repeat=1):
+    best = float("inf")
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def numpy_loop(ev, w, h, window_us):
+    t0 = ev["t"][0]
+    win = (ev["t"] - t0) // window_us
+    n = int(win[-1]) + 1
+    frames = np.zeros((n, h, w), np.float32)
+    bounds = np.searchsorted(win, np.arange(n + 1))
+    for k in range(n):
+        sl = slice(bounds[k], bounds[k + 1])
+        np.add.at(frames[k], (ev["y"][sl], ev["x"][sl]), 2.0 * ev["p"][sl] - 1.0)
+    return frames
+
+
+def python_loop(ev, w, h, window_us):
+    t0 = int(ev["t"][0])
+    frames = {}
+    for t, x, y, p in zip(ev["t"].tolist(), ev["x"].tolist(), ev["y"].tolist(),
+                          ev["p"].tolist()):
+        f = frames.setdefault((t - t0) // window_us, np.zeros((h, w), np.float32))
+        f[y, x] += 1 if p else -1
+    return frames
+
+
+def load_tonic_to_frame():
+    spec = importlib.util.find_spec("tonic")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    base = Path(list(spec.submodule_search_locations)[0])
+    pkg = types.ModuleType("tonic")
+    pkg.__path__ = [str(base)]
+    saved = sys.modules.get("tonic")
+    sys.modules["tonic"] = pkg
+    try:
+        for name, rel in (("tonic.slicers", "slicers.py"),
+                          ("tonic.functional.to_frame", "functional/to_frame.py")):
+            s = importlib.util.spec_from_file_location(name, base / rel)
+            mod = importlib.util.module_from_spec(s)
+            sys.modules[name] = mod
+            s.loader.exec_module(mod)
+        return sys.modules["tonic.functional.to_frame"].to_frame_numpy
+    except Exception as err:  # noqa: BLE001 - any failure means "not available"
+        print(f"tonic present but not loadable: {err}", file=sys.stderr)
+        return None
+    finally:
+        if saved is not None:
+            sys.modules["tonic"] = saved
+
+
+def bench_accumulate(n_events: int) -> list[tuple[str, float, str]]:
+    rng = np.random.default_rng(0)
+    w = h = 128
+    window_us = 10_000
+    ev = make_events(np.sort(rng.integers(0, 2_000_000, n_events)), rng.integers(0, w, n_events),
+                     rng.integers(0, h, n_events), rng.integers(0, 2, n_events))
+    s = EventStream(ev, (w, h))
+    rows = []
+    t_vec, frames = timed(lambda: accumulate(s, window_us=window_us, mode="signed"), 3)
+    rows.append(("torchseq accumulate (bincount, signed)", n_events / t_vec, "1.0x"))
+    t_np, ref = timed(lambda: numpy_loop(ev, w, h, window_us))
+    assert np.array_equal(ref, frames.numpy())
+    rows.append(("NumPy np.add.at, loop over windows", n_events / t_np,
+                 f"{t_np / t_vec:.1f}x slower"))
+    m = min(n_events, 200_000)
+    t_py, _ = timed(lambda: python_loop(ev[:m], w, h, window_us))
+    rows.append(("plain Python loop per event", m / t_py,
+                 f"{(t_py / m) / (t_vec / n_events):.0f}x slower"))
+    to_frame = load_tonic_to_frame()
+    if to_frame is not None:
+        tev = np.zeros(n_events, [("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "<i1")])
+        for f in "txyp":
+            tev[f] = ev[f]
+        t_to, out = timed(lambda: to_frame(tev, (w, h, 2), time_window=window_us), 3)
+        agree = out.shape[0] == frames.shape[0] and np.array_equal(
+            out[:, 1].astype(np.float32) - out[:, 0], frames.numpy())
+        rows.append((f"tonic to_frame_numpy (two-channel{', same frames' if agree else ''})",
+                     n_events / t_to, f"{t_to / t_vec:.1f}x"))
+    else:
+        rows.append(("tonic to_frame_numpy", float("nan"), "not installed: skipped"))
+    return rows
+
+
+def bench_readers() -> list[tuple[str, float, str]]:
+    rows = []
+    files = [("IMU_translBoxes.aedat", "AEDAT 2.0 DAVIS", {}),
+             ("alex_walking_again.aedat", "AEDAT 2.0 DVS128", {}),
+             ("evt3_sample.raw", "EVT 3.0 .raw", {}),
+             ("sample.aedat4", "AEDAT 4.0 (LZ4)", {})]
+    for name, label, kw in files:
+        path = DATA / name
+        if not path.exists():
+            continue
+        t, s = timed(lambda: read_events(path, **kw), 3)
+        rows.append((f"{label}: {name}", len(s) / t, f"{path.stat().st_size / t / 1e6:.0f} MB/s"))
+    with tempfile.TemporaryDirectory() as tmp:
+        rng = np.random.default_rng(1)
+        n = 4_000_000
+        s = EventStream(make_events(np.sort(rng.integers(0, 10**8, n)), rng.integers(0, 128, n),
+                                    rng.integers(0, 128, n), rng.integers(0, 2, n)), (128, 128))
+        path = Path(tmp) / "big.aedat"
+        write_aedat2(path, s)
+        t, back = timed(lambda: read_events(path), 3)
+        rows.append(("AEDAT 2.0 DVS128, synthetic 4M events", n / t,
+                     f"{path.stat().st_size / t / 1e6:.0f} MB/s"))
+    return rows
+
+
+def table(title, rows, unit="events/s"):
+    lines = [f"| {title} | {unit} | note |", "|---|---:|---|"]
+    for name, rate, note in rows:
+        lines.append(f"| {name} | {rate:,.0f} | {note} |" if np.isfinite(rate) else
+                     f"| {name} | - | {note} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--events", type=int, default=2_000_000)
+    p.add_argument("--write-docs", action="store_true")
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    text = (f"Accumulation of {args.events:,} random events (128x128, 10 ms windows over 2 s, "
+            f"signed frames), one thread:\n\n"
+            + table("accumulation", bench_accumulate(args.events)) + "\n\nReaders (whole-file "
+            "read, best of 3):\n\n" + table("reader", bench_readers()))
+    print(text)
+    if args.write_docs and DOC.exists():
+        doc = DOC.read_text()
+        if BEGIN in doc and END in doc:
+            head, rest = doc.split(BEGIN, 1)
+            tail = rest.split(END, 1)[1]
+            DOC.write_text(f"{head}{BEGIN}\n{text}\n{END}{tail}")
+
+
+if __name__ == "__main__":
+    main()
