@@ -30,17 +30,19 @@ _CODES = {v: k for k, v in DTYPES.items()}
 
 # params: the integer scalars of the header section, in file order (docs/integer_format.md).
 PARAM_NAMES = (
-    "height", "width", "patch", "input_mode", "x_frac", "sqrt_frac", "norm_const",
+    "height", "width", "pool_h", "pool_w", "patch", "input_mode", "x_frac", "sqrt_frac", "norm_const",
     "n_input", "hidden", "k", "l1_fan_in", "n_units", "l3_fan_in", "e_shift", "n_cohorts",
-    "gain_const", "gain_shift", "state_frac", "ring_frac", "ring_width", "window",
+    "rectify", "gain_const", "gain_shift", "state_frac", "ring_frac", "ring_width", "window",
 )
 INPUT_RAW, INPUT_ZSCORE = 0, 1
+X_MAX = 2047  # L1 activity and L1 weights are 12-bit: |x|, |w| <= 2047 (int32 sums)
+MAX_FAN_IN = (2**31 - 1) // (X_MAX * X_MAX)  # 512: an L1 sum cannot overflow int32
 
 # section name -> (dtype, shape as param names or ints)
 SECTIONS = {
     "params": (np.dtype("<i8"), (len(PARAM_NAMES),)),
     "l1.cols": (np.dtype("<u2"), ("hidden", "l1_fan_in")),
-    "l1.values": (np.dtype("<i1"), ("hidden", "l1_fan_in")),
+    "l1.values": (np.dtype("<i2"), ("hidden", "l1_fan_in")),
     "l3.cols": (np.dtype("<u2"), ("n_units", "l3_fan_in")),
     "l3.values": (np.dtype("<i1"), ("n_units", "l3_fan_in")),
     "l3.row_scale": (np.dtype("<i4"), ("n_units",)),
@@ -111,13 +113,24 @@ def _check_values(p: dict, a: dict) -> None:
     def bad(msg: str) -> None:
         raise IntegerFormatError(msg)
 
+    if p["rectify"] not in (0, 1):
+        bad(f"rectify must be 0 or 1, got {p['rectify']}")
     if p["input_mode"] not in (INPUT_RAW, INPUT_ZSCORE):
         bad(f"unknown input_mode {p['input_mode']}")
     h, w, patch = p["height"], p["width"], p["patch"]
     if h < 1 or w < 1 or p["n_input"] != h * w:
         bad(f"n_input {p['n_input']} is not height*width = {h}*{w}")
+    ph, pw = p["pool_h"], p["pool_w"]
+    if ph < 1 or pw < 1:
+        bad(f"pool {ph}x{pw} must be positive")
     if p["input_mode"] == INPUT_ZSCORE and (patch < 2 or h % patch or w % patch):
         bad(f"patch {patch} does not tile {h}x{w}")
+    if p["input_mode"] == INPUT_ZSCORE and patch * patch * ph * pw >= 65536:
+        bad(f"patch {patch} with pool {ph}x{pw} overflows the integer z-score")
+    if p["input_mode"] == INPUT_RAW and 255 * ph * pw > X_MAX:
+        bad(f"raw input pooled {ph}x{pw} exceeds {X_MAX}")
+    if not 1 <= p["l1_fan_in"] <= MAX_FAN_IN:
+        bad(f"l1_fan_in {p['l1_fan_in']} not in 1..{MAX_FAN_IN} (int32 sums)")
     if not 1 <= p["k"] <= p["hidden"]:
         bad(f"k {p['k']} not in 1..hidden {p['hidden']}")
     if p["n_units"] < 1 or not 1 <= p["n_cohorts"] <= p["n_units"]:
@@ -130,8 +143,11 @@ def _check_values(p: dict, a: dict) -> None:
                         ("ring.cols", p["n_units"]), ("cohort", p["n_cohorts"])):
         if a[name].size and int(a[name].max()) >= bound:
             bad(f"section {name}: index {int(a[name].max())} out of range 0..{bound - 1}")
-    if a["l3.row_scale"].size and int(a["l3.row_scale"].min()) < 0:
-        bad("section l3.row_scale: negative scale")
+    if a["l3.row_scale"].size and not 0 <= int(a["l3.row_scale"].min()) <= int(
+            a["l3.row_scale"].max()) <= 2 ** 15:
+        bad("section l3.row_scale: scales must lie in 0..32768")
+    if a["l1.values"].size and int(np.abs(a["l1.values"].astype(np.int64)).max()) > X_MAX:
+        bad(f"section l1.values: values exceed +-{X_MAX}")
 
 
 def encode(model: IntegerModel) -> bytes:

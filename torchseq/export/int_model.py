@@ -14,6 +14,7 @@ import torch
 from torchseq.export.int_format import (
     INPUT_RAW,
     INPUT_ZSCORE,
+    X_MAX,
     IntegerFormatError,
     IntegerModel,
 )
@@ -35,11 +36,14 @@ def _rows(mask: torch.Tensor) -> np.ndarray:
     return np.nonzero(m)[1].reshape(m.shape[0], -1)
 
 
-def integer_model(model) -> IntegerModel:
+def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     """Quantise a fitted Neural SeqSLAM model into the integer format.
 
     Args:
         model: a fitted :class:`torchseq.neural.NeuralSeqSLAM`.
+        pool: ``(ph, pw)``: the device's frames are ``(h * ph, w * pw)`` uint8 and are summed
+            over ``ph x pw`` blocks (exactly the float model's area resize, up to a scale
+            the patch z-score removes); ``(1, 1)``: frames arrive at the input size.
 
     Returns:
         A checked :class:`IntegerModel`.
@@ -58,23 +62,23 @@ def integer_model(model) -> IntegerModel:
     if max(cfg.n_input, cfg.hidden, n_units) > 32767:
         raise IntegerFormatError("n_input, hidden and n_units must each be below 32768")
     patch = int(cfg.patch_size)
-    p = {"height": h, "width": w, "patch": patch, "n_input": cfg.n_input, "hidden": cfg.hidden,
+    p = {"height": h, "width": w, "pool_h": int(pool[0]), "pool_w": int(pool[1]), "patch": patch, "n_input": cfg.n_input, "hidden": cfg.hidden,
          "k": cfg.k, "n_units": n_units, "window": int(cfg.uniqueness_window),
          "sqrt_frac": SQRT_FRAC, "state_frac": STATE_FRAC, "ring_frac": RING_FRAC}
     if patch:
         n = patch * patch
         z_max = (n - 1) / math.sqrt(n)  # largest |z| a block of n samples can hold
-        p["x_frac"] = int(math.floor(math.log2(127 / z_max)))
+        p["x_frac"] = int(math.floor(math.log2(X_MAX / z_max)))
         p["input_mode"] = INPUT_ZSCORE
         p["norm_const"] = fixed_point(math.sqrt((n - 1) / n), p["x_frac"] + SQRT_FRAC, 32)
     else:
         p.update(x_frac=0, input_mode=INPUT_RAW, norm_const=0)
     a = {}
-    # L1 -> L2: one per-tensor scale (the k-WTA only needs the order of the sums).
+    # L1 -> L2: 12 bits, one per-tensor scale (the k-WTA only needs the order of the sums).
     cols1 = _rows(model.l1.mask)
     w1 = model.l1.folded_weight().detach().cpu().numpy()
-    q1 = quantise(np.take_along_axis(w1, cols1, 1), bits=8)
-    a["l1.cols"], a["l1.values"] = cols1.astype("<u2"), q1.values
+    q1 = quantise(np.take_along_axis(w1, cols1, 1), bits=12)
+    a["l1.cols"], a["l1.values"] = cols1.astype("<u2"), q1.values.astype("<i2")
     p["l1_fan_in"] = cols1.shape[1]
     # L2 -> L3: per-row scales, stored as ratios to the largest on a 2**-15 grid.
     cols3 = _rows(model.l3.mask)
@@ -90,6 +94,7 @@ def integer_model(model) -> IntegerModel:
     # cohorts and the gain: g = gain * z on the activity grid.
     a["cohort"] = model.cohorts.detach().cpu().numpy().argmax(1).astype("<u2")
     p["n_cohorts"] = int(model.cohorts.shape[1])
+    p["rectify"] = int(bool(getattr(cfg, "rectify", False)))
     gain = float(model.ring.params.gain)
     p["gain_shift"] = GAIN_BITS - 1 - STATE_FRAC - math.floor(math.log2(gain))
     if p["gain_shift"] < 0:
@@ -109,3 +114,36 @@ def integer_model(model) -> IntegerModel:
     a["unit_centre"] = model.unit_centre.detach().cpu().numpy().astype("<i4")
     a["unit_to_ref"] = model.unit_to_reference.detach().cpu().numpy().astype("<i4")
     return IntegerModel({k: int(v) for k, v in p.items()}, a).check()
+
+
+def choose_pool(frame_size: tuple[int, int], input_size: tuple[int, int]) -> tuple[int, int]:
+    """The pooling factor a device uses for camera frames of ``frame_size``.
+
+    ``(H0 // h, W0 // w)`` when the frames are exact multiples of the input size (the device
+    then sums pixel blocks, exactly the float model's area resize), else ``(1, 1)`` (the host
+    resizes to the input size and rounds).
+    """
+    (h0, w0), (h, w) = frame_size, input_size
+    if h0 % h == 0 and w0 % w == 0 and h0 >= h and w0 >= w:
+        return h0 // h, w0 // w
+    return 1, 1
+
+
+def device_frames(frames, input_size: tuple[int, int], pool: tuple[int, int]) -> np.ndarray:
+    """Host side: frames as the integer device takes them, uint8 ``(T, h * ph, w * pw)``.
+
+    Args:
+        frames: ``(T, H, W)`` grey or ``(T, H, W, 3)`` RGB, 0..255, any size.
+        input_size: the model's ``(h, w)``.
+        pool: ``(ph, pw)`` of the integer model.
+
+    Returns:
+        Grey frames resized (only when not already that size; area/bilinear as the float
+        model) and rounded half away from zero to uint8.
+    """
+    from torchseq.preprocess import resize, round_half_away, to_grey
+
+    grey = to_grey(torch.as_tensor(frames)).to(torch.float32)
+    size = (input_size[0] * pool[0], input_size[1] * pool[1])
+    grey = resize(grey, size)
+    return round_half_away(grey).clamp(0, 255).to(torch.uint8).numpy()

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from torchseq.export.int_format import INPUT_ZSCORE, IntegerModel, read_integer_model
+from torchseq.export.int_format import INPUT_ZSCORE, X_MAX, IntegerModel, read_integer_model
 
 ISQRT_BITS = 31  # isqrt handles 0 <= v < 2**62; result bits 30..0
 INT32_MAX = 2**31 - 1
@@ -51,9 +51,10 @@ def isqrt(v: np.ndarray) -> np.ndarray:
 
 
 def input_stage(frames: np.ndarray, p: dict) -> np.ndarray:
-    """uint8 frames ``(B, h, w)`` -> int32 L1 activity ``(B, h*w)`` (integer patch z-scores)."""
-    b, h, w = frames.shape
-    pix = frames.astype(np.int64)
+    """uint8 frames ``(B, h*ph, w*pw)`` -> int32 L1 activity ``(B, h*w)`` (patch z-scores)."""
+    b, h, w = frames.shape[0], p["height"], p["width"]
+    ph, pw = p["pool_h"], p["pool_w"]
+    pix = frames.astype(np.int64).reshape(b, h, ph, w, pw).sum(axis=(2, 4))  # block sums
     if p["input_mode"] != INPUT_ZSCORE:
         return pix.reshape(b, h * w).astype(np.int32)
     s = p["patch"]
@@ -65,7 +66,7 @@ def input_stage(frames: np.ndarray, p: dict) -> np.ndarray:
     root = isqrt(var << (2 * p["sqrt_frac"]))  # ~ sqrt(V) * 2**F
     dev = n * blocks - total  # d = n p - S
     z = round_div(dev * p["norm_const"], np.maximum(root, 1))
-    x = np.where(var > 0, np.clip(z, -127, 127), 0)
+    x = np.where(var > 0, np.clip(z, -X_MAX, X_MAX), 0)
     return x.reshape(b, h * w).astype(np.int32)
 
 
@@ -130,21 +131,22 @@ class IntegerRuntime:
         return round_div(e * self.row_scale, np.int64(1) << self.params["e_shift"])
 
     def gain_z(self, e: np.ndarray) -> np.ndarray:
-        """Cohort z-score times gain on the activity grid, ``(B, N)`` int64."""
+        """Cohort z-score times gain on the activity grid (rectified), ``(B, N)`` int64."""
         p = self.params
         total = e @ self.members  # (B, C)
         var = self.cohort_size * ((e * e) @ self.members) - total * total  # (B, C)
         root = isqrt(var)
         dev = self.cohort_size[self.cohort] * e - total[:, self.cohort]  # (B, N)
         div = np.maximum(root[:, self.cohort], 1) << p["gain_shift"]
-        return np.where(var[:, self.cohort] > 0, round_div(dev * p["gain_const"], div), 0)
+        g = np.where(var[:, self.cohort] > 0, round_div(dev * p["gain_const"], div), 0)
+        return np.maximum(g, 0) if p["rectify"] else g
 
     def step(self, frames: np.ndarray,
              state: np.ndarray | None = None) -> tuple[IntegerStep, np.ndarray]:
         """One streaming step.
 
         Args:
-            frames: ``(B, h, w)`` uint8 at the model's input size.
+            frames: ``(B, h * pool_h, w * pool_w)`` uint8.
             state: ``(B, N)`` int32 previous activity (None: zeros).
 
         Returns:
@@ -152,8 +154,9 @@ class IntegerRuntime:
         """
         p = self.params
         frames = np.asarray(frames)
-        if frames.dtype != np.uint8 or frames.shape[1:] != (p["height"], p["width"]):
-            raise ValueError(f"frames must be uint8 (B, {p['height']}, {p['width']}), got "
+        size = (p["height"] * p["pool_h"], p["width"] * p["pool_w"])
+        if frames.dtype != np.uint8 or frames.ndim != 3 or frames.shape[1:] != size:
+            raise ValueError(f"frames must be uint8 (B, {size[0]}, {size[1]}), got "
                              f"{frames.dtype} {frames.shape}")
         if state is None:
             state = self.initial_state(frames.shape[0])
@@ -172,7 +175,7 @@ class IntegerRuntime:
         return IntegerStep(self.unit_centre[unit], best - second, a), a
 
     def run(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Stream a traverse ``(T, h, w)`` uint8 (one stream).
+        """Stream a traverse ``(T, h * pool_h, w * pool_w)`` uint8 (one stream).
 
         Returns:
             ``(reference (T,) int64, confidence (T,) int64, activity (T, N) int32)``.
