@@ -13,8 +13,9 @@ def test_winners_fast_and_tie_fallback():
     assert winners(torch.zeros(2, 10), 3) is None  # ties: caller must use exact kwta
 
 
+@pytest.mark.parametrize("rectify", [False, True])
 @pytest.mark.parametrize("ties", [False, True])
-def test_feedforward_equals_eager_layers(ties):
+def test_feedforward_equals_eager_layers(ties, rectify):
     l1 = MaskedLinear(48, 200, 0.2, seed=0, dtype=torch.float64)
     l3 = MaskedLinear(200, 30, 0.3, seed=1, dtype=torch.float64)
     x = torch.randn(6, 48, dtype=torch.float64)
@@ -22,8 +23,10 @@ def test_feedforward_equals_eager_layers(ties):
         x[2] = 0.0  # an all-zero input: every L2 unit ties
     cohorts = torch.nn.functional.one_hot(torch.arange(30) // 10, 3).to(torch.float64)
     got = feedforward(x, l1.folded_weight().T.contiguous(), l3.folded_weight().T.contiguous(),
-                      10, cohorts, 1e-6)
+                      10, cohorts, 1e-6, rectify)
     want = cohort_normalise(l3(kwta(l1(x), 10, binary=True)), cohorts, 1e-6)
+    if rectify:
+        want = torch.where(want > 0, want, torch.zeros_like(want))
     torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-10)
 
 

@@ -201,6 +201,13 @@ def test_model_bytes(fitted):
     expect = sum(t.numel() * t.element_size() for t in model.state_dict().values())
     assert dense == expect and sparse < dense
     assert seqslam_bytes(80) == 80 * 2048 * 4
+    cmp = model.memory_comparison()
+    assert cmp == {"n_reference": 80, "n_units": 80, "neural_bytes": dense,
+                   "neural_masked_bytes": sparse, "seqslam_bytes": 80 * 2048 * 4}
+    # masked store: each weight row keeps exactly its mask's fan-in values
+    l1 = model.l1.out_features * model.l1.fan_in * 4
+    assert sparse == dense - model.l1.mask.numel() * 8 - model.l3.mask.numel() * 8 + l1 + \
+        model.l3.out_features * model.l3.fan_in * 4
 
 
 def test_wrapped_ring_run_equals_steps(route):

@@ -33,6 +33,7 @@ class NeuralConfig:
         ring_stay: weight of lag 0 (a unit onto itself: slower repeats).
         ring_wrap: the route is a closed loop (last place leads to the first).
         n_cohorts: evidence is z-scored within this many contiguous blocks of units.
+        rectify: clamp the z-scored evidence at 0 before it enters the ring.
         hebbian: ``"mean"`` (a unit's weights = mean code of its frames) or ``"centred"``
             (minus the mean code of the whole route).
         uniqueness_window: units around the winner ignored by the confidence margin.
@@ -56,6 +57,7 @@ class NeuralConfig:
     ring_stay: float = 0.5
     ring_wrap: bool = False
     n_cohorts: int = 1
+    rectify: bool = True
     hebbian: str = "centred"
     uniqueness_window: int = 5
     eps: float = 1e-6

@@ -34,7 +34,7 @@ def winners(h: torch.Tensor, k: int) -> torch.Tensor | None:
 
 
 def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
-                cohorts: torch.Tensor, eps: float) -> torch.Tensor:
+                cohorts: torch.Tensor, eps: float, rectify: bool = True) -> torch.Tensor:
     """Normalised L3 evidence of preprocessed frames.
 
     Args:
@@ -44,9 +44,10 @@ def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
         k: L2 winners.
         cohorts: ``(N, C)`` membership.
         eps: normalisation floor.
+        rectify: clamp the z-scores at 0 (only above-average evidence drives the ring).
 
     Returns:
-        ``(B, N)`` z-scored evidence.
+        ``(B, N)`` z-scored (and rectified) evidence.
     """
     h = x @ w1_t  # (B, M)
     idx = winners(h, k)
@@ -55,7 +56,8 @@ def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
     else:
         b, n = idx.shape[0], w3_t.shape[1]
         e = torch.index_select(w3_t, 0, idx.reshape(-1)).reshape(b, k, n).sum(1)
-    return cohort_normalise(e, cohorts, eps)
+    z = cohort_normalise(e, cohorts, eps)
+    return z.clamp_min(0.0) if rectify else z
 
 
 def band_diagonals(shift: torch.Tensor, max_lag: int) -> torch.Tensor | None:

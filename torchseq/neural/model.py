@@ -161,10 +161,11 @@ class NeuralSeqSLAM(nn.Module):
         return self.l2(h)
 
     def evidence(self, code: torch.Tensor) -> torch.Tensor:
-        """L2 -> L3 evidence, z-scored within cohorts. ``(B, hidden) -> (B, N)``."""
+        """L2 -> L3 evidence, z-scored within cohorts, rectified. ``(B, hidden) -> (B, N)``."""
         w3 = self._folded["w3"] if self._folded is not None else None
         e = torch.nn.functional.linear(code, w3) if w3 is not None else self.l3(code)
-        return cohort_normalise(e, self.cohorts, self.config.eps)
+        z = cohort_normalise(e, self.cohorts, self.config.eps)
+        return z.clamp_min(0.0) if self.config.rectify else z
 
     def step(self, frames: torch.Tensor,
              state: RingState | None = None) -> tuple[NeuralStep, RingState]:
@@ -190,7 +191,7 @@ class NeuralSeqSLAM(nn.Module):
         f = self._folded
         if f is not None and not torch.is_grad_enabled():  # same maths, fewer memory reads
             e = feedforward(x, f["w1_t"], f["w3_t"], self.config.k, self.cohorts,
-                            self.config.eps)  # (B, N)
+                            self.config.eps, self.config.rectify)  # (B, N)
         else:
             e = self.evidence(self.code(x))  # (B, N)
         activity, state = self.ring(e, state)
@@ -275,7 +276,7 @@ class NeuralSeqSLAM(nn.Module):
         f = self._folded
         decay, gain = self.ring.params
         parts = [feedforward(self.encode(query[lo:lo + cfg.chunk]), f["w1_t"], f["w3_t"],
-                             cfg.k, self.cohorts, cfg.eps)
+                             cfg.k, self.cohorts, cfg.eps, cfg.rectify)
                  for lo in _chunks(query.shape[0], cfg.chunk, progress, "run")]
         drive = torch.cat(parts) * gain  # (T, N)
         a0 = torch.zeros(self.n_units, device=drive.device)
@@ -377,6 +378,23 @@ class NeuralSeqSLAM(nn.Module):
             else:
                 total += t.numel() * t.element_size()
         return total
+
+    def memory_comparison(self, descriptor: int = 2048) -> dict:
+        """Bytes this model stores beside the bytes classic SeqSLAM keeps for the same route.
+
+        Args:
+            descriptor: SeqSLAM descriptor length (2048 = 32x64 OpenSeqSLAM images).
+
+        Returns:
+            ``{"n_reference", "n_units", "neural_bytes", "neural_masked_bytes",
+            "seqslam_bytes"}`` (see :meth:`model_bytes` and :func:`seqslam_bytes`).
+        """
+        self._require_fit()
+        n_ref = int(self.unit_to_reference[-1, 1])
+        return {"n_reference": n_ref, "n_units": self.n_units,
+                "neural_bytes": self.model_bytes(),
+                "neural_masked_bytes": self.model_bytes(masked_only=True),
+                "seqslam_bytes": seqslam_bytes(n_ref, descriptor)}
 
 
 def seqslam_bytes(n_reference: int, descriptor: int = 2048, itemsize: int = 4) -> int:
