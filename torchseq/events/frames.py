@@ -80,27 +80,32 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
     EventStream(events[:0], sensor_size)  # checks the size
     win, n_frames = window_index(events["t"], window_us if event_count is None else None,
                                  event_count, t_start)
-    keep = np.ones(len(events), bool)
+    keep = None
     if hot_pixel is not None:
-        keep &= hot_pixel_mask(events, sensor_size, hot_pixel)
+        keep = hot_pixel_mask(events, sensor_size, hot_pixel)
     if refractory_us is not None:
-        keep &= refractory_mask(events, sensor_size, refractory_us)
+        mask = refractory_mask(events, sensor_size, refractory_us)
+        keep = mask if keep is None else keep & mask
     w, h = sensor_size
-    if (events["x"] >= w).any() or (events["y"] >= h).any() or (events["x"] < 0).any() or (
-            events["y"] < 0).any():
+    x, y, p = events["x"], events["y"], events["p"]
+    if x.min() < 0 or y.min() < 0 or x.max() >= w or y.max() >= h:
         raise ValueError(f"events outside the {w}x{h} sensor: wrong sensor_size?")
-    dev = torch.device(device) if device is not None else torch.device("cpu")
-    x = torch.from_numpy(events["x"][keep].astype(np.int64)).to(dev)
-    y = torch.from_numpy(events["y"][keep].astype(np.int64)).to(dev)
-    p = torch.from_numpy(events["p"][keep].astype(np.int64)).to(dev)
-    k = torch.from_numpy(win[keep]).to(dev)
+    if keep is not None:
+        x, y, p, win = x[keep], y[keep], p[keep], win[keep]
     channels = 2 if mode == "two_channel" else 1
+    flat = win * (channels * h * w)  # int64
     if channels == 2:
-        k = k * 2 + p
-    flat = (k * h + y) * w + x
-    weights = (2 * p - 1).to(torch.float64) if mode == "signed" else None
+        flat += p.astype(np.int64) * (h * w)
+    flat += y.astype(np.int64) * w
+    flat += x
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    acc = torch.float64 if dtype == torch.float64 else torch.float32  # exact below 2**24
+    weights = None
+    if mode == "signed":
+        weights = torch.from_numpy(p).to(dev).to(acc).mul_(2).sub_(1)
     size = n_frames * channels * h * w
-    frames = torch.bincount(flat, weights=weights, minlength=size).to(dtype)
+    frames = torch.bincount(torch.from_numpy(flat).to(dev), weights=weights,
+                            minlength=size).to(dtype)
     if mode == "binary":
         frames = (frames > 0).to(dtype)
     frames = frames.reshape(n_frames, channels, h, w)
