@@ -62,7 +62,10 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     if max(cfg.n_input, cfg.hidden, n_units) > 32767:
         raise IntegerFormatError("n_input, hidden and n_units must each be below 32768")
     patch = int(cfg.patch_size)
-    p = {"height": h, "width": w, "pool_h": int(pool[0]), "pool_w": int(pool[1]), "patch": patch, "n_input": cfg.n_input, "hidden": cfg.hidden,
+    if min(pool) < 1:
+        raise IntegerFormatError(f"pool must be positive, got {pool}")
+    p = {"height": h, "width": w, "pool_h": int(pool[0]), "pool_w": int(pool[1]), "patch": patch,
+         "n_input": cfg.n_input, "hidden": cfg.hidden,
          "k": cfg.k, "n_units": n_units, "window": int(cfg.uniqueness_window),
          "sqrt_frac": SQRT_FRAC, "state_frac": STATE_FRAC, "ring_frac": RING_FRAC}
     if patch:

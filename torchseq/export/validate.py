@@ -1,0 +1,140 @@
+"""Run every exported variant over a query traverse and compare it with the float model.
+
+Variants: PyTorch (the reference), float ONNX, dynamically quantised ONNX, the NumPy integer
+runtime and the integer ONNX graph. Decisions are compared frame by frame (the reference
+frame each variant reports); the integer runtime and the integer ONNX graph must agree bit
+for bit (reference, confidence and the whole ring state at every step).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from torchseq.export.int_format import read_integer_model, write_integer_model
+from torchseq.export.int_model import choose_pool, device_frames, integer_model
+from torchseq.export.int_onnx import build_integer_onnx, run_integer_onnx, session, write_onnx
+from torchseq.export.int_runtime import IntegerRuntime
+from torchseq.export.onnx_float import build_float_onnx, run_float_onnx
+from torchseq.preprocess import resize, to_grey
+
+FLOAT_ONNX = "model_float.onnx"
+QUANT_ONNX = "model_quant.onnx"
+INT_FILE = "model_int.tsq"
+INT_ONNX = "model_int.onnx"
+MIN_AGREEMENT = 0.99
+
+
+def quantise_onnx(model: onnx.ModelProto) -> onnx.ModelProto:
+    """Dynamic int8 quantisation (onnxruntime) of the L1 and L3 weight ``MatMul`` nodes.
+
+    The cohort normalisation and the ring stay float: quantising the recurrent state with
+    per-call dynamic 8-bit scales costs decisions (measured in ``docs/export.md``).
+    """
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    names = [n.name for n in model.graph.node
+             if n.op_type == "MatMul" and any(i in ("w1_t", "w3_t") for i in n.input)]
+    with tempfile.TemporaryDirectory() as tmp:
+        src, dst = Path(tmp) / "float.onnx", Path(tmp) / "quant.onnx"
+        onnx.save(model, src)
+        quantize_dynamic(src, dst, weight_type=QuantType.QInt8, nodes_to_quantize=names)
+        quant = onnx.load(dst)
+    onnx.checker.check_model(quant, full_check=True)
+    return quant
+
+
+def agreement(a: np.ndarray, b: np.ndarray) -> float:
+    """Fraction of frames where two decision vectors are equal."""
+    return float(np.mean(np.asarray(a) == np.asarray(b)))
+
+
+def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
+                        ground_truth: np.ndarray | None = None) -> dict:
+    """Write the four exported files and measure every variant on ``query``.
+
+    Args:
+        model: a fitted :class:`torchseq.neural.NeuralSeqSLAM`.
+        out_dir: folder for ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``,
+            ``model_int.onnx``.
+        query: ``(T, H, W)`` (or RGB) query frames, 0..255.
+        ground_truth: ``(R, T)`` bool, or None (no recall).
+
+    Returns:
+        A JSON-ready dict of measurements, ``checks`` and ``passed``.
+    """
+    from torchseq.metrics import recall_at_k
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    grey = to_grey(torch.as_tensor(query)).to(torch.float32)
+    size = tuple(model.config.input_size)
+    pool = choose_pool(tuple(grey.shape[1:3]), size)
+    # build and write
+    float_onnx = build_float_onnx(model)
+    quant = quantise_onnx(float_onnx)
+    int_model = integer_model(model, pool)
+    files = {FLOAT_ONNX: write_onnx(float_onnx, out / FLOAT_ONNX),
+             QUANT_ONNX: write_onnx(quant, out / QUANT_ONNX),
+             INT_FILE: write_integer_model(out / INT_FILE, int_model)}
+    stored = read_integer_model(out / INT_FILE)  # validate what was written
+    int_onnx = build_integer_onnx(stored)
+    files[INT_ONNX] = write_onnx(int_onnx, out / INT_ONNX)
+    checker = {}
+    for name in (FLOAT_ONNX, QUANT_ONNX, INT_ONNX):
+        try:
+            onnx.checker.check_model(str(out / name), full_check=True)
+            checker[name] = True
+        except Exception:  # noqa: BLE001 - any checker failure fails the export
+            checker[name] = False
+    # run every variant
+    result = model.run(grey)
+    ref_pt = result.matches.reference.numpy()
+    act_pt = result.activity.numpy()
+    conf_pt = result.matches.confidence.numpy()
+    small = resize(grey, size).numpy()
+    ref_f, conf_f, act_f = run_float_onnx(session(out / FLOAT_ONNX), small)
+    ref_q, _, act_q = run_float_onnx(session(out / QUANT_ONNX), small)
+    frames_u8 = device_frames(grey, size, pool)
+    ref_n, conf_n, act_n = IntegerRuntime(stored).run(frames_u8)
+    ref_o, conf_o, act_o = run_integer_onnx(session(out / INT_ONNX), frames_u8)
+    unit = 2.0 ** -stored.params["state_frac"]
+    bit_exact = bool(np.array_equal(ref_n, ref_o) and np.array_equal(conf_n, conf_o)
+                     and np.array_equal(act_n, act_o) and act_n.dtype == act_o.dtype)
+    report = {
+        "n_query": int(grey.shape[0]),
+        "query_frame_size": list(grey.shape[1:3]),
+        "input_size": list(size),
+        "integer_pool": list(pool),
+        "n_units": int(model.n_units),
+        "files_bytes": files,
+        "float_onnx_max_abs_error": float(np.abs(act_f - act_pt).max()),
+        "float_onnx_confidence_max_abs_error": float(np.abs(conf_f - conf_pt).max()),
+        "float_onnx_agreement": agreement(ref_f, ref_pt),
+        "quant_onnx_max_abs_error": float(np.abs(act_q - act_pt).max()),
+        "quant_onnx_agreement": agreement(ref_q, ref_pt),
+        "integer_agreement": agreement(ref_n, ref_pt),
+        "integer_onnx_agreement": agreement(ref_o, ref_pt),
+        "integer_activity_max_abs_error": float(np.abs(act_n * unit - act_pt).max()),
+        "integer_activity_scale": float(np.abs(act_pt).max()),
+        "integer_onnx_bit_exact": bit_exact,
+        "onnx_checker": checker,
+    }
+    if ground_truth is not None:
+        gt = np.asarray(ground_truth, dtype=bool)
+        report["recall_at_1"] = {name: recall_at_k(r, gt) for name, r in (
+            ("pytorch", ref_pt), ("float_onnx", ref_f), ("quant_onnx", ref_q),
+            ("integer_numpy", ref_n), ("integer_onnx", ref_o))}
+    checks = {
+        "float_onnx_agreement": report["float_onnx_agreement"] >= MIN_AGREEMENT,
+        "integer_agreement": report["integer_agreement"] >= MIN_AGREEMENT,
+        "integer_onnx_bit_exact": bit_exact,
+        "onnx_checker": all(checker.values()),
+    }
+    report["checks"] = checks
+    report["passed"] = all(checks.values())
+    return report
