@@ -1,0 +1,26 @@
+"""Deployment export of Neural SeqSLAM: float ONNX, quantised ONNX, integer file and graph.
+
+See ``docs/export.md`` (how to use it, measured agreement and speed) and
+``docs/integer_format.md`` (the integer file and its arithmetic).
+"""
+
+from torchseq.export.cli import ExportError, export_checkpoint
+from torchseq.export.int_format import (
+    FORMAT_VERSION,
+    IntegerFormatError,
+    IntegerModel,
+    read_integer_model,
+    write_integer_model,
+)
+from torchseq.export.int_model import choose_pool, device_frames, integer_model
+from torchseq.export.int_onnx import build_integer_onnx
+from torchseq.export.int_runtime import IntegerRuntime, IntegerStep
+from torchseq.export.onnx_float import StreamingStep, build_float_onnx, export_float_onnx
+from torchseq.export.quantise import Quantised, dequantise, fixed_point, quantise
+
+__all__ = [
+    "FORMAT_VERSION", "ExportError", "IntegerFormatError", "IntegerModel", "IntegerRuntime",
+    "IntegerStep", "Quantised", "StreamingStep", "build_float_onnx", "build_integer_onnx",
+    "choose_pool", "dequantise", "device_frames", "export_checkpoint", "export_float_onnx",
+    "fixed_point", "integer_model", "quantise", "read_integer_model", "write_integer_model",
+]
