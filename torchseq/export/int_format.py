@@ -32,7 +32,8 @@ _CODES = {v: k for k, v in DTYPES.items()}
 PARAM_NAMES = (
     "height", "width", "pool_h", "pool_w", "patch", "input_mode", "x_frac", "sqrt_frac",
     "norm_const", "n_input", "hidden", "k", "l1_fan_in", "n_units", "l3_fan_in", "e_shift",
-    "n_cohorts", "rectify", "gain_const", "gain_shift", "state_frac", "ring_frac", "ring_width", "window",
+    "n_cohorts", "rectify", "gain_const", "gain_shift", "state_frac", "ring_frac",
+    "ring_width", "window",
 )
 INPUT_RAW, INPUT_ZSCORE = 0, 1
 X_MAX = 2047  # L1 activity and L1 weights are 12-bit: |x|, |w| <= 2047 (int32 sums)
