@@ -112,10 +112,10 @@ def bench_accumulate(n_events: int) -> list[tuple[str, float, str]]:
         for f in "txyp":
             tev[f] = ev[f]
         t_to, out = timed(lambda: to_frame(tev, (w, h, 2), time_window=window_us), 3)
-        agree = out.shape[0] == frames.shape[0] and np.array_equal(
-            out[:, 1].astype(np.float32) - out[:, 0], frames.numpy())
+        signed = out[:, 1].astype(np.float32) - out[:, 0]  # tonic drops the partial last window
+        agree = np.array_equal(signed, frames.numpy()[:len(signed)])
         rows.append((f"tonic to_frame_numpy (two-channel{', same frames' if agree else ''})",
-                     n_events / t_to, f"{t_to / t_vec:.1f}x"))
+                     n_events / t_to, f"{t_to / t_vec:.1f}x slower"))
     else:
         rows.append(("tonic to_frame_numpy", float("nan"), "not installed: skipped"))
     return rows
