@@ -329,3 +329,20 @@ def test_aedat4_pure_python_path_equals_library_path(monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert np.array_equal(read_events(path).events, fast.events)
+
+
+def test_evt2_hand_made_words(tmp_path):
+    # EVT 2.0 words built by hand from the format description: TIME_HIGH holds t >> 6,
+    # CD events hold t & 63 (bits 22..27), x (bits 11..21), y (bits 0..10); type 0 OFF, 1 ON
+    def cd(on, t, x, y):
+        return (int(on) << 28) | ((t & 63) << 22) | (x << 11) | y
+
+    words = [cd(1, 0, 1, 1),  # before any TIME_HIGH: dropped
+             (0x8 << 28) | (1000 >> 6), cd(1, 1000, 3, 2), cd(0, 1010, 15, 7),
+             (0xA << 28) | 5,  # an external trigger: skipped
+             (0x8 << 28) | (5000 >> 6), cd(1, 5000, 0, 0)]
+    data = b"% evt 2.0\n% geometry 16x8\n% end\n" + np.array(words, "<u4").tobytes()
+    (tmp_path / "e.raw").write_bytes(data)
+    s = read_events(tmp_path / "e.raw")
+    assert s.sensor_size == (16, 8)
+    assert as_tuples(s.events) == [(1000, 3, 2, 1), (1010, 15, 7, 0), (5000, 0, 0, 1)]
