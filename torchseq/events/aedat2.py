@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchseq.events.atomic import atomic_write
+from torchseq.atomic import atomic_open
 from torchseq.events.stream import EventFormatError, EventStream, make_events
 
 MAGIC = b"#!AER-DAT2.0"
@@ -183,6 +183,6 @@ def write_aedat2(path: str | Path, stream: EventStream, layout: str = "dvs128",
         "# Data format is int32 address, int32 timestamp (8 bytes total), repeated for each event",
         "# Timestamps tick is 1 us", f"# AEChip: {chip}",
         f"# torchseq layout: {layout} sensor_size: {w}x{h}"))
-    with atomic_write(path) as f:
+    with atomic_open(path) as f:
         f.write(header.encode("ascii"))
         f.write(records.tobytes())

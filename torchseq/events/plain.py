@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchseq.events.atomic import atomic_write
+from torchseq.atomic import atomic_open
 from torchseq.events.stream import (
     EventFormatError,
     EventStream,
@@ -85,7 +85,7 @@ def read_npz(path: str | Path, sensor_size: tuple[int, int] | None = None) -> Ev
 def write_npz(path: str | Path, stream: EventStream) -> None:
     """Write events and sensor size to a ``.npz`` atomically (read back by :func:`read_npz`)."""
     stream.validate()
-    with atomic_write(path) as f:
+    with atomic_open(path) as f:
         np.savez(f, events=stream.events, sensor_size=np.asarray(stream.sensor_size, np.int64))
 
 
