@@ -18,7 +18,7 @@ def test_winners_fast_and_tie_fallback():
 def test_feedforward_equals_eager_layers(ties, rectify):
     l1 = MaskedLinear(48, 200, 0.2, seed=0, dtype=torch.float64)
     l3 = MaskedLinear(200, 30, 0.3, seed=1, dtype=torch.float64)
-    x = torch.randn(6, 48, dtype=torch.float64)
+    x = torch.randn(12, 48, dtype=torch.float64)
     if ties:
         x[2] = 0.0  # an all-zero input: every L2 unit ties
     cohorts = torch.nn.functional.one_hot(torch.arange(30) // 10, 3).to(torch.float64)
@@ -28,6 +28,9 @@ def test_feedforward_equals_eager_layers(ties, rectify):
     if rectify:
         want = torch.where(want > 0, want, torch.zeros_like(want))
     torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-10)
+    small = feedforward(x[:3], l1.folded_weight().T.contiguous(),
+                        l3.folded_weight().T.contiguous(), 10, cohorts, 1e-6, rectify)
+    torch.testing.assert_close(small, want[:3], atol=1e-10, rtol=1e-10)  # gather path
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -2,7 +2,8 @@
 
 - :func:`feedforward`: preprocessing, L1 -> L2 -> L3 and cohort normalisation for a batch
   of frames with folded (dense) weights; the binary k-WTA code is never materialised: the
-  L3 evidence is the sum of the ``k`` winners' columns of ``l3.weight * l3.mask``.
+  L3 evidence is the sum of the ``k`` winners' columns of ``l3.weight * l3.mask``
+  (``F.embedding_bag`` in sum mode).
 - :func:`ring_scan`: the ring recurrence over a whole single-stream sequence; when the shift
   matrix is banded (units recruited in order, no wrap) it runs on diagonals instead of an
   ``N x N`` product per step.
@@ -13,6 +14,7 @@ Results equal the step-by-step path up to float rounding (sums in another order)
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from torchseq.layers.functional import cohort_normalise, kwta
 
@@ -53,9 +55,8 @@ def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
     idx = winners(h, k)
     if idx is None:  # exact tie handling
         e = kwta(h, k, binary=True) @ w3_t
-    else:
-        b, n = idx.shape[0], w3_t.shape[1]
-        e = torch.index_select(w3_t, 0, idx.reshape(-1)).reshape(b, k, n).sum(1)
+    else:  # sum the k winners' rows of w3_t: k * N reads per frame instead of M * N
+        e = F.embedding_bag(idx, w3_t, mode="sum")
     z = cohort_normalise(e, cohorts, eps)
     return z.clamp_min(0.0) if rectify else z
 

@@ -1,0 +1,160 @@
+"""Neural SeqSLAM speed on one CPU thread: step latency, batched throughput, fit time.
+
+    .venv/bin/python benchmarks/bench_neural.py [--no-docs] [--repeats 5]
+
+Compares, side by side in one run: the eager step (masks multiplied in on every call), the
+step with masks folded into dense weights, the step with torch.sparse CSR weights, batched
+streams, and the single-stream ``run`` fast path. Frames are given at the model's input size
+(24x32) unless the row says otherwise. Prints a Markdown table and writes it into
+docs/neural.md between the ``bench`` markers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from torchseq.demo import make_demo  # noqa: E402
+from torchseq.layers import cohort_normalise, kwta  # noqa: E402
+from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
+from torchseq.neural.fast import feedforward, ring_scan  # noqa: E402
+from torchseq.neural.learning import decide  # noqa: E402
+from torchseq.preprocess import resize  # noqa: E402
+
+START, END = "<!-- bench:start -->", "<!-- bench:end -->"
+
+
+def best_time(fn, repeats: int, number: int) -> float:
+    """Best mean seconds per call over ``repeats`` rounds of ``number`` calls."""
+    fn()
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(number):
+            fn()
+        best = min(best, (time.perf_counter() - t0) / number)
+    return best
+
+
+def sparse_step(model: NeuralSeqSLAM, w1, w3, frames, state):
+    """The step with CSR weights (``torch.sparse``) in both masked layers."""
+    x = model.encode(frames)
+    c = kwta((w1 @ x.T).T, model.config.k, binary=True)
+    e = cohort_normalise((w3 @ c.T).T, model.cohorts, model.config.eps)
+    a, state = model.ring(e, state)
+    return decide(a, model.unit_centre, model.config.uniqueness_window), state
+
+
+def bf16_references(model: NeuralSeqSLAM, x: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """Decisions with the L1 product in bfloat16 (approximate), and the seconds it took.
+
+    A benchmark-only variant, not part of the model: bfloat16 rounding can move L2 units
+    across the k-WTA threshold, so decisions can differ from the float32 model.
+    """
+    f, cfg = model._folded, model.config
+    w1 = f["w1_t"].to(torch.bfloat16)
+    t0 = time.perf_counter()
+    h = (x.to(torch.bfloat16) @ w1).float()
+    idx = torch.topk(h, cfg.k, dim=1, sorted=False).indices
+    e = torch.index_select(f["w3_t"], 0, idx.reshape(-1)).reshape(len(x), cfg.k, -1).sum(1)
+    z = cohort_normalise(e, model.cohorts, cfg.eps).clamp_min(0.0)
+    decay, gain = model.ring.params
+    a = ring_scan(z * gain, torch.zeros(model.n_units), model.ring.shift, decay,
+                  f["diagonals"])
+    ref, _ = decide(a, model.unit_centre, cfg.uniqueness_window)
+    return ref, time.perf_counter() - t0
+
+
+def main(argv=None) -> str:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--no-docs", action="store_true", help="do not update docs/neural.md")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    cfg = NeuralConfig()
+    demo = make_demo(n_reference=555, speed=0.8)
+    model = NeuralSeqSLAM(cfg)
+    t0 = time.perf_counter()
+    model.fit(demo.reference, log=False)
+    fit_s = time.perf_counter() - t0
+    raw = demo.query  # (Q, 96, 128)
+    small = resize(raw, cfg.input_size)  # (Q, 24, 32)
+    rows = []
+
+    def row(name, batch, seconds_per_call):
+        rows.append((name, batch, seconds_per_call * 1e6 / batch, batch / seconds_per_call))
+
+    with torch.inference_mode():
+        f1 = small[:1]
+        _, st = model.step(f1)
+        model.unfold()
+        row("step, eager (mask * weight each call)", 1,
+            best_time(lambda: model.step(f1, st), args.repeats, 20))
+        model.fold()
+        row("step, masks folded into dense weights", 1,
+            best_time(lambda: model.step(f1, st), args.repeats, 50))
+        row("step, folded, raw 96x128 frame (incl. resize)", 1,
+            best_time(lambda: model.step(raw[:1], st), args.repeats, 50))
+        w1 = model._folded["w1"].to_sparse_csr()
+        w3 = model._folded["w3"].to_sparse_csr()
+        row("step, torch.sparse CSR weights", 1,
+            best_time(lambda: sparse_step(model, w1, w3, f1, st), args.repeats, 20))
+        for b in (16, 256):
+            fb = small[:b]
+            _, sb = model.step(fb)
+            row(f"step, folded, {b} independent streams", b,
+                best_time(lambda: model.step(fb, sb), args.repeats, 5))
+        _, sb = model.step(small[:256])
+        w_b = small[:256]
+        row("step, sparse CSR, 256 streams", 256,
+            best_time(lambda: sparse_step(model, w1, w3, w_b, sb), args.repeats, 3))
+        q = small.shape[0]
+        row(f"run (single stream fast path), {q} frames", q,
+            best_time(lambda: model.run(small), args.repeats, 1))
+        row(f"run, raw 96x128 frames, {q} frames", q,
+            best_time(lambda: model.run(raw), args.repeats, 1))
+        x = model.encode(small)
+        f = model._folded
+        row(f"feed-forward only (encode..evidence), fp32, {q} frames", q,
+            best_time(lambda: feedforward(model.encode(small), f["w1_t"], f["w3_t"], cfg.k,
+                                          model.cohorts, cfg.eps), args.repeats, 1))
+        exact = model.run(small).matches.reference
+        approx, _ = bf16_references(model, x)
+        same = float((approx == exact).float().mean())
+        row(f"run with the L1 product in bfloat16 (approximate: {same:.1%} same decisions), "
+            f"{q} frames", q,
+            best_time(lambda: bf16_references(model, model.encode(small)), args.repeats, 1))
+    lines = [f"Machine: {platform.processor() or platform.machine()}, torch "
+             f"{torch.__version__}, 1 thread; model: default NeuralConfig, route of "
+             f"{demo.reference.shape[0]} reference frames ({model.n_units} output units).", "",
+             "| path | batch | us per frame | frames/s |", "|---|---|---|---|"]
+    lines += [f"| {n} | {b} | {us:.1f} | {fps:,.0f} |" for n, b, us, fps in rows]
+    lines += ["", f"Fit: {fit_s:.2f} s for {demo.reference.shape[0]} reference frames "
+              f"({fit_s / demo.reference.shape[0] * 1e3:.2f} ms per frame, raw 96x128 frames)."]
+    table = "\n".join(lines)
+    print(table)
+    docs = ROOT / "docs" / "neural.md"
+    if not args.no_docs and docs.exists():
+        text = docs.read_text()
+        if START in text and END in text:
+            head, rest = text.split(START, 1)
+            text = head + START + "\n" + table + "\n" + END + rest.split(END, 1)[1]
+            fd, tmp = tempfile.mkstemp(dir=docs.parent, prefix="neural.md.", suffix=".tmp")
+            with os.fdopen(fd, "w") as f:
+                f.write(text)
+            os.replace(tmp, docs)
+    return table
+
+
+if __name__ == "__main__":
+    main()
