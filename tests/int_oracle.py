@@ -1,0 +1,70 @@
+"""An independent plain-Python reference of one integer step (docs/integer_format.md).
+
+Written from the spec with Python integers, ``math.isqrt``, exact ``Fraction`` rounding,
+explicit loops and a sort-based top-k, sharing no code with ``torchseq.export.int_runtime``.
+Slow: only for tiny models.
+"""
+
+import math
+from fractions import Fraction
+
+
+def round_half_away(q: Fraction) -> int:
+    n = math.floor(abs(q) + Fraction(1, 2))
+    return n if q >= 0 else -n
+
+
+def oracle_step(model, frame, state):
+    """frame: nested lists (h*ph, w*pw) of 0..255; state: list of N ints -> (act, ref, conf)."""
+    p, a = model.params, model.arrays
+    h, w, ph, pw = p["height"], p["width"], p["pool_h"], p["pool_w"]
+    g = [[sum(int(frame[i * ph + u][j * pw + v]) for u in range(ph) for v in range(pw))
+          for j in range(w)] for i in range(h)]
+    x = [[0] * w for _ in range(h)]
+    if p["input_mode"] == 1:
+        s = p["patch"]
+        n = s * s
+        for bi in range(0, h, s):
+            for bj in range(0, w, s):
+                pix = [(i, j) for i in range(bi, bi + s) for j in range(bj, bj + s)]
+                total = sum(g[i][j] for i, j in pix)
+                var = n * sum(g[i][j] ** 2 for i, j in pix) - total * total
+                root = math.isqrt(var * 4 ** p["sqrt_frac"])
+                for i, j in pix:
+                    if var > 0:
+                        z = round_half_away(Fraction((n * g[i][j] - total) * p["norm_const"],
+                                                     root))
+                        x[i][j] = max(-2047, min(2047, z))
+    else:
+        x = g
+    flat = [x[i][j] for i in range(h) for j in range(w)]
+    hidden = [sum(int(v) * flat[int(c)] for c, v in zip(a["l1.cols"][m], a["l1.values"][m]))
+              for m in range(p["hidden"])]
+    winners = sorted(range(p["hidden"]), key=lambda m: (-hidden[m], m))[:p["k"]]
+    n_units = p["n_units"]
+    e = [0] * n_units
+    for u in range(n_units):
+        row = dict(zip(a["l3.cols"][u].tolist(), a["l3.values"][u].tolist()))
+        raw = sum(row.get(m, 0) for m in winners)
+        e[u] = round_half_away(Fraction(raw * int(a["l3.row_scale"][u]), 2 ** p["e_shift"]))
+    cohort = [int(c) for c in a["cohort"]]
+    gz = [0] * n_units
+    for c in range(p["n_cohorts"]):
+        units = [u for u in range(n_units) if cohort[u] == c]
+        n, total = len(units), sum(e[u] for u in units)
+        var = n * sum(e[u] ** 2 for u in units) - total * total
+        for u in units:
+            if var > 0:
+                gz[u] = round_half_away(Fraction((n * e[u] - total) * p["gain_const"],
+                                                 math.isqrt(var) * 2 ** p["gain_shift"]))
+            if p["rectify"]:
+                gz[u] = max(gz[u], 0)
+    act = []
+    for u in range(n_units):
+        moved = sum(int(v) * state[int(c)] for c, v in zip(a["ring.cols"][u], a["ring.values"][u]))
+        val = round_half_away(Fraction(moved, 2 ** p["ring_frac"])) + gz[u]
+        act.append(max(-(2**31 - 1), min(2**31 - 1, val)))
+    best = max(range(n_units), key=lambda u: (act[u], -u))
+    rivals = [act[v] for v in range(n_units) if abs(v - best) > p["window"]]
+    second = max(rivals) if rivals else min(act)
+    return act, int(a["unit_centre"][best]), act[best] - second
