@@ -1,0 +1,83 @@
+"""Float ONNX export: the traced step equals PyTorch (tolerance, decisions), dynamic batch."""
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from export_helpers import small_setup
+
+from torchseq.export.int_onnx import session
+from torchseq.export.onnx_float import (
+    StreamingStep,
+    build_float_onnx,
+    export_float_onnx,
+    run_float_onnx,
+)
+from torchseq.export.validate import quantise_onnx
+from torchseq.preprocess import resize
+
+
+@pytest.fixture(scope="module")
+def setup():
+    model, demo, *_ = small_setup()
+    small = resize(demo.query.float(), model.config.input_size)
+    return model, demo, small, build_float_onnx(model)
+
+
+def test_streaming_step_equals_model_step(setup):
+    model, demo, small, _ = setup
+    step = StreamingStep(model)
+    state = torch.zeros(3, model.n_units)
+    ref_state = None
+    for t in range(5):
+        out, ref_state = model.step(small[3 * t:3 * t + 3], ref_state)
+        act, new_state, ref, conf = step(small[3 * t:3 * t + 3], state)
+        assert torch.allclose(act, out.activity, atol=1e-5)
+        assert torch.equal(ref, out.reference)
+        assert torch.allclose(conf, out.confidence, atol=1e-5)
+        state = new_state
+
+
+@pytest.mark.parametrize("batch", [1, 3])
+def test_onnx_matches_pytorch_with_dynamic_batch(setup, batch):
+    model, _, small, proto = setup
+    sess = session(proto)
+    step = StreamingStep(model)
+    state = np.zeros((batch, model.n_units), np.float32)
+    state_pt = torch.zeros(batch, model.n_units)
+    for t in range(0, 30, batch):
+        frames = small[t:t + batch]
+        act, state, ref, conf = sess.run(None, {"frames": frames.numpy(), "state": state})
+        act_pt, state_pt, ref_pt, conf_pt = step(frames, state_pt)
+        assert act.shape == (batch, model.n_units)
+        np.testing.assert_allclose(act, act_pt.numpy(), atol=1e-5, rtol=1e-5)
+        np.testing.assert_allclose(conf, conf_pt.numpy(), atol=1e-5, rtol=1e-5)
+        assert np.array_equal(ref, ref_pt.numpy())
+
+
+def test_whole_traverse_against_model_run(setup, tmp_path):
+    model, demo, small, _ = setup
+    path = tmp_path / "step.onnx"
+    assert export_float_onnx(model, path) == path.stat().st_size
+    onnx.checker.check_model(str(path), full_check=True)
+    ref, conf, act = run_float_onnx(session(path), small.numpy())
+    result = model.run(demo.query)
+    assert np.abs(act - result.activity.numpy()).max() < 1e-4
+    assert np.array_equal(ref, result.matches.reference.numpy())
+
+
+def test_quantised_onnx_quantises_the_weight_matmuls(setup):
+    model, demo, small, proto = setup
+    quant = quantise_onnx(proto)
+    ops = [n.op_type for n in quant.graph.node]
+    assert ops.count("MatMulInteger") == 2
+    ref, _, _ = run_float_onnx(session(quant), small.numpy())
+    ref_pt = model.run(demo.query).matches.reference.numpy()
+    assert np.mean(ref == ref_pt) >= 0.9  # measured 0.93-0.99 on the data of docs/export.md
+
+
+def test_unfitted_model_is_rejected():
+    from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+
+    with pytest.raises(ValueError, match="fit"):
+        StreamingStep(NeuralSeqSLAM(NeuralConfig(hidden=64, n_output=4)))
