@@ -4,9 +4,10 @@ One command (from the repository root):
 
     .venv/bin/python experiments/neural_quality.py [--out experiments/results] [--ablation]
 
-Writes ``neural_quality.json`` and ``neural_quality.md`` (a Markdown table) under ``--out``
-and prints the table. With ``--ablation`` it also runs the ablation over the model's
-settings and the harder demo variants (appearance change, repetitive scenery).
+Writes ``neural_quality.json`` and ``neural_quality.md`` (a Markdown table) under ``--out``,
+prints the table. With ``--ablation`` it also runs the ablation over the model's settings
+and the harder demo variants (appearance change, speed, repetitive scenery), and rewrites
+the tables in docs/neural.md (unless ``--no-docs``).
 Classic SeqSLAM (``torchseq.seqslam``, default settings) runs beside it on the same data.
 """
 
@@ -141,6 +142,8 @@ def main(argv=None) -> dict:
     p.add_argument("--out", type=Path, default=ROOT / "experiments" / "results")
     p.add_argument("--ablation", action="store_true")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--no-docs", action="store_true",
+                   help="with --ablation, do not rewrite the tables in docs/neural.md")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -178,6 +181,13 @@ def main(argv=None) -> dict:
                                                     ["setting", *data.keys()]) + "\n"
     write_atomic(args.out / "neural_quality.json", json.dumps(results, indent=1, default=float))
     write_atomic(args.out / "neural_quality.md", md)
+    docs = ROOT / "docs" / "neural.md"
+    if args.ablation and not args.no_docs and docs.exists():
+        text = docs.read_text()
+        a, b = "<!-- quality:start -->", "<!-- quality:end -->"
+        if a in text and b in text:
+            body = md.replace("### ", "#### ").strip()
+            write_atomic(docs, text.split(a)[0] + a + "\n" + body + "\n" + b + text.split(b)[1])
     print(md)
     return results
 
