@@ -124,3 +124,30 @@ def test_bad_step_input():
         rt.step(frames[:1].astype(np.int16))
     with pytest.raises(ValueError, match="state"):
         rt.step(frames[:2], rt.initial_state(3))
+
+
+@pytest.mark.slow
+def test_default_size_model_on_real_data():
+    """Default NeuralConfig fitted on the corridor reference, run on its query (real data)."""
+    from conftest import shared_data
+
+    from torchseq.ground_truth import load_ground_truth
+    from torchseq.metrics import recall_at_k
+    from torchseq.sources import load_traverse
+
+    root = shared_data("corridor")
+    ref = load_traverse(root / "ref", progress=False)
+    query = load_traverse(root / "query", progress=False)
+    gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
+    model = NeuralSeqSLAM(NeuralConfig())
+    model.fit(ref, log=False)
+    pool = choose_pool(tuple(query.shape[1:3]), model.config.input_size)
+    assert pool == (5, 5)  # 120x160 camera frames summed in 5x5 blocks on the device
+    frames = device_frames(query, model.config.input_size, pool)
+    im = integer_model(model, pool)
+    ref_n, conf_n, act_n = IntegerRuntime(im).run(frames)
+    ref_o, conf_o, act_o = run_integer_onnx(session(build_integer_onnx(im)), frames)
+    assert np.array_equal(act_n, act_o) and np.array_equal(conf_n, conf_o)
+    ref_float = model.run(query).matches.reference.numpy()
+    assert np.mean(ref_n == ref_float) >= 0.99  # measured 1.0 (111 of 111 frames)
+    assert abs(recall_at_k(ref_n, gt) - recall_at_k(ref_float, gt)) <= 0.01
