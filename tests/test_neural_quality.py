@@ -1,0 +1,45 @@
+"""Recognition quality floors on real data, measured with experiments/neural_quality.py."""
+
+import numpy as np
+import pytest
+from conftest import shared_data
+
+from torchseq.demo import make_demo
+from torchseq.ground_truth import load_ground_truth
+from torchseq.metrics import evaluate
+from torchseq.neural import NeuralSeqSLAM
+from torchseq.sources import load_traverse
+
+
+@pytest.mark.slow
+def test_demo_recall_default_config():
+    d = make_demo()
+    model = NeuralSeqSLAM()
+    model.fit(d.reference, log=False)
+    m = evaluate(model.run(d.query).matches, d.ground_truth)
+    assert m["recall_at_1"] >= 0.99  # measured 1.000
+
+
+@pytest.mark.slow
+def test_corridor_recall_default_config():
+    root = shared_data("corridor")
+    ref = load_traverse(root / "ref", progress=False)
+    query = load_traverse(root / "query", progress=False)
+    gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
+    model = NeuralSeqSLAM()
+    model.fit(ref, log=False)
+    m = evaluate(model.run(query).matches, gt)
+    assert m["recall_at_1"] >= 0.80  # measured 0.865 (the seed reported about 80%)
+    assert m["auc"] >= 0.75  # measured 0.820
+
+
+@pytest.mark.slow
+def test_lens_within_two_frames():
+    root = shared_data("lens-davis128")
+    ref = load_traverse(root / "example-reference", progress=False)
+    query = load_traverse(root / "example-query", progress=False)
+    model = NeuralSeqSLAM()
+    model.fit(ref, log=False)
+    got = model.run(query).matches.reference.numpy()
+    near = np.abs(got - np.arange(len(query))) <= 2  # the file's ground truth is the identity
+    assert near.mean() >= 0.65  # measured 0.73
