@@ -52,6 +52,7 @@ class EvalConfig:
     vmax: float = 1.2
     speed_ratio: float | None = None
     speed_tolerance: float = 0.2
+    match_at: str | None = None
     metric: str = "l1"
     image_size: str = "32x64"
     patch_size: int = 8
@@ -84,6 +85,9 @@ HELP = {
     "speed_ratio": "known speed ratio (reference frames per query frame): centres the velocity "
                    "range on it, overriding --vmin/--vmax",
     "speed_tolerance": "fractional width of the velocity range around --speed-ratio",
+    "match_at": "SeqSLAM reported place: 'start' (start + ds/2, OpenSeqSLAM) or 'trajectory' "
+                "(where the best trajectory crosses the query centre); default: trajectory "
+                "with --speed-ratio, else start",
     "metric": "frame difference: l1 (OpenSeqSLAM), l2 or cosine",
     "image_size": "SeqSLAM image size HxW after resizing",
     "patch_size": "patch normalisation side in pixels (0 disables it)",
@@ -137,7 +141,8 @@ def run_seqslam(cfg: EvalConfig, ref, query, device):
     scfg = SeqSLAMConfig(
         image_size=cfg.image_size, patch_size=cfg.patch_size, metric=cfg.metric,
         enhance_window=cfg.enhance_window, ds=cfg.ds, vmin=cfg.vmin, vmax=cfg.vmax,
-        speed_ratio=cfg.speed_ratio, speed_tolerance=cfg.speed_tolerance, rwindow=cfg.rwindow)
+        speed_ratio=cfg.speed_ratio, speed_tolerance=cfg.speed_tolerance, rwindow=cfg.rwindow,
+        match_at=cfg.match_at)
     result = SeqSLAM(scfg, device=device).match(ref, query, progress=cfg.progress)
     return {"matches": result.matches, "ranked": result.ranked, "matrix": result.enhanced,
             "seconds": result.seconds["total"], "parameters": to_jsonable(scfg)}

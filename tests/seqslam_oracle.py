@@ -83,8 +83,12 @@ def _uniqueness(score: np.ndarray, s: int, rwindow: int) -> float:
 
 
 def oracle_seqslam(enhanced: np.ndarray, ds: int = 10, vmin: float = 0.8, vmax: float = 1.2,
-                   rwindow: int = 10, top_k: int = 10):
-    """OpenSeqSLAM's findMatches with loops. Returns match, best score, uniqueness, ranked."""
+                   rwindow: int = 10, top_k: int = 10, match_at: str = "start"):
+    """OpenSeqSLAM's findMatches with loops. Returns match, best score, uniqueness, ranked.
+
+    ``match_at="trajectory"`` reports, for a start ``s`` with best velocity ``m/ds``, the row
+    its trajectory crosses at the centre column, ``s + (ds/2 * m) // ds``.
+    """
     ds = ds + ds % 2
     n_ref, n_query = enhanced.shape
     dext = np.vstack([np.asarray(enhanced, np.float64), np.full((1, n_query), np.inf)])
@@ -94,16 +98,23 @@ def oracle_seqslam(enhanced: np.ndarray, ds: int = 10, vmin: float = 0.8, vmax: 
     uniq = np.full(n_query, np.nan)
     ranked = np.full((n_query, top_k), -1)
     for n in range(ds // 2, n_query - ds // 2):
-        score, _ = _scores_for_window(dext, n - ds // 2, ds, vels)
+        score, best_v = _scores_for_window(dext, n - ds // 2, ds, vels)
+
+        def report(x):
+            if match_at == "start":
+                return min(x + ds // 2, n_ref - 1)
+            m, den = vels[best_v[x]]
+            return min(x + (ds // 2 * m) // den, n_ref - 1)
+
         s = int(np.argmin(score))
         best[n] = score[s]
         order = np.argsort(score, kind="stable")[:top_k]
         for r, x in enumerate(order):
             if np.isfinite(score[x]):
-                ranked[n, r] = min(x + ds // 2, n_ref - 1)
+                ranked[n, r] = report(x)
         if not np.isfinite(score[s]):
             continue
-        match[n] = min(s + ds // 2, n_ref - 1)
+        match[n] = report(s)
         uniq[n] = _uniqueness(score, s, rwindow)
     return match, best, uniq, ranked
 

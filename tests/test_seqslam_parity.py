@@ -36,6 +36,8 @@ CASES = [  # (R, Q, query speed, config overrides)
     (60, 24, 2.0, dict(ds=6, speed_ratio=2.0, speed_tolerance=0.25)),
     (33, 33, 1.0, dict(ds=4, rwindow=6, top_k=40)),  # top_k > R + 1: padded with -1
     (12, 40, 0.3, dict(ds=12, vmin=0.5, vmax=1.5)),  # most trajectories run off the end
+    (25, 60, 0.4, dict(ds=8, vmin=0.3, vmax=0.6, match_at="trajectory")),
+    (60, 24, 2.0, dict(ds=6, speed_ratio=2.0, match_at="start")),  # parity rule forced
 ]
 
 
@@ -53,11 +55,30 @@ def test_engine_matches_oracle_on_random_routes(case, dtype):
     np.testing.assert_array_equal(result.difference.double().numpy(), d)
     e = oracle_enhance(d, config.enhance_window)
     np.testing.assert_allclose(result.enhanced.double().numpy(), e, atol=1e-4, rtol=1e-5)
-    want = oracle_seqslam(e, config.ds, vmin, vmax, config.rwindow, config.top_k)
+    want = oracle_seqslam(e, config.ds, vmin, vmax, config.rwindow, config.top_k,
+                          config.match_rule)
     assert_parity(result, want, exact_scores=dtype == torch.float64)
     assert result.ranked.shape == (n_query, config.top_k)
     assert result.matches.lower_is_better and result.difference.dtype == dtype
     assert set(result.seconds) == {"difference", "enhance", "search", "total"}
+
+
+@pytest.mark.parametrize("speed", [0.4, 2.0])
+def test_trajectory_rule_reports_the_true_place_at_speeds_far_from_one(speed):
+    # OpenSeqSLAM's start + ds/2 is right only at velocity 1; the trajectory rule reports the
+    # row the best trajectory crosses at the query centre.
+    rng = np.random.default_rng(5)
+    n_query = 60 if speed < 1 else 30
+    ref, query = route(rng, 70, n_query, speed, noise=0.5)
+    truth = np.minimum(np.round(np.arange(n_query) * speed), 69)
+    errors = {}
+    for rule in ("start", "trajectory"):
+        cfg = SeqSLAMConfig(ds=10, speed_ratio=speed, speed_tolerance=0.3, match_at=rule)
+        m = SeqSLAM(cfg).match_descriptors(torch.tensor(ref), torch.tensor(query)).matches
+        ok = m.reference.numpy() >= 0
+        errors[rule] = np.abs(m.reference.numpy()[ok] - truth[ok]).max()
+    assert errors["trajectory"] <= 1
+    assert errors["start"] >= 3
 
 
 @pytest.mark.parametrize("metric", ["l2", "cosine"])

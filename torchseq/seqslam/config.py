@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 METRICS = ("l1", "l2", "cosine")
+MATCH_AT = ("start", "trajectory")
 
 
 @dataclass
@@ -28,6 +29,11 @@ class SeqSLAMConfig:
         top_k: ranked candidates kept per query (for recall@K).
         max_chunk_elements: memory budget, in elements of the working dtype, of every chunked
             temporary (difference blocks, enhancement blocks, trajectory scores).
+        match_at: which reference a winning trajectory reports for the query at its centre:
+            ``"start"`` = start + ds/2 (OpenSeqSLAM, exact only at velocity 1) or
+            ``"trajectory"`` = start + floor(v_best ds/2), the row the best trajectory
+            actually crosses at the centre column. None (default): ``"trajectory"`` when
+            ``speed_ratio`` is set (speeds far from 1), else ``"start"`` (parity).
     """
 
     image_size: tuple[int, int] = (32, 64)
@@ -42,6 +48,7 @@ class SeqSLAMConfig:
     rwindow: int = 10
     top_k: int = 10
     max_chunk_elements: int = 2**26
+    match_at: str | None = None
 
     def validate(self) -> SeqSLAMConfig:
         """Raise ``ValueError`` on nonsense values; return ``self`` for chaining."""
@@ -74,6 +81,8 @@ class SeqSLAMConfig:
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
         if self.max_chunk_elements < 1:
             raise ValueError(f"max_chunk_elements must be >= 1, got {self.max_chunk_elements}")
+        if self.match_at not in (None, *MATCH_AT):
+            raise ValueError(f"match_at must be one of {MATCH_AT} or None, got {self.match_at!r}")
         from torchseq.seqslam.search import velocities
 
         velocities(self.sequence_length, vmin, vmax)  # raises when the range holds no step
@@ -83,6 +92,13 @@ class SeqSLAMConfig:
     def sequence_length(self) -> int:
         """``ds`` rounded up to even, as OpenSeqSLAM uses it."""
         return int(self.ds) + int(self.ds) % 2
+
+    @property
+    def match_rule(self) -> str:
+        """``match_at`` with its default resolved: ``"start"`` or ``"trajectory"``."""
+        if self.match_at is not None:
+            return self.match_at
+        return "trajectory" if self.speed_ratio is not None else "start"
 
     @property
     def velocity_range(self) -> tuple[float, float]:

@@ -133,7 +133,7 @@ class SeqSLAM(nn.Module):
         seconds["enhance"] = time.perf_counter() - t
         t = time.perf_counter()
         match, best, ratio, ranked = search(enhanced, ds, self.speeds, c.rwindow, c.top_k,
-                                            c.max_chunk_elements, progress)
+                                            c.max_chunk_elements, progress, c.match_rule)
         _sync(self.device)
         seconds["search"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0

@@ -90,8 +90,18 @@ def trajectory_scores(
 
 def rank_scores(
     scores: torch.Tensor, ds: int, n_ref: int, rwindow: int, top_k: int,
+    centre: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Best start, uniqueness ratio and top-K candidates from ``(C, R + 1)`` start scores.
+
+    Args:
+        scores: ``(C, R + 1)`` best score of each start.
+        ds: even sequence length.
+        n_ref: reference frames ``R``.
+        rwindow: uniqueness exclusion window.
+        top_k: candidates kept.
+        centre: ``(C, R + 1)`` int64 offset from each start to the reference it reports
+            (None: ``ds / 2`` for all, OpenSeqSLAM).
 
     Returns:
         ``(C,)`` best start, ``(C,)`` best score, ``(C,)`` uniqueness (best / best outside
@@ -115,7 +125,8 @@ def rank_scores(
     cand, vals = cand.gather(1, order), vals.gather(1, order)
     order = vals.argsort(dim=1, stable=True)
     cand, vals = cand.gather(1, order), vals.gather(1, order)
-    ranked = torch.where(torch.isfinite(vals), (cand + ds // 2).clamp_max(n_ref - 1), -1)
+    shift = ds // 2 if centre is None else centre.gather(1, cand)
+    ranked = torch.where(torch.isfinite(vals), (cand + shift).clamp_max(n_ref - 1), -1)
     if k < top_k:
         ranked = torch.cat([ranked, ranked.new_full((rows, top_k - k), -1)], dim=1)
     return start, best, ratio, ranked
@@ -129,6 +140,7 @@ def search(
     top_k: int = 10,
     max_chunk_elements: int = 2**26,
     progress: bool = False,
+    match_at: str = "start",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Match every query by its best trajectory (OpenSeqSLAM's ``findMatches``).
 
@@ -140,6 +152,9 @@ def search(
         top_k: ranked candidates per query.
         max_chunk_elements: bound on the elements of each ``(C, R + 1)`` score block.
         progress: show a progress bar over query blocks.
+        match_at: ``"start"``: a start ``s`` reports ``s + ds/2`` (OpenSeqSLAM);
+            ``"trajectory"``: ``s + floor(v ds/2)`` with ``v`` its best velocity (ties ->
+            slowest), the row its trajectory crosses at the query centre.
 
     Returns:
         ``match (Q,)`` int64 reference (``-1`` when unscored or no finite trajectory),
@@ -150,12 +165,16 @@ def search(
     check_not_empty(enhanced, "enhanced difference matrix")
     if len(speeds) == 0 or min(speeds) <= 0:
         raise ValueError("speeds must be a non-empty list of positive velocities")
+    if match_at not in ("start", "trajectory"):
+        raise ValueError(f"match_at must be 'start' or 'trajectory', got {match_at!r}")
     ds = int(ds) + int(ds) % 2
     n_ref, n_query = enhanced.shape
     if n_query < ds + 1:
         raise ValueError(f"need at least ds + 1 = {ds + 1} query frames, got {n_query}")
     d_t = enhanced.T.contiguous()  # (Q, R); free when the input is a transposed view
     offsets = trajectory_offsets(ds, speeds)
+    by_velocity = match_at == "trajectory"
+    half = torch.tensor([off[ds // 2] for off in offsets], device=enhanced.device)
     dev, dtype = enhanced.device, enhanced.dtype
     match = torch.full((n_query,), -1, dtype=torch.int64, device=dev)
     best_score = torch.full((n_query,), math.nan, dtype=dtype, device=dev)
@@ -169,10 +188,12 @@ def search(
     for c0 in tqdm(range(first, stop, rows), desc="sequence search", disable=not progress,
                    leave=False):
         c1 = min(c0 + rows, stop)
-        scores, _ = trajectory_scores(d_t, c0, c1, ds, offsets)
-        start, best, ratio, rank = rank_scores(scores, ds, n_ref, rwindow, top_k)
+        scores, best_v = trajectory_scores(d_t, c0, c1, ds, offsets, with_velocity=by_velocity)
+        centre = half[best_v] if by_velocity else None  # (C, R + 1) offset to report
+        start, best, ratio, rank = rank_scores(scores, ds, n_ref, rwindow, top_k, centre)
         ok = torch.isfinite(best)
-        match[c0:c1] = torch.where(ok, (start + ds // 2).clamp_max(n_ref - 1), -1)
+        shift = ds // 2 if centre is None else centre.gather(1, start[:, None])[:, 0]
+        match[c0:c1] = torch.where(ok, (start + shift).clamp_max(n_ref - 1), -1)
         best_score[c0:c1] = best
         uniqueness[c0:c1] = ratio
         ranked[c0:c1] = rank
