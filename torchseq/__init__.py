@@ -2,25 +2,50 @@
 
 from torchseq import metrics
 from torchseq.demo import DemoRoute, make_demo
+from torchseq.events import (
+    EventFormatError,
+    EventStream,
+    accumulate,
+    frames_to_events,
+    load_event_frames,
+    read_events,
+    write_aedat2,
+    write_npz,
+)
 from torchseq.ground_truth import alignment_ground_truth, load_ground_truth
 from torchseq.matches import Matches
+from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.preprocess import patch_normalise, preprocess, resize, to_grey
+from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, StreamingSeqSLAM
 from torchseq.sources import EventFrameOptions, TraverseError, load_traverse
 
 __version__ = "0.1.0"
 
 __all__ = [
     "DemoRoute",
+    "EventFormatError",
     "EventFrameOptions",
+    "EventStream",
     "Matches",
+    "NeuralConfig",
+    "NeuralSeqSLAM",
+    "SeqSLAM",
+    "SeqSLAMConfig",
+    "StreamingSeqSLAM",
     "TraverseError",
+    "accumulate",
     "alignment_ground_truth",
+    "frames_to_events",
+    "load_event_frames",
     "load_ground_truth",
     "load_traverse",
     "make_demo",
     "metrics",
     "patch_normalise",
     "preprocess",
+    "read_events",
     "resize",
     "to_grey",
+    "write_aedat2",
+    "write_npz",
 ]

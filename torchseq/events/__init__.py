@@ -11,6 +11,8 @@ from torchseq.events.frames import accumulate
 from torchseq.events.io import detect_format, iter_events, read_events
 from torchseq.events.plain import read_csv, read_npz, write_npz
 from torchseq.events.prophesee import iter_raw
+from torchseq.events.runs import EventRun, simulate_run
+from torchseq.events.simulator import frames_to_events
 from torchseq.events.stream import (
     EVENT_DTYPE,
     EventFormatError,
@@ -21,6 +23,9 @@ from torchseq.events.stream import (
 from torchseq.events.traverse import load_event_frames
 
 __all__ = [
+    "EventRun",
+    "frames_to_events",
+    "simulate_run",
     "EVENT_DTYPE",
     "EventFormatError",
     "EventStream",
