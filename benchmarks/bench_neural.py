@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 from torchseq.demo import make_demo  # noqa: E402
 from torchseq.layers import cohort_normalise, kwta  # noqa: E402
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
-from torchseq.neural.fast import feedforward, ring_scan  # noqa: E402
+from torchseq.neural.fast import feedforward  # noqa: E402
 from torchseq.neural.learning import decide  # noqa: E402
 from torchseq.preprocess import resize  # noqa: E402
 
@@ -53,26 +53,6 @@ def sparse_step(model: NeuralSeqSLAM, w1, w3, frames, state):
     e = cohort_normalise((w3 @ c.T).T, model.cohorts, model.config.eps)
     a, state = model.ring(e, state)
     return decide(a, model.unit_centre, model.config.uniqueness_window), state
-
-
-def bf16_references(model: NeuralSeqSLAM, x: torch.Tensor) -> tuple[torch.Tensor, float]:
-    """Decisions with the L1 product in bfloat16 (approximate), and the seconds it took.
-
-    A benchmark-only variant, not part of the model: bfloat16 rounding can move L2 units
-    across the k-WTA threshold, so decisions can differ from the float32 model.
-    """
-    f, cfg = model._folded, model.config
-    w1 = f["w1_t"].to(torch.bfloat16)
-    t0 = time.perf_counter()
-    h = (x.to(torch.bfloat16) @ w1).float()
-    idx = torch.topk(h, cfg.k, dim=1, sorted=False).indices
-    e = torch.index_select(f["w3_t"], 0, idx.reshape(-1)).reshape(len(x), cfg.k, -1).sum(1)
-    z = cohort_normalise(e, model.cohorts, cfg.eps).clamp_min(0.0)
-    decay, gain = model.ring.params
-    a = ring_scan(z * gain, torch.zeros(model.n_units), model.ring.shift, decay,
-                  f["diagonals"])
-    ref, _ = decide(a, model.unit_centre, cfg.uniqueness_window)
-    return ref, time.perf_counter() - t0
 
 
 def main(argv=None) -> str:
@@ -123,17 +103,16 @@ def main(argv=None) -> str:
             best_time(lambda: model.run(small), args.repeats, 1))
         row(f"run, raw 96x128 frames, {q} frames", q,
             best_time(lambda: model.run(raw), args.repeats, 1))
-        x = model.encode(small)
         f = model._folded
         row(f"feed-forward only (encode..evidence), fp32, {q} frames", q,
             best_time(lambda: feedforward(model.encode(small), f["w1_t"], f["w3_t"], cfg.k,
                                           model.cohorts, cfg.eps), args.repeats, 1))
         exact = model.run(small).matches.reference
-        approx, _ = bf16_references(model, x)
+        approx = model.run(small, l1_dtype=torch.bfloat16).matches.reference
         same = float((approx == exact).float().mean())
-        row(f"run with the L1 product in bfloat16 (approximate: {same:.1%} same decisions), "
+        row(f"run(l1_dtype=torch.bfloat16): approximate, {same:.1%} same decisions, "
             f"{q} frames", q,
-            best_time(lambda: bf16_references(model, model.encode(small)), args.repeats, 1))
+            best_time(lambda: model.run(small, l1_dtype=torch.bfloat16), args.repeats, 1))
     lines = [f"Machine: {platform.processor() or platform.machine()}, torch "
              f"{torch.__version__}, 1 thread; model: default NeuralConfig, route of "
              f"{demo.reference.shape[0]} reference frames ({model.n_units} output units).", "",

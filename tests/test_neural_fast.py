@@ -5,12 +5,15 @@ from torchseq.layers import MaskedLinear, cohort_normalise, kwta, learn_shift_ma
 from torchseq.neural.fast import band_diagonals, feedforward, ring_scan, winners
 
 
-def test_winners_fast_and_tie_fallback():
+def test_winners_equal_kwta_with_and_without_ties():
     h = torch.randn(4, 300, generator=torch.Generator().manual_seed(0))
-    idx = winners(h, 15)
-    dense = torch.zeros_like(h).scatter_(1, idx, 1.0)
-    assert torch.equal(dense, kwta(h, 15, binary=True))
-    assert winners(torch.zeros(2, 10), 3) is None  # ties: caller must use exact kwta
+    h[1, :40] = h[1, 7]  # a tie straddling the threshold in one row
+    h[2] = 0.0  # all tied
+    for x in (h, h[[0, 3]]):
+        idx = winners(x, 15)
+        dense = torch.zeros_like(x).scatter_(1, idx, 1.0)
+        assert idx.shape == (x.shape[0], 15)
+        assert torch.equal(dense, kwta(x, 15, binary=True))
 
 
 @pytest.mark.parametrize("rectify", [False, True])

@@ -223,3 +223,14 @@ def test_wrapped_ring_run_equals_steps(route):
     torch.testing.assert_close(torch.stack(acts), res.activity, atol=1e-5, rtol=1e-5)
     expect = torch.cat([torch.arange(20, 30), torch.arange(10)])
     assert (res.matches.reference == expect).float().mean() >= 0.9
+
+
+def test_bfloat16_l1_is_close_and_opt_in(fitted, route):
+    model, _ = fitted
+    exact = model.run(route.query)
+    again = model.run(route.query)
+    approx = model.run(route.query, l1_dtype=torch.bfloat16)
+    assert torch.equal(exact.activity, again.activity)  # the exact path is not affected
+    same = (approx.matches.reference == exact.matches.reference).float().mean()
+    assert same >= 0.95
+    assert not torch.equal(approx.activity, exact.activity)

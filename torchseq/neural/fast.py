@@ -16,23 +16,33 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from torchseq.layers.functional import cohort_normalise, kwta
+from torchseq.layers.functional import cohort_normalise
+
+# Tie-break step for a low-precision L1 product: far below a bfloat16 ulp at the k-WTA
+# threshold (|h| ~ 1, ulp 2^-7), so it only orders values that rounded to the same number.
+TIE_STEP = 2.0**-24
 
 
-def winners(h: torch.Tensor, k: int) -> torch.Tensor | None:
-    """Indices ``(B, k)`` of the k-WTA winners, or None on a tie at the threshold.
+def winners(h: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices ``(B, k)`` of the k-WTA winners, ascending within a row on ties.
 
-    A tie needs the exact lowest-index rule of :func:`torchseq.layers.kwta`.
+    The same winners as :func:`torchseq.layers.kwta`: the ``k``-th largest value ``v`` from
+    ``torch.topk``; without a tie at ``v`` the topk indices are the winners; with one, all
+    entries ``> v`` plus the lowest-index entries ``== v`` (the order of indices within a
+    row does not matter to the evidence sum).
 
     Args:
         h: ``(B, M)`` L2 input.
         k: winners per row.
     """
     vals, idx = torch.topk(h, k, dim=1, sorted=False)
-    thr = vals.min(dim=1, keepdim=True).values
-    if bool(((h >= thr).sum(1) == k).all()):
+    v = vals.min(dim=1, keepdim=True).values  # (B, 1)
+    if bool(((h >= v).sum(1) == k).all()):
         return idx
-    return None
+    greater, equal = h > v, h == v
+    room = k - greater.sum(1, keepdim=True)
+    win = greater | (equal & (equal.to(torch.int64).cumsum(1) <= room))
+    return win.nonzero()[:, 1].reshape(h.shape[0], k)
 
 
 def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
@@ -41,7 +51,8 @@ def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
 
     Args:
         x: ``(B, D)`` L1 activity (after patch normalisation).
-        w1_t: ``(D, M)`` ``(l1.weight * l1.mask).T``, contiguous.
+        w1_t: ``(D, M)`` ``(l1.weight * l1.mask).T``, contiguous (in ``x``'s dtype for the
+            exact step; a lower-precision copy makes the L1 product approximate).
         w3_t: ``(M, N)`` ``(l3.weight * l3.mask).T``, contiguous.
         k: L2 winners.
         cohorts: ``(N, C)`` membership.
@@ -51,12 +62,14 @@ def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
     Returns:
         ``(B, N)`` z-scored (and rectified) evidence.
     """
-    h = x @ w1_t  # (B, M)
-    idx = winners(h, k)
-    if idx is None:  # exact tie handling
-        e = kwta(h, k, binary=True) @ w3_t
-    else:  # sum the k winners' rows of w3_t: k * N reads per frame instead of M * N
-        e = F.embedding_bag(idx, w3_t, mode="sum")
+    if w1_t.dtype == x.dtype:
+        h = x @ w1_t  # (B, M)
+    else:  # approximate: low-precision product; its many exact ties go to the lowest index
+        h = (x.to(w1_t.dtype) @ w1_t).to(x.dtype)
+        h = h - torch.arange(h.shape[1], device=h.device, dtype=h.dtype) * TIE_STEP
+    idx = winners(h, k)  # (B, k)
+    # sum the k winners' rows of w3_t: k * N reads per frame instead of M * N
+    e = F.embedding_bag(idx, w3_t, mode="sum")  # (B, N)
     z = cohort_normalise(e, cohorts, eps)
     return z.clamp_min(0.0) if rectify else z
 

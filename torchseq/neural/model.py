@@ -252,7 +252,8 @@ class NeuralSeqSLAM(nn.Module):
 
     # ------------------------------------------------------------------ recognition
     @torch.inference_mode()
-    def run(self, query: torch.Tensor, progress: bool = False) -> NeuralResult:
+    def run(self, query: torch.Tensor, progress: bool = False,
+            l1_dtype: torch.dtype | None = None) -> NeuralResult:
         """Stream a whole query traverse through the network (one stream).
 
         The feed-forward part runs in batches of ``config.chunk`` frames (it does not
@@ -263,6 +264,10 @@ class NeuralSeqSLAM(nn.Module):
         Args:
             query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames.
             progress: show a progress bar.
+            l1_dtype: ``torch.bfloat16`` runs the L1 product in bfloat16 (about 1.5x faster
+                on CPUs with AMX/AVX512-BF16) - an approximation: rounding moves a few L2
+                units across the k-WTA threshold, so some decisions differ from the float32
+                model (99.7% identical on the benchmark route). None: exact float32.
 
         Returns:
             :class:`NeuralResult`.
@@ -275,7 +280,10 @@ class NeuralSeqSLAM(nn.Module):
         self.fold()
         f = self._folded
         decay, gain = self.ring.params
-        parts = [feedforward(self.encode(query[lo:lo + cfg.chunk]), f["w1_t"], f["w3_t"],
+        w1_t = f["w1_t"]
+        if l1_dtype is not None and l1_dtype != w1_t.dtype:
+            w1_t = f.setdefault(f"w1_t.{l1_dtype}", w1_t.to(l1_dtype))
+        parts = [feedforward(self.encode(query[lo:lo + cfg.chunk]), w1_t, f["w3_t"],
                              cfg.k, self.cohorts, cfg.eps, cfg.rectify)
                  for lo in _chunks(query.shape[0], cfg.chunk, progress, "run")]
         drive = torch.cat(parts) * gain  # (T, N)
