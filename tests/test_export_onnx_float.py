@@ -81,3 +81,15 @@ def test_unfitted_model_is_rejected():
 
     with pytest.raises(ValueError, match="fit"):
         StreamingStep(NeuralSeqSLAM(NeuralConfig(hidden=64, n_output=4)))
+
+
+def test_onnx_keeps_the_lowest_index_tie_rule_on_flat_frames(setup):
+    model, _, small, proto = setup
+    frames = small[:4].clone()
+    frames[1] = 90.0  # flat: z-scores 0, every L2 sum 0, the k-WTA is one big tie
+    frames[3, :, :16] = 30.0  # half flat
+    act, _, ref, conf = session(proto).run(
+        None, {"frames": frames.numpy(), "state": np.zeros((4, model.n_units), np.float32)})
+    out, _ = model.step(frames)
+    np.testing.assert_allclose(act, out.activity.numpy(), atol=1e-5)
+    assert np.array_equal(ref, out.reference.numpy())

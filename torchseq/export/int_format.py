@@ -130,6 +130,8 @@ def _check_values(p: dict, a: dict) -> None:
         bad(f"patch {patch} with pool {ph}x{pw} overflows the integer z-score")
     if p["input_mode"] == INPUT_RAW and 255 * ph * pw > X_MAX:
         bad(f"raw input pooled {ph}x{pw} exceeds {X_MAX}")
+    if p["k"] * 127 * 2**15 > 32767 * 2 ** min(p["e_shift"], 62):
+        bad(f"e_shift {p['e_shift']} lets the rescaled evidence exceed 32767 (k = {p['k']})")
     if not 1 <= p["l1_fan_in"] <= MAX_FAN_IN:
         bad(f"l1_fan_in {p['l1_fan_in']} not in 1..{MAX_FAN_IN} (int32 sums)")
     if not 1 <= p["k"] <= p["hidden"]:

@@ -1,8 +1,8 @@
 """The integer ONNX graph: the arithmetic of the integer format with ONNX integer operators.
 
 Built node by node (``onnx.helper``) from an :class:`IntegerModel`; every tensor in the step
-is an integer (uint8 frames, int32/int64 arithmetic, ``MatMul`` on int32, ``MatMulInteger``
-on uint8 x int8, ``TopK``/``CumSum`` k-WTA, ``Div`` on non-negative int64 for rounding). Must
+is an integer (uint8 frames, int32/int64 arithmetic, the 12-bit L1 product as four int8
+``MatMulInteger`` products, ``TopK`` k-WTA, ``Div`` on non-negative int64 for rounding). Must
 agree bit for bit with :class:`torchseq.export.int_runtime.IntegerRuntime`.
 """
 
@@ -52,10 +52,13 @@ class _Graph:
         q = self.op("Div", num, self.op("Mul", b, two))  # both >= 0: truncation = floor
         return self.op("Where", self.op("Less", a, self.i64(0)), self.op("Neg", q), q)
 
-    def isqrt(self, v: str) -> str:
-        """``floor(sqrt(v))`` bit by bit (int64, ``0 <= v < 2**62``)."""
+    def isqrt(self, v: str, bits: int = ISQRT_BITS) -> str:
+        """``floor(sqrt(v))`` bit by bit (int64, ``0 <= v < 4**bits``, ``bits <= 31``).
+
+        The result is the same for any ``bits`` that covers ``v``; fewer bits, fewer nodes.
+        """
         r = self.op("Mul", v, self.i64(0))
-        for bit in range(ISQRT_BITS - 1, -1, -1):
+        for bit in range(min(bits, ISQRT_BITS) - 1, -1, -1):
             cand = self.op("Add", r, self.i64(1 << bit))
             ok = self.op("LessOrEqual", self.op("Mul", cand, cand), v)
             r = self.op("Where", ok, cand, r)
@@ -68,6 +71,30 @@ def _dense_t(cols: np.ndarray, values: np.ndarray, n_in: int, dtype) -> np.ndarr
     w = np.zeros((n_in, cols.shape[0]), dtype)
     w[cols.astype(np.int64).ravel(), rows] = values.ravel()
     return w
+
+
+def _l1_int8(g: _Graph, x: str, w: np.ndarray) -> str:
+    """``x @ w`` exactly for 12-bit ``x`` and ``w`` with four int8 ``MatMulInteger`` products.
+
+    Each operand splits into ``64 * hi + lo`` with ``lo = v mod 64`` in 0..63 and ``hi`` in
+    -32..31, so ``x @ w = 4096 hh + 64 (hl + lh) + ll``; every partial sum stays inside
+    int32 for ``fan_in <= 512`` (the format's bound), so the result is exact.
+    """
+    w_lo = np.mod(w, 64)
+    w_hi = (w - w_lo) // 64
+    wh, wl = g.const(w_hi, np.int8, "l1_w_hi"), g.const(w_lo, np.int8, "l1_w_lo")
+    x_lo = g.op("Mod", x, g.i64(64), fmod=0)  # 0..63 (floor modulo)
+    # hi + 32 in 0..63 as uint8 with zero point 32: the fast uint8 x int8 kernels
+    x_hi = g.op("Add", g.op("Div", g.op("Sub", x, x_lo), g.i64(64)), g.i64(32))
+    x_hi = g.op("Cast", x_hi, to=TensorProto.UINT8)
+    x_lo = g.op("Cast", x_lo, to=TensorProto.UINT8)
+    zp = g.const(32, np.uint8, "zero_point")
+    hh = g.op("MatMulInteger", x_hi, wh, zp)
+    mid = g.op("Add", g.op("MatMulInteger", x_hi, wl, zp), g.op("MatMulInteger", x_lo, wh))
+    ll = g.op("MatMulInteger", x_lo, wl)
+    c = np.int32
+    return g.op("Add", g.op("Add", g.op("Mul", hh, g.const(4096, c)),
+                              g.op("Mul", mid, g.const(64, c))), ll)
 
 
 def build_integer_onnx(model: IntegerModel) -> onnx.ModelProto:
@@ -94,7 +121,9 @@ def build_integer_onnx(model: IntegerModel) -> onnx.ModelProto:
         total = g.op("ReduceSum", blocks, axes, keepdims=1)
         squares = g.op("ReduceSum", g.op("Mul", blocks, blocks), axes, keepdims=1)
         var = g.op("Sub", g.op("Mul", n, squares), g.op("Mul", total, total))
-        root = g.isqrt(g.op("Mul", var, g.i64(1 << (2 * p["sqrt_frac"]))))
+        peak = s * s * 255 * ph * pw // 2 + 1  # sqrt(V) <= n * 255 * ph * pw / 2
+        root = g.isqrt(g.op("Mul", var, g.i64(1 << (2 * p["sqrt_frac"]))),
+                       (peak << p["sqrt_frac"]).bit_length())
         dev = g.op("Sub", g.op("Mul", n, blocks), total)
         z = g.round_div(g.op("Mul", dev, g.i64(p["norm_const"])),
                         g.op("Max", root, g.i64(1)))
@@ -102,24 +131,18 @@ def build_integer_onnx(model: IntegerModel) -> onnx.ModelProto:
         x = g.op("Where", g.op("Greater", var, g.i64(0)), z, g.i64(0))
     else:
         x = pix
-    x = g.op("Cast", g.op("Reshape", x, g.i64([-1, d_in])), to=TensorProto.INT32)
+    x = g.op("Reshape", x, g.i64([-1, d_in]))  # (B, D) int64, |x| <= 2047
     # L1 -> L2 (int32 sums) and the binary k-WTA with lowest-index ties
-    w1 = g.const(_dense_t(a["l1.cols"], a["l1.values"], d_in, np.int16), np.int16, "l1_w")
-    hid = g.op("MatMul", x, g.op("Cast", w1, to=TensorProto.INT32))  # (B, M) int32
-    k = p["k"]
-    values, _ = g.op("TopK", hid, g.i64([k]), n_out=2, axis=1, largest=1, sorted=1)
-    kth = g.op("Slice", values, g.i64([k - 1]), g.i64([k]), g.i64([1]))  # (B, 1)
-    greater = g.op("Greater", hid, kth)
-    equal = g.op("Equal", hid, kth)
-    n_greater = g.op("ReduceSum", g.op("Cast", greater, to=TensorProto.INT64), g.i64([1]),
-                     keepdims=1)
-    room = g.op("Sub", g.i64(k), n_greater)
-    cum = g.op("CumSum", g.op("Cast", equal, to=TensorProto.INT64), g.i64(1))
-    win = g.op("Or", greater, g.op("And", equal, g.op("LessOrEqual", cum, room)))
-    code = g.op("Cast", win, to=TensorProto.UINT8)
-    # L2 -> L3 evidence with per-row scales
+    hid = _l1_int8(g, x, _dense_t(a["l1.cols"], a["l1.values"], d_in, np.int32))  # (B, M)
+    # binary k-WTA: TopK's index set is the k largest with ties to the lower index (the ONNX
+    # TopK-11 tie rule, the format's rule), scattered into a 0/1 uint8 code.
+    _, win = g.op("TopK", hid, g.i64([p["k"]]), n_out=2, axis=1, largest=1, sorted=0)
     w3 = g.const(_dense_t(a["l3.cols"], a["l3.values"], p["hidden"], np.int8), np.int8, "l3_w")
-    e = g.op("Cast", g.op("MatMulInteger", code, w3), to=TensorProto.INT64)
+    zeros = g.op("ConstantOfShape", g.op("Shape", hid),
+                 value=helper.make_tensor("zero", TensorProto.UINT8, [1], [0]))
+    code = g.op("ScatterElements", zeros, win,
+                g.op("Expand", g.const([[1]], np.uint8, "one"), g.op("Shape", win)), axis=1)
+    e = g.op("Cast", g.op("MatMulInteger", code, w3), to=TensorProto.INT64)  # (B, N)
     e = g.round_div(g.op("Mul", e, g.const(a["l3.row_scale"], np.int64, "row_scale")),
                     g.i64(1 << p["e_shift"]))
     # cohort z-score times gain
@@ -131,7 +154,7 @@ def build_integer_onnx(model: IntegerModel) -> onnx.ModelProto:
     total = g.op("MatMul", e, mem)  # (B, C)
     var = g.op("Sub", g.op("Mul", size, g.op("MatMul", g.op("Mul", e, e), mem)),
                g.op("Mul", total, total))
-    root = g.isqrt(var)
+    root = g.isqrt(var, (int(members.sum(0).max()) * 32767).bit_length())  # |E| <= 32767
     dev = g.op("Sub", g.op("Mul", g.const(members.sum(0)[cohort], np.int64, "unit_size"), e),
                g.op("Gather", total, idx, axis=1))
     div = g.op("Mul", g.op("Max", g.op("Gather", root, idx, axis=1), g.i64(1)),

@@ -1,5 +1,9 @@
 """Float ONNX export of the Neural SeqSLAM streaming step.
 
+The exported graph takes the k-WTA winners straight from ONNX ``TopK`` (whose index set
+breaks ties by the lower index, the model's rule) as a scattered 0/1 code; eager PyTorch
+uses the exact :func:`torchseq.layers.functional.kwta`. Same maths, tested on tied inputs.
+
 :class:`StreamingStep` restates ``NeuralSeqSLAM.step`` ("Step maths" in ``docs/neural.md``)
 from the model's buffers with the masks folded into dense weights, for frames already at
 the model's input size; :func:`export_float_onnx` writes it with a dynamic batch axis using
@@ -64,8 +68,16 @@ class StreamingStep(nn.Module):
         if self.patch:
             x = patch_normalise(x, self.patch, self.mode)
         x = x.reshape(x.shape[0], -1)  # (B, D)
-        c = kwta(x @ self.w1_t, self.k, binary=True)  # (B, M)
-        z = cohort_normalise(c @ self.w3_t, self.cohorts, self.eps)  # (B, N)
+        h = x @ self.w1_t  # (B, M)
+        if torch.onnx.is_in_onnx_export():
+            # ONNX TopK selects ties by the lower index (TopK-11 rule) = kwta's rule, so the
+            # winners' indices give the binary code.
+            idx = torch.topk(h, self.k, dim=1, sorted=False).indices  # (B, k)
+            code = torch.zeros_like(h).scatter(1, idx, torch.ones_like(idx, dtype=h.dtype))
+            e = code @ self.w3_t  # (B, N)
+        else:  # eager: torch.topk's tie order is unspecified, use the exact k-WTA
+            e = kwta(h, self.k, binary=True) @ self.w3_t
+        z = cohort_normalise(e, self.cohorts, self.eps)  # (B, N)
         if self.rectify:
             z = z.clamp_min(0.0)
         activity = self.decay * (state @ self.shift_t) + self.gain * z
