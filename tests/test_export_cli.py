@@ -61,6 +61,19 @@ def test_export_checkpoint_on_the_demo_route(tmp_path):
     assert report["recall_at_1"]["integer_onnx"] >= 0.95
 
 
+def test_a_failed_check_exits_1(checkpoint, tmp_path, monkeypatch, capsys):
+    import torchseq.export.validate as validate
+
+    monkeypatch.setattr(validate, "MIN_AGREEMENT", 1.01)  # no variant can reach it
+    code = main([str(checkpoint / "small.pt"), "--out", str(tmp_path), "--query",
+                 str(checkpoint / "query.npy")])
+    assert code == 1
+    report = json.loads((tmp_path / "validation.json").read_text())
+    assert report["passed"] is False and report["checks"]["integer_agreement"] is False
+    assert report["checks"]["integer_onnx_bit_exact"] is True and "recall_at_1" not in report
+    assert "FAIL: float_onnx_agreement, integer_agreement" in capsys.readouterr().out
+
+
 def test_corrupt_checkpoint_fails_with_one_line(checkpoint, tmp_path):
     bad = tmp_path / "bad.pt"
     bad.write_bytes((checkpoint / "small.pt").read_bytes()[:1000])

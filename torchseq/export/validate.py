@@ -15,6 +15,7 @@ query frames are not whole grey levels, e.g. the synthetic demo route).
 
 from __future__ import annotations
 
+import logging
 import tempfile
 from pathlib import Path
 
@@ -49,7 +50,11 @@ def quantise_onnx(model: onnx.ModelProto) -> onnx.ModelProto:
     with tempfile.TemporaryDirectory() as tmp:
         src, dst = Path(tmp) / "float.onnx", Path(tmp) / "quant.onnx"
         onnx.save(model, src)
-        quantize_dynamic(src, dst, weight_type=QuantType.QInt8, nodes_to_quantize=names)
+        logging.disable(logging.WARNING)  # its "consider pre-processing" advice, every call
+        try:
+            quantize_dynamic(src, dst, weight_type=QuantType.QInt8, nodes_to_quantize=names)
+        finally:
+            logging.disable(logging.NOTSET)
         quant = onnx.load(dst)
     onnx.checker.check_model(quant, full_check=True)
     return quant
