@@ -38,20 +38,23 @@ def test_streaming_step_equals_model_step(setup):
         state = new_state
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("batch", [1, 3])
-def test_onnx_matches_pytorch_with_dynamic_batch(setup, batch):
+def test_onnx_matches_pytorch_with_dynamic_batch(setup, batch, dtype):
+    """The float32 graph against the PyTorch step in float32 and in float64."""
     model, _, small, proto = setup
     sess = session(proto)
-    step = StreamingStep(model)
+    step = StreamingStep(model).to(dtype)
+    tol = 1e-5 if dtype == torch.float32 else 1e-4  # float32 graph vs a float64 reference
     state = np.zeros((batch, model.n_units), np.float32)
-    state_pt = torch.zeros(batch, model.n_units)
+    state_pt = torch.zeros(batch, model.n_units, dtype=dtype)
     for t in range(0, 30, batch):
         frames = small[t:t + batch]
         act, state, ref, conf = sess.run(None, {"frames": frames.numpy(), "state": state})
-        act_pt, state_pt, ref_pt, conf_pt = step(frames, state_pt)
+        act_pt, state_pt, ref_pt, conf_pt = step(frames.to(dtype), state_pt)
         assert act.shape == (batch, model.n_units)
-        np.testing.assert_allclose(act, act_pt.numpy(), atol=1e-5, rtol=1e-5)
-        np.testing.assert_allclose(conf, conf_pt.numpy(), atol=1e-5, rtol=1e-5)
+        np.testing.assert_allclose(act, act_pt.numpy(), atol=tol, rtol=tol)
+        np.testing.assert_allclose(conf, conf_pt.numpy(), atol=tol, rtol=tol)
         assert np.array_equal(ref, ref_pt.numpy())
 
 
