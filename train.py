@@ -28,6 +28,7 @@ from torchseq.frontend import (
     run_main,
     to_jsonable,
 )
+from torchseq.ground_truth import alignment_ground_truth
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
 
 
@@ -46,6 +47,8 @@ class TrainConfig:
     tensorboard: bool = True
     progress: bool = True
     export: bool = False
+    export_query: str | None = None
+    export_ground_truth: str | None = None
 
 
 HELP = {
@@ -61,6 +64,9 @@ HELP = {
     "tensorboard": "write TensorBoard logs",
     "progress": "show progress bars",
     "export": "after training, export ONNX and integer files to OUT/export and validate them",
+    "export_query": "query traverse to validate the export on (default: the demo query when "
+                    "training on the demo, else a replay of the reference)",
+    "export_ground_truth": "ground truth of --export-query (CSV or .npy, see eval.py)",
 }
 
 
@@ -108,8 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     cfg, ncfg = parse_args(argv)
     device = resolve_device(cfg.device)
     events = event_options(cfg.window_ms, cfg.event_count, cfg.frame_size)
+    demo = None
     if cfg.reference is None:
-        frames = make_demo(n_reference=cfg.demo_frames, seed=cfg.demo_seed).reference
+        demo = make_demo(n_reference=cfg.demo_frames, seed=cfg.demo_seed)
+        frames = demo.reference
     else:
         frames = load_frames(cfg.reference, "reference", events, cfg.progress)
     out = Path(cfg.out)
@@ -127,7 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     if cfg.export:
         from torchseq.export.cli import export_checkpoint
 
-        ok = export_checkpoint(out / "model.pt", out / "export")
+        if cfg.export_query is not None:
+            query, gt = cfg.export_query, cfg.export_ground_truth
+        elif demo is not None:
+            query, gt = demo.query, demo.ground_truth
+        else:  # a replay of the reference: each frame should come back to itself
+            query, gt = frames, alignment_ground_truth(len(frames), len(frames), 0)
+        ok = export_checkpoint(out / "model.pt", out / "export", query=query, ground_truth=gt)
         if not ok:
             print("train.py: export validation failed, see export/validation.json",
                   file=sys.stderr)

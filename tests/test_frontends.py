@@ -113,7 +113,10 @@ def test_train_then_eval_neural_checkpoint(tmp_path):
     from torchseq.neural import NeuralSeqSLAM
 
     run("train.py", "--demo-frames", "60", "--hidden", "512", "--n-output", "60",
-        "--out", str(tmp_path / "train"))
+        "--out", str(tmp_path / "train"), "--export")
+    validation = json.loads((tmp_path / "train" / "export" / "validation.json").read_text())
+    assert validation["passed"] and validation["integer_agreement"] >= 0.99
+    assert validation["recall_at_1"]["integer_onnx"] >= 0.95  # validated on the demo query
     ckpt = tmp_path / "train" / "model.pt"
     saved = torch.load(ckpt, weights_only=True)
     assert saved["config"]["hidden"] == 512  # the checkpoint carries its config
