@@ -221,14 +221,17 @@ def session(model: onnx.ModelProto | str | Path, threads: int = 1):
     return ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
 
 
-def run_integer_onnx(sess, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stream a traverse ``(T, H, W)`` uint8 through an integer session, feeding the state back.
+def run_step_session(sess, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stream a traverse ``(T, H, W)`` through a step graph (float or integer), frame by frame.
+
+    The state is fed back; its dtype (int32 or float32) is read off the graph.
 
     Returns:
-        ``(reference (T,), confidence (T,), activity (T, N) int32)``.
+        ``(reference (T,), confidence (T,), activity (T, N))``.
     """
-    n_units = sess.get_inputs()[1].shape[1]
-    state = np.zeros((1, n_units), np.int32)
+    state_input = sess.get_inputs()[1]
+    dtype = np.int32 if state_input.type == "tensor(int32)" else np.float32
+    state = np.zeros((1, state_input.shape[1]), dtype)
     refs, confs, acts = [], [], []
     for t in range(frames.shape[0]):
         act, state, ref, conf = sess.run(None, {"frames": frames[t:t + 1], "state": state})
@@ -236,3 +239,12 @@ def run_integer_onnx(sess, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
         confs.append(conf)
         acts.append(act)
     return np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
+
+
+def run_integer_onnx(sess, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stream a ``(T, H, W)`` uint8 traverse through an integer session (int32 state).
+
+    Returns:
+        ``(reference (T,), confidence (T,), activity (T, N) int32)``.
+    """
+    return run_step_session(sess, frames)

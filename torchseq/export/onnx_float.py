@@ -21,7 +21,7 @@ import onnx
 import torch
 from torch import nn
 
-from torchseq.export.int_onnx import write_onnx
+from torchseq.export.int_onnx import run_step_session, write_onnx
 from torchseq.layers.functional import cohort_normalise, kwta
 from torchseq.neural.learning import decide
 from torchseq.preprocess import patch_normalise
@@ -116,12 +116,4 @@ def run_float_onnx(sess, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     Returns:
         ``(reference (T,), confidence (T,), activity (T, N))``.
     """
-    n_units = sess.get_inputs()[1].shape[1]
-    state = np.zeros((1, n_units), np.float32)
-    refs, confs, acts = [], [], []
-    for t in range(frames.shape[0]):
-        act, state, ref, conf = sess.run(None, {"frames": frames[t:t + 1], "state": state})
-        refs.append(ref)
-        confs.append(conf)
-        acts.append(act)
-    return np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
+    return run_step_session(sess, frames)
