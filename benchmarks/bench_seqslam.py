@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_seqslam.py            # N = M = 1000, 5000, 20000
     .venv/bin/python benchmarks/bench_seqslam.py --quick    # N = 300, 1000
     .venv/bin/python benchmarks/bench_seqslam.py --sizes 2000 --impls engine,numpy
+    .venv/bin/python benchmarks/bench_seqslam.py --enhance --sizes 5000 20000  # stage only
 
 One thread (torch.set_num_threads(1)); every (size, implementation) runs in its own
 subprocess so the peak RSS is clean. Descriptors: random 32x64 noise frames and noisy copies,
@@ -100,6 +101,64 @@ def naive_numpy(ref, query, ds=10, vmin=0.8, vmax=1.2, rwindow=10, window=10, ch
     return match, times
 
 
+def enhance_contrast_shifted(difference, window=10, subtract_min=True, block=2**18):
+    """The engine's previous contrast enhancement, kept as the speed reference: per block of
+    query columns, window sums of ``2 half + 1`` shifted slices of a zero-padded copy (mean,
+    then squared deviations about it), in the input dtype."""
+    import torch
+
+    n_ref, n_query = difference.shape
+    half = window // 2
+    d_t = difference.T
+    out_t = torch.empty(n_query, n_ref, dtype=difference.dtype)
+    pos = torch.arange(n_ref)
+    cols = max(1, block // (n_ref + 2 * half))
+    for q0 in range(0, n_query, cols):
+        x = d_t[q0:q0 + cols]
+        padded = torch.nn.functional.pad(x, (half, half))
+        total, count, valid = torch.zeros_like(x), torch.zeros(n_ref, dtype=x.dtype), []
+        for shift in range(2 * half + 1):
+            ok = ((pos + shift - half >= 0) & (pos + shift - half < n_ref)).to(x.dtype)
+            valid.append(ok)
+            total += padded[:, shift:shift + n_ref]
+            count += ok
+        mean = total / count
+        var = torch.zeros_like(x)
+        for shift in range(2 * half + 1):
+            dev = padded[:, shift:shift + n_ref] - mean
+            var += dev * dev * valid[shift]
+        std = (var / (count - 1)).sqrt()
+        out_t[q0:q0 + cols] = torch.where(
+            std > 0, (x - mean) / torch.where(std > 0, std, torch.ones_like(std)), 0.0)
+    if subtract_min:
+        out_t -= out_t.min()
+    return out_t.T
+
+
+def run_enhance(n: int, repeats: int) -> dict:
+    """Old (shifted slices) and new enhancement on the same N x N float32 difference matrix,
+    interleaved, best of ``repeats``; max |difference| between the two."""
+    import torch
+
+    from torchseq.seqslam import difference_matrix, enhance_contrast
+
+    torch.set_num_threads(1)
+    ref, query = make_descriptors(n)
+    d = difference_matrix(torch.from_numpy(ref), torch.from_numpy(query))
+    best = {"shifted": math.inf, "cumsum": math.inf}
+    for _ in range(repeats):
+        for name, fn in (("shifted", enhance_contrast_shifted), ("cumsum", enhance_contrast)):
+            t = time.perf_counter()
+            out = fn(d)
+            best[name] = min(best[name], time.perf_counter() - t)
+            if name == "shifted":
+                old = out
+            else:
+                diff = float((out - old).abs().max())
+            del out
+    return dict(n=n, **best, max_abs_diff=diff)
+
+
 def run_one(impl: str, n: int) -> dict:
     import torch
 
@@ -142,6 +201,9 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000, 20000])
     parser.add_argument("--quick", action="store_true", help="sizes 300 and 1000")
     parser.add_argument("--impls", default="engine,numpy,loop")
+    parser.add_argument("--enhance", action="store_true",
+                        help="time only contrast enhancement, old (shifted slices) vs new")
+    parser.add_argument("--repeats", type=int, default=2, help="with --enhance: best of")
     parser.add_argument("--one", nargs=2, metavar=("IMPL", "N"), help=argparse.SUPPRESS)
     parser.add_argument("--doc", type=Path, default=None,
                         help="also replace the benchmark table in this Markdown file")
@@ -150,6 +212,14 @@ def main() -> None:
         print(json.dumps(run_one(args.one[0], int(args.one[1]))))
         return
     sizes = [300, 1000] if args.quick else args.sizes
+    if args.enhance:
+        print("| N = M | shifted slices (old) s | cumulative sums (new) s | speed-up "
+              "| max abs difference |\n|---:|---:|---:|---:|---:|")
+        for n in sizes:
+            r = run_enhance(n, args.repeats)
+            print(f"| {n} | {r['shifted']:.2f} | {r['cumsum']:.2f} | "
+                  f"{r['shifted'] / r['cumsum']:.1f}x | {r['max_abs_diff']:.1e} |", flush=True)
+        return
     impls = args.impls.split(",")
     rows = []
     for n in sizes:
