@@ -78,6 +78,20 @@ def hard_demos() -> dict:
     return out
 
 
+def degradation_demos(levels=(0.0, 0.25, 0.5, 0.75, 1.0, 1.25)) -> dict:
+    """Demo queries from no appearance change (0) to ``demo-severe`` (1) and beyond.
+
+    Level ``s`` interpolates gain 1 -> 0.45, gamma 1 -> 2.4, gradient 0 -> 0.45 and noise
+    2 -> 20 grey levels linearly (gain clipped at 0.2).
+    """
+    out = {}
+    for s in levels:
+        d = make_demo(gain=max(0.2, 1 - 0.55 * s), gamma=1 + 1.4 * s, gradient=0.45 * s,
+                      noise=2 + 18 * s)
+        out[f"{s:.2f}"] = (d.reference, d.query, d.ground_truth)
+    return out
+
+
 def run_neural(cfg: NeuralConfig, ref, query, gt) -> dict:
     model = NeuralSeqSLAM(cfg)
     t0 = time.perf_counter()
@@ -103,20 +117,21 @@ def run_seqslam(ref, query, gt) -> dict | None:
 
 ABLATION = {
     "default": {},
+    "Table 1 (density_out 0.2, k 5%)": dict(density_out=0.2, k_fraction=0.05),
     "patch 8": dict(patch_size=8),
     "patch seqslam rounding": dict(patch_mode="seqslam"),
     "no rectify": dict(rectify=False),
     "no ring (decay 0)": dict(ring_decay=0.0, ring_gain=1.0),
-    "ring decay 0.8": dict(ring_decay=0.8),
     "ring decay 0.9": dict(ring_decay=0.9),
+    "ring decay 0.95": dict(ring_decay=0.95),
     "ring decay 0.97": dict(ring_decay=0.97),
     "spread 1, no stay": dict(ring_spread=1, ring_stay=0.0),
     "spread 3": dict(ring_spread=3),
     "hebbian mean": dict(hebbian="mean"),
-    "k 2%": dict(k_fraction=0.02),
-    "k 10%": dict(k_fraction=0.10),
+    "k 5%": dict(k_fraction=0.05),
+    "k 15%": dict(k_fraction=0.15),
+    "density_out 0.2": dict(density_out=0.2),
     "density_out 0.5": dict(density_out=0.5),
-    "density_out 1.0": dict(density_out=1.0),
     "cohorts 4": dict(n_cohorts=4),
     "cohorts 8": dict(n_cohorts=8),
 }
@@ -140,8 +155,13 @@ def write_atomic(path: Path, text: str) -> None:
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=ROOT / "experiments" / "results")
-    p.add_argument("--ablation", action="store_true")
+    p.add_argument("--ablation", action="store_true",
+                   help="also run the ablation and the appearance-change sweep")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--seeds", type=int, default=8,
+                   help="model seeds averaged in the main table (masks and L1 weights)")
+    p.add_argument("--ablation-seeds", type=int, default=3,
+                   help="model seeds averaged in the ablation and the appearance sweep")
     p.add_argument("--no-docs", action="store_true",
                    help="with --ablation, do not rewrite the tables in docs/neural.md")
     args = p.parse_args(argv)
@@ -152,24 +172,32 @@ def main(argv=None) -> dict:
     results = {"config": base.to_dict(), "main": [], "ablation": []}
     for name, (ref, query, gt) in data.items():
         row = {"data": name, "R": len(ref), "Q": len(query)}
-        n = run_neural(base, ref, query, gt)
-        row.update({f"neural {k}": v for k, v in n.items()})
+        runs = [run_neural(replace(base, seed=seed), ref, query, gt) for seed in range(args.seeds)]
+        for key in ("recall_at_1", "auc", "recall_at_100_precision"):
+            vals = np.array([r[key] for r in runs])
+            row[f"neural {key}"] = f"{vals.mean():.3f} +- {vals.std():.3f}"
+        row["neural recall_at_1 seed 0"] = runs[0]["recall_at_1"]
+        row["neural recall_at_1 min"] = float(min(r["recall_at_1"] for r in runs))
+        row["neural fit_s"], row["neural run_s"] = runs[0]["fit_s"], runs[0]["run_s"]
         s = run_seqslam(ref, query, gt)
         if s is not None:
             row.update({f"seqslam {k}": v for k, v in s.items()})
         results["main"].append(row)
         print(row, flush=True)
-    cols = ["data", "R", "Q", "neural recall_at_1", "neural auc",
-            "neural recall_at_100_precision", "seqslam recall_at_1", "seqslam auc",
-            "seqslam recall_at_100_precision"]
-    md = "### Recall@1 and AUC, default settings\n\n" + table(results["main"], cols) + "\n"
+    cols = ["data", "R", "Q", "neural recall_at_1", "neural recall_at_1 min",
+            "neural recall_at_1 seed 0", "neural auc", "neural recall_at_100_precision",
+            "seqslam recall_at_1", "seqslam auc", "seqslam recall_at_100_precision"]
+    md = (f"### Recall@1 and AUC, default settings (neural: mean +- std over {args.seeds} model "
+          "seeds, their minimum, and seed 0)\n\n" + table(results["main"], cols) + "\n")
     if args.ablation:
         data.update(hard_demos())
         for label, kw in ABLATION.items():
             cfg = replace(base, **kw).validate()
             row = {"setting": label}
             for name, (ref, query, gt) in data.items():
-                row[name] = run_neural(cfg, ref, query, gt)["recall_at_1"]
+                row[name] = float(np.mean([
+                    run_neural(replace(cfg, seed=seed), ref, query, gt)["recall_at_1"]
+                    for seed in range(args.ablation_seeds)]))
             results["ablation"].append(row)
             print(row, flush=True)
         row = {"setting": "classic SeqSLAM"}
@@ -177,8 +205,22 @@ def main(argv=None) -> dict:
             s = run_seqslam(ref, query, gt)
             row[name] = s["recall_at_1"] if s else ""
         results["ablation"].append(row)
-        md += "\n### Ablation: recall@1\n\n" + table(results["ablation"],
+        md += (f"\n### Ablation: recall@1 (neural: mean over {args.ablation_seeds} model seeds; "
+               "each row changes the default in one way)\n\n") + table(results["ablation"],
                                                     ["setting", *data.keys()]) + "\n"
+        results["degradation"] = []
+        for level, (ref, query, gt) in degradation_demos().items():
+            row = {"appearance change": level, "neural recall_at_1": float(np.mean([
+                run_neural(replace(base, seed=seed), ref, query, gt)["recall_at_1"]
+                for seed in range(args.ablation_seeds)]))}
+            s = run_seqslam(ref, query, gt)
+            row["seqslam recall_at_1"] = s["recall_at_1"] if s else ""
+            results["degradation"].append(row)
+            print(row, flush=True)
+        md += ("\n### Appearance change sweep (demo, 0 = none, 1 = demo-severe): recall@1 "
+               f"(neural: mean over {args.ablation_seeds} seeds)\n\n"
+               + table(results["degradation"], ["appearance change", "neural recall_at_1",
+                                                "seqslam recall_at_1"]) + "\n")
     write_atomic(args.out / "neural_quality.json", json.dumps(results, indent=1, default=float))
     write_atomic(args.out / "neural_quality.md", md)
     docs = ROOT / "docs" / "neural.md"

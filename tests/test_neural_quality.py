@@ -1,4 +1,5 @@
-"""Recognition quality floors on real data, measured with experiments/neural_quality.py."""
+"""Recognition quality floors (default config, seed 0), measured with
+experiments/neural_quality.py; over 8 seeds the corridor gives 0.820 +- 0.059 recall@1."""
 
 import numpy as np
 import pytest
@@ -29,8 +30,8 @@ def test_corridor_recall_default_config():
     model = NeuralSeqSLAM()
     model.fit(ref, log=False)
     m = evaluate(model.run(query).matches, gt)
-    assert m["recall_at_1"] >= 0.80  # measured 0.865 (the seed reported about 80%)
-    assert m["auc"] >= 0.75  # measured 0.820
+    assert m["recall_at_1"] >= 0.78  # measured 0.811 (the seed reported about 80%)
+    assert m["auc"] >= 0.72  # measured 0.770
 
 
 @pytest.mark.slow
@@ -42,4 +43,4 @@ def test_lens_within_two_frames():
     model.fit(ref, log=False)
     got = model.run(query).matches.reference.numpy()
     near = np.abs(got - np.arange(len(query))) <= 2  # the file's ground truth is the identity
-    assert near.mean() >= 0.65  # measured 0.73
+    assert near.mean() >= 0.78  # measured 0.85
