@@ -124,11 +124,29 @@ def test_checkpoint_errors(fitted, tmp_path):
     (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
     with pytest.raises(NeuralError, match="not a readable"):
         NeuralSeqSLAM.load(tmp_path / "cut.pt")
+    blob = torch.load(path, weights_only=True)
+    blob["state_dict"]["l1.mask"] = blob["state_dict"]["l1.mask"][:, :5]
+    torch.save(blob, tmp_path / "bad_shape.pt")
+    with pytest.raises(NeuralError, match="does not fit"):
+        NeuralSeqSLAM.load(tmp_path / "bad_shape.pt")
+    del blob["state_dict"]["ring.shift"]
+    torch.save(blob, tmp_path / "missing.pt")
+    with pytest.raises(NeuralError, match="does not fit"):
+        NeuralSeqSLAM.load(tmp_path / "missing.pt")
     torch.save({"format": "torchseq.neural/99"}, tmp_path / "v99.pt")
     with pytest.raises(NeuralError, match="format"):
         NeuralSeqSLAM.load(tmp_path / "v99.pt")
     with pytest.raises(NeuralError, match="not learnt"):
         NeuralSeqSLAM(NeuralConfig(**SMALL)).save(tmp_path / "x.pt")
+
+
+def test_fit_again_replaces_the_route(route):
+    model = NeuralSeqSLAM(NeuralConfig(hidden=512))
+    model.fit(route.reference[:30], log=False)
+    model.run(route.query[:5])  # folds the weights
+    model.fit(route.reference[:50], log=False)
+    assert model.n_units == 50 and model.unit_to_reference.shape == (50, 2)
+    assert torch.equal(model.run(route.reference[:50]).matches.reference, torch.arange(50))
 
 
 def test_deterministic_under_seed(route):

@@ -99,7 +99,6 @@ class NeuralSeqSLAM(nn.Module):
         self.l2 = KWinnersTakeAll(k=cfg.k, binary=True)
         self.l3: MaskedLinear | None = None
         self.ring: OutputRing | None = None
-        self._device = torch.device(device) if device is not None else torch.device("cpu")
         self._folded: dict[str, torch.Tensor | None] | None = None
 
     # ------------------------------------------------------------------ structure
@@ -364,7 +363,10 @@ class NeuralSeqSLAM(nn.Module):
         sd = blob["state_dict"]
         device = sd["l1.weight"].device if map_location is not None else None
         model = cls(cfg, device=device)
-        model.load_state_dict(sd)
+        try:
+            model.load_state_dict(sd)
+        except (RuntimeError, KeyError) as err:  # missing, unexpected or mis-sized tensors
+            raise NeuralError(f"{path}: state_dict does not fit the config ({err})") from err
         model.extra = blob.get("extra", {})
         return model
 
