@@ -24,7 +24,7 @@ TIE_STEP = 2.0**-24
 
 
 def winners(h: torch.Tensor, k: int) -> torch.Tensor:
-    """Indices ``(B, k)`` of the k-WTA winners, ascending within a row on ties.
+    """Indices ``(B, k)`` of the k-WTA winners of each row (in no particular order).
 
     The same winners as :func:`torchseq.layers.kwta`: the ``k``-th largest value ``v`` from
     ``torch.topk``; without a tie at ``v`` the topk indices are the winners; with one, all

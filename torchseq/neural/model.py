@@ -8,12 +8,8 @@ equations of one step are in ``docs/neural.md`` ("Step maths").
 
 from __future__ import annotations
 
-import os
-import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import torch
 from torch import nn
@@ -21,6 +17,7 @@ from torch import nn
 from torchseq.layers import KWinnersTakeAll, MaskedLinear, OutputRing, RingState
 from torchseq.layers.functional import cohort_normalise
 from torchseq.matches import Matches
+from torchseq.neural.checkpoint import load_checkpoint, save_checkpoint
 from torchseq.neural.config import NeuralConfig, NeuralError
 from torchseq.neural.fast import band_diagonals, feedforward, ring_scan
 from torchseq.neural.learning import (
@@ -29,56 +26,10 @@ from torchseq.neural.learning import (
     hebbian_weights,
     recruit_units,
 )
+from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
 from torchseq.preprocess import patch_normalise, resize, to_grey
 
-FORMAT = "torchseq.neural/1"
-
-
-class NeuralStep(NamedTuple):
-    """Output of one streaming step.
-
-    Attributes:
-        reference: ``(B,)`` int64 reference frame of the winning unit (centre of its stretch).
-        confidence: ``(B,)`` float, higher = more confident (winner minus best rival).
-        activity: ``(B, N)`` output-ring activity.
-    """
-
-    reference: torch.Tensor
-    confidence: torch.Tensor
-    activity: torch.Tensor
-
-
-@dataclass
-class NeuralResult:
-    """A query traverse through the network.
-
-    Attributes:
-        matches: per-frame decisions (``lower_is_better=False``).
-        activity: ``(T, N)`` output-ring activity (a raster).
-        seconds: wall time of :meth:`NeuralSeqSLAM.run`.
-    """
-
-    matches: Matches
-    activity: torch.Tensor
-    seconds: float
-
-
-@dataclass
-class NeuralFitLog:
-    """What :meth:`NeuralSeqSLAM.fit` learnt.
-
-    Attributes:
-        winners: ``(T,)`` int64 unit recruited for each reference frame (firing order).
-        evidence: ``(T, N)`` normalised feed-forward evidence of each reference frame after
-            learning (a raster; its argmax should equal ``winners``).
-        unit_to_reference: ``(N, 2)`` int64 first and one-past-last reference frame per unit.
-        seconds: wall time of the fit.
-    """
-
-    winners: torch.Tensor
-    evidence: torch.Tensor
-    unit_to_reference: torch.Tensor
-    seconds: float
+__all__ = ["NeuralFitLog", "NeuralResult", "NeuralSeqSLAM", "NeuralStep", "seqslam_bytes"]
 
 
 class NeuralSeqSLAM(nn.Module):
@@ -328,41 +279,22 @@ class NeuralSeqSLAM(nn.Module):
             extra: anything ``torch.load(weights_only=True)`` can read back (plain types).
         """
         self._require_fit()
-        path = Path(path)
-        blob = {"format": FORMAT, "config": self.config.to_dict(),
-                "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-                "extra": dict(extra or {})}
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent or ".")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                torch.save(blob, f)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        save_checkpoint(path, self.config.to_dict(), self.state_dict(), extra)
 
     @classmethod
     def load(cls, path: str | Path, map_location=None) -> NeuralSeqSLAM:
         """Read a model written by :meth:`save` (the config travels with it).
 
+        The checkpoint's ``extra`` dict comes back as ``model.extra``.
+
         Raises:
-            NeuralError: missing or unreadable file, or an unknown format.
+            NeuralError: missing, truncated or foreign file, an unknown format, or a
+                state_dict that does not fit its config.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise NeuralError(f"no such checkpoint: {path}")
-        try:
-            blob = torch.load(path, map_location=map_location, weights_only=True)
-        except Exception as err:  # truncated or foreign file
-            raise NeuralError(f"{path}: not a readable torchseq checkpoint ({err})") from err
-        if not isinstance(blob, dict) or blob.get("format") != FORMAT:
-            got = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
-            raise NeuralError(f"{path}: format {got!r} is not {FORMAT!r}")
-        cfg = NeuralConfig.from_dict(blob["config"])
+        blob = load_checkpoint(path, map_location)
         sd = blob["state_dict"]
         device = sd["l1.weight"].device if map_location is not None else None
-        model = cls(cfg, device=device)
+        model = cls(NeuralConfig.from_dict(blob["config"]), device=device)
         try:
             model.load_state_dict(sd)
         except (RuntimeError, KeyError) as err:  # missing, unexpected or mis-sized tensors

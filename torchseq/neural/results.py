@@ -1,0 +1,57 @@
+"""What Neural SeqSLAM returns: one step, a whole query traverse, a fit."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+from torchseq.matches import Matches
+
+
+class NeuralStep(NamedTuple):
+    """Output of one streaming step.
+
+    Attributes:
+        reference: ``(B,)`` int64 reference frame of the winning unit (centre of its stretch).
+        confidence: ``(B,)`` float, higher = more confident (winner minus best rival).
+        activity: ``(B, N)`` output-ring activity.
+    """
+
+    reference: torch.Tensor
+    confidence: torch.Tensor
+    activity: torch.Tensor
+
+
+@dataclass
+class NeuralResult:
+    """A query traverse through the network.
+
+    Attributes:
+        matches: per-frame decisions (``lower_is_better=False``).
+        activity: ``(T, N)`` output-ring activity (a raster).
+        seconds: wall time of :meth:`NeuralSeqSLAM.run`.
+    """
+
+    matches: Matches
+    activity: torch.Tensor
+    seconds: float
+
+
+@dataclass
+class NeuralFitLog:
+    """What :meth:`NeuralSeqSLAM.fit` learnt.
+
+    Attributes:
+        winners: ``(T,)`` int64 unit recruited for each reference frame (firing order).
+        evidence: ``(T, N)`` normalised feed-forward evidence of each reference frame after
+            learning (a raster; its argmax should equal ``winners``).
+        unit_to_reference: ``(N, 2)`` int64 first and one-past-last reference frame per unit.
+        seconds: wall time of the fit.
+    """
+
+    winners: torch.Tensor
+    evidence: torch.Tensor
+    unit_to_reference: torch.Tensor
+    seconds: float
