@@ -12,7 +12,7 @@ SMALL = {"hidden": 512, "n_output": 40}
 
 
 @lru_cache(maxsize=None)
-def small_setup(seed: int = 1, hidden: int = 512, n_output: int = 40, n_reference: int = 60):
+def small_setup(seed: int = 1, hidden: int = 1024, n_output: int = 40, n_reference: int = 60):
     """A small model fitted on a small demo route, its integer model and uint8 device frames."""
     demo = make_demo(n_reference=n_reference, size=(48, 64), seed=seed)
     torch.manual_seed(0)
