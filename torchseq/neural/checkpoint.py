@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import torch
 
+from torchseq.atomic import atomic_open
 from torchseq.neural.config import NeuralError
 
 FORMAT = "torchseq.neural/1"
@@ -27,15 +26,8 @@ def save_checkpoint(path: str | Path, config: dict, state_dict: dict,
     blob = {"format": FORMAT, "config": dict(config),
             "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()},
             "extra": dict(extra or {})}
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(blob, f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_open(path) as f:
+        torch.save(blob, f)
 
 
 def load_checkpoint(path: str | Path, map_location=None) -> dict:
