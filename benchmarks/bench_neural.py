@@ -12,10 +12,8 @@ docs/neural.md between the ``bench`` markers.
 from __future__ import annotations
 
 import argparse
-import os
 import platform
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -24,6 +22,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from torchseq.atomic import write_text  # noqa: E402
 from torchseq.demo import make_demo  # noqa: E402
 from torchseq.layers import cohort_normalise, kwta  # noqa: E402
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
@@ -128,10 +127,7 @@ def main(argv=None) -> str:
         if START in text and END in text:
             head, rest = text.split(START, 1)
             text = head + START + "\n" + table + "\n" + END + rest.split(END, 1)[1]
-            fd, tmp = tempfile.mkstemp(dir=docs.parent, prefix="neural.md.", suffix=".tmp")
-            with os.fdopen(fd, "w") as f:
-                f.write(text)
-            os.replace(tmp, docs)
+            write_text(docs, text)
     return table
 
 

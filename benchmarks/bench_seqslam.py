@@ -266,9 +266,9 @@ def main() -> None:
         text = args.doc.read_text()
         start, end = "<!-- bench:start -->", "<!-- bench:end -->"
         a, b = text.index(start) + len(start), text.index(end)
-        tmp = args.doc.with_suffix(".tmp")
-        tmp.write_text(text[:a] + "\n" + header + "\n\n" + table + "\n" + text[b:])
-        os.replace(tmp, args.doc)
+        from torchseq.atomic import write_text
+
+        write_text(args.doc, text[:a] + "\n" + header + "\n\n" + table + "\n" + text[b:])
 
 
 if __name__ == "__main__":

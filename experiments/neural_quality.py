@@ -15,9 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -28,6 +26,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from torchseq.atomic import write_text  # noqa: E402
 from torchseq.demo import make_demo  # noqa: E402
 from torchseq.ground_truth import load_ground_truth  # noqa: E402
 from torchseq.metrics import evaluate  # noqa: E402
@@ -117,21 +116,22 @@ def run_seqslam(ref, query, gt) -> dict | None:
 
 ABLATION = {
     "default": {},
-    "Table 1 (density_out 0.2, k 5%)": dict(density_out=0.2, k_fraction=0.05),
+    "Table 1 winners (k 5%)": dict(k_fraction=0.05),
+    "dense readout (density_out 1.0, decay 0.96)": dict(density_out=1.0, ring_decay=0.96),
     "patch 8": dict(patch_size=8),
     "patch seqslam rounding": dict(patch_mode="seqslam"),
     "no rectify": dict(rectify=False),
     "no ring (decay 0)": dict(ring_decay=0.0, ring_gain=1.0),
     "ring decay 0.9": dict(ring_decay=0.9),
     "ring decay 0.95": dict(ring_decay=0.95),
-    "ring decay 0.97": dict(ring_decay=0.97),
+    "ring decay 0.96": dict(ring_decay=0.96),
+    "ring decay 0.98": dict(ring_decay=0.98),
     "spread 1, no stay": dict(ring_spread=1, ring_stay=0.0),
     "spread 3": dict(ring_spread=3),
     "hebbian mean": dict(hebbian="mean"),
-    "k 5%": dict(k_fraction=0.05),
     "k 15%": dict(k_fraction=0.15),
-    "density_out 0.2": dict(density_out=0.2),
     "density_out 0.5": dict(density_out=0.5),
+    "density_out 1.0": dict(density_out=1.0),
     "cohorts 4": dict(n_cohorts=4),
     "cohorts 8": dict(n_cohorts=8),
 }
@@ -143,13 +143,6 @@ def table(rows: list[dict], cols: list[str]) -> str:
         cells = [f"{r[c]:.3f}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-def write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 def main(argv=None) -> dict:
@@ -221,15 +214,15 @@ def main(argv=None) -> dict:
                f"(neural: mean over {args.ablation_seeds} seeds)\n\n"
                + table(results["degradation"], ["appearance change", "neural recall_at_1",
                                                 "seqslam recall_at_1"]) + "\n")
-    write_atomic(args.out / "neural_quality.json", json.dumps(results, indent=1, default=float))
-    write_atomic(args.out / "neural_quality.md", md)
+    write_text(args.out / "neural_quality.json", json.dumps(results, indent=1, default=float))
+    write_text(args.out / "neural_quality.md", md)
     docs = ROOT / "docs" / "neural.md"
     if args.ablation and not args.no_docs and docs.exists():
         text = docs.read_text()
         a, b = "<!-- quality:start -->", "<!-- quality:end -->"
         if a in text and b in text:
             body = md.replace("### ", "#### ").strip()
-            write_atomic(docs, text.split(a)[0] + a + "\n" + body + "\n" + b + text.split(b)[1])
+            write_text(docs, text.split(a)[0] + a + "\n" + body + "\n" + b + text.split(b)[1])
     print(md)
     return results
 
