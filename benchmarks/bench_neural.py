@@ -18,10 +18,12 @@ import time
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import torchseq.neural.fast as fast  # noqa: E402
 from torchseq.atomic import write_text  # noqa: E402
 from torchseq.demo import make_demo  # noqa: E402
 from torchseq.layers import cohort_normalise, kwta  # noqa: E402
@@ -52,6 +54,38 @@ def sparse_step(model: NeuralSeqSLAM, w1, w3, frames, state):
     e = cohort_normalise((w3 @ c.T).T, model.cohorts, model.config.eps)
     a, state = model.ring(e, state)
     return decide(a, model.unit_centre, model.config.uniqueness_window), state
+
+
+def winners_rowcheck(h, k):
+    """``fast.winners`` before the one-count tie check (per-row sums), for side-by-side rows."""
+    vals, idx = torch.topk(h, k, dim=1, sorted=False)
+    v = vals.min(dim=1, keepdim=True).values
+    if bool(((h >= v).sum(1) == k).all()):
+        return idx
+    return fast.winners(h, k)
+
+
+def stage_rows(row, model, small, repeats):
+    """Per-stage cost of the exact float32 feed-forward over one ``chunk`` of frames."""
+    f, k = model._folded, model.config.k
+    x = model.encode(small[:model.config.chunk])
+    b = x.shape[0]
+    h = x @ f["w1_t"]
+    vals, idx = torch.topk(h, k, dim=1, sorted=False)
+    v = vals.amin(1, keepdim=True)
+    code = torch.zeros_like(h).scatter_(1, idx, 1.0)
+    stages = [
+        ("encode (patch normalisation)", lambda: model.encode(small[:b])),
+        ("L1 product (fp32 GEMM)", lambda: x @ f["w1_t"]),
+        ("k-WTA torch.topk(k, sorted=False)", lambda: torch.topk(h, k, dim=1, sorted=False)),
+        ("k-WTA tie check, old: per-row sums", lambda: bool(((h >= v).sum(1) == k).all())),
+        ("k-WTA tie check, new: one count_nonzero", lambda: fast.has_tie(h, v, k)),
+        ("L3 embedding_bag over winners (used)", lambda: F.embedding_bag(idx, f["w3_t"],
+                                                                         mode="sum")),
+        ("L3 dense code @ W3 (not bit-identical)", lambda: code @ f["w3_t"]),
+    ]
+    for name, fn in stages:
+        row(f"stage: {name}, chunk of {b}", b, best_time(fn, repeats, 3))
 
 
 def main(argv=None) -> str:
@@ -98,8 +132,19 @@ def main(argv=None) -> str:
         row("step, sparse CSR, 256 streams", 256,
             best_time(lambda: sparse_step(model, w1, w3, w_b, sb), args.repeats, 3))
         q = small.shape[0]
-        row(f"run (single stream fast path), {q} frames", q,
+        new_run = model.run(small)
+        fast.winners, new_winners = winners_rowcheck, fast.winners
+        try:
+            old_run = model.run(small)
+            same = (torch.equal(old_run.activity, new_run.activity)
+                    and torch.equal(old_run.matches.reference, new_run.matches.reference))
+            old_s = best_time(lambda: model.run(small), args.repeats, 1)
+        finally:
+            fast.winners = new_winners
+        row(f"run, old tie check (per-row sums), {q} frames", q, old_s)
+        row(f"run (single stream fast path), {q} frames, bit-identical to old: {same}", q,
             best_time(lambda: model.run(small), args.repeats, 1))
+        stage_rows(row, model, small, args.repeats)
         row(f"run, raw 96x128 frames, {q} frames", q,
             best_time(lambda: model.run(raw), args.repeats, 1))
         f = model._folded

@@ -36,13 +36,31 @@ def winners(h: torch.Tensor, k: int) -> torch.Tensor:
         k: winners per row.
     """
     vals, idx = torch.topk(h, k, dim=1, sorted=False)
-    v = vals.min(dim=1, keepdim=True).values  # (B, 1)
-    if bool(((h >= v).sum(1) == k).all()):
+    v = vals.amin(dim=1, keepdim=True)  # (B, 1)
+    if not has_tie(h, v, k):
         return idx
     greater, equal = h > v, h == v
     room = k - greater.sum(1, keepdim=True)
     win = greater | (equal & (equal.to(torch.int64).cumsum(1) <= room))
     return win.nonzero()[:, 1].reshape(h.shape[0], k)
+
+
+def has_tie(h: torch.Tensor, v: torch.Tensor, k: int) -> bool:
+    """Whether some row of ``h`` has more than ``k`` entries ``>= v`` (or ``v`` is NaN).
+
+    Every row holds at least ``k`` entries ``>= v`` when ``v`` is the smallest of the row's
+    ``k`` largest values (and not NaN), so one global count equal to ``B * k`` means exactly
+    ``k`` per row: one ``count_nonzero`` over the whole ``(B, M)`` instead of per-row sums
+    (about half the time on one CPU thread, same answer).
+
+    Args:
+        h: ``(B, M)``.
+        v: ``(B, 1)`` each row's ``k``-th largest value.
+        k: winners per row.
+    """
+    if bool(v.isnan().any()):
+        return True
+    return int(torch.count_nonzero(h >= v)) != h.shape[0] * k
 
 
 def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
