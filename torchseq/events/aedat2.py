@@ -16,14 +16,13 @@ and unwrapped: a backward jump of more than 2**31 us is a counter wrap and adds 
 from __future__ import annotations
 
 import re
-import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from torchseq.atomic import atomic_open
-from torchseq.events.stream import EventFormatError, EventStream, make_events
+from torchseq.events.stream import EventFormatError, EventStream, iter_records, make_events
 
 MAGIC = b"#!AER-DAT2.0"
 RECORD = np.dtype([("a", ">u4"), ("t", ">u4")])
@@ -127,24 +126,10 @@ def iter_aedat2(path: str | Path, chunk_events: int = 1 << 20,
         if size is None:
             raise EventFormatError(f"{path}: pass sensor_size= for a DAVIS file of unknown chip")
         body = path.stat().st_size - header_len
-        if body % RECORD.itemsize:
-            msg = (f"{path}: truncated, {body % RECORD.itemsize} trailing byte(s) after "
-                   f"{body // RECORD.itemsize} whole 8-byte records")
-            if truncated != "drop":
-                raise EventFormatError(msg + "; pass truncated='drop' to ignore them")
-            warnings.warn(msg + ", dropped", stacklevel=2)
-        n_left, state = body // RECORD.itemsize, {}
-        while True:
-            n = min(chunk_events, n_left)
-            records = np.fromfile(f, RECORD, n)
-            if len(records) < n:
-                raise EventFormatError(f"{path}: file shrank while reading")
-            n_left -= n
-            if n == 0 and state:
-                return
+        state: dict = {}
+        for records in iter_records(f, path, RECORD, body, chunk_events, truncated,
+                                    "8-byte record"):
             yield EventStream(decode(records, layout, size, flip_y, state), size)
-            if n_left == 0:
-                return
 
 
 def write_aedat2(path: str | Path, stream: EventStream, layout: str = "dvs128",

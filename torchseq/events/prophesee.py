@@ -20,13 +20,12 @@ EVT 2.0 packs each event in a little-endian 32-bit word: type ``w >> 28`` (0 CD_
 from __future__ import annotations
 
 import re
-import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-from torchseq.events.stream import EventFormatError, EventStream, make_events
+from torchseq.events.stream import EventFormatError, EventStream, iter_records, make_events
 
 PLUGIN_SIZES = {"gen41": (1280, 720), "imx636": (1280, 720), "gen31": (640, 480),
                 "gen3": (640, 480), "imx646": (1280, 720), "genx320": (320, 320)}
@@ -188,16 +187,6 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
         else:
             dtype, decode = np.dtype("<u4"), decode_evt2
         body = path.stat().st_size - f.tell()
-        if body % dtype.itemsize:
-            msg = f"{path}: truncated, {body % dtype.itemsize} trailing byte(s) after the last word"
-            if truncated != "drop":
-                raise EventFormatError(msg + "; pass truncated='drop' to ignore them")
-            warnings.warn(msg + ", dropped", stacklevel=2)
-        n_left, state = body // dtype.itemsize, {}
-        while True:
-            n = min(chunk_events, n_left)
-            words = np.fromfile(f, dtype, n)
-            n_left -= n
+        state: dict = {}
+        for words in iter_records(f, path, dtype, body, chunk_events, truncated, "word"):
             yield EventStream(decode(words, state), size)
-            if n_left == 0:
-                return

@@ -8,6 +8,7 @@ microseconds), ``x`` and ``y`` (int16, pixel column and row, origin top-left, ``
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -139,3 +140,38 @@ def order_events(events: np.ndarray, sort: bool, source: str = "events") -> np.n
     warnings.warn(f"{source}: {int(back.sum())} backward time steps, events sorted by time",
                   stacklevel=3)
     return events[np.argsort(events["t"], kind="stable")]
+
+
+def iter_records(f, path, dtype: np.dtype, body_bytes: int, chunk: int, truncated: str,
+                 unit: str) -> Iterator[np.ndarray]:
+    """Read a body of fixed-size binary records in chunks, after checking it is whole.
+
+    Args:
+        f: binary file positioned at the first record.
+        path: the file's path, for messages.
+        dtype: one record.
+        body_bytes: bytes from the first record to the end of the file.
+        chunk: records per yielded array.
+        truncated: ``"error"`` or ``"drop"`` (warn and ignore a partial last record).
+        unit: what a record is called in messages (e.g. ``"8-byte record"``).
+
+    Yields:
+        ``(n,)`` arrays of ``dtype``; at least one (empty for an empty body).
+    """
+    spare = body_bytes % dtype.itemsize
+    if spare:
+        msg = (f"{path}: truncated, {spare} trailing byte(s) after "
+               f"{body_bytes // dtype.itemsize} whole {unit}s")
+        if truncated != "drop":
+            raise EventFormatError(msg + "; pass truncated='drop' to ignore them")
+        warnings.warn(msg + ", dropped", stacklevel=3)
+    n_left = body_bytes // dtype.itemsize
+    while True:
+        n = min(chunk, n_left)
+        records = np.fromfile(f, dtype, n)
+        if len(records) < n:
+            raise EventFormatError(f"{path}: file shrank while reading")
+        n_left -= n
+        yield records
+        if n_left == 0:
+            return
