@@ -161,8 +161,7 @@ def run_neural(cfg: EvalConfig, ref, query, device):
     fit_seconds = time.perf_counter() - start
     result = model.run(query, progress=cfg.progress)
     return {"matches": result.matches, "ranked": None, "activity": result.activity,
-            "seconds": float(result.seconds if not isinstance(result.seconds, dict)
-                             else result.seconds.get("total", sum(result.seconds.values()))),
+            "seconds": float(result.seconds),
             "fit_seconds": fit_seconds, "parameters": to_jsonable(model.config),
             "model_bytes": int(model.model_bytes())}
 
