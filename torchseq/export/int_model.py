@@ -18,7 +18,7 @@ from torchseq.export.int_format import (
     IntegerFormatError,
     IntegerModel,
 )
-from torchseq.export.quantise import fixed_point, fixed_point_array, quantise
+from torchseq.export.quantise import fixed_point, fixed_point_array, integer_grid, quantise
 
 SQRT_FRAC = 8  # fractional bits of the patch standard deviation
 STATE_FRAC = 16  # fractional bits of the ring activity (int32)
@@ -72,6 +72,9 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
         n = patch * patch
         z_max = (n - 1) / math.sqrt(n)  # largest |z| a block of n samples can hold
         p["x_frac"] = int(math.floor(math.log2(X_MAX / z_max)))
+        steps = int(getattr(cfg, "input_steps", 0))
+        if steps and 2 ** int(math.log2(steps)) == steps and math.log2(steps) < p["x_frac"]:
+            p["x_frac"] = int(math.log2(steps))  # the float model's own input grid
         p["input_mode"] = INPUT_ZSCORE
         p["norm_const"] = fixed_point(math.sqrt((n - 1) / n), p["x_frac"] + SQRT_FRAC, 32)
     else:
@@ -80,7 +83,7 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     # L1 -> L2: 12 bits, one per-tensor scale (the k-WTA only needs the order of the sums).
     cols1 = _rows(model.l1.mask)
     w1 = model.l1.folded_weight().detach().cpu().numpy()
-    q1 = quantise(np.take_along_axis(w1, cols1, 1), bits=12)
+    q1 = integer_grid(np.take_along_axis(w1, cols1, 1), bits=12)
     a["l1.cols"], a["l1.values"] = cols1.astype("<u2"), q1.values.astype("<i2")
     p["l1_fan_in"] = cols1.shape[1]
     # L2 -> L3: per-row scales, stored as ratios to the largest on a 2**-15 grid.

@@ -23,6 +23,7 @@ from torch import nn
 
 from torchseq.export.int_onnx import run_step_session, write_onnx
 from torchseq.layers.functional import cohort_normalise, kwta
+from torchseq.neural.fixed_point import quantise_input
 from torchseq.neural.learning import decide
 from torchseq.preprocess import patch_normalise
 
@@ -42,6 +43,7 @@ class StreamingStep(nn.Module):
             raise ValueError("the model has not learnt a route yet (fit it first)")
         cfg = model.config
         self.patch, self.mode = int(cfg.patch_size), cfg.patch_mode
+        self.steps = int(getattr(cfg, "input_steps", 0))
         self.k, self.eps, self.window = int(cfg.k), float(cfg.eps), int(cfg.uniqueness_window)
         self.rectify = bool(getattr(cfg, "rectify", False))
         self.decay, self.gain = (float(v) for v in model.ring.params)
@@ -67,7 +69,7 @@ class StreamingStep(nn.Module):
         x = frames
         if self.patch:
             x = patch_normalise(x, self.patch, self.mode)
-        x = x.reshape(x.shape[0], -1)  # (B, D)
+        x = quantise_input(x.reshape(x.shape[0], -1), self.steps)  # (B, D); ONNX Round
         h = x @ self.w1_t  # (B, M)
         if torch.onnx.is_in_onnx_export():
             # ONNX TopK selects ties by the lower index (TopK-11 rule) = kwta's rule, so the

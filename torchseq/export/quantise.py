@@ -81,6 +81,27 @@ def quantise(w, bits: int = 8, per_row: bool = False, power_of_two: bool = False
     return Quantised(values, scale.astype(np.float64), bits)
 
 
+def integer_grid(w, bits: int = 8) -> Quantised:
+    """:func:`quantise`, keeping integers exactly where ``w`` already holds them.
+
+    A tensor of small integers times one power of two keeps exactly those integers (a model
+    made on integer grids exports losslessly); any other tensor goes to :func:`quantise`.
+
+    Args:
+        w: real array or tensor.
+        bits: 2..32.
+    """
+    a = _as_float64(w)
+    peak = float(np.abs(a).max()) if a.size else 0.0
+    if peak > 0:
+        qmax = 2 ** (bits - 1) - 1
+        for e in range(math.ceil(math.log2(peak / qmax)), math.ceil(math.log2(peak)) + 1):
+            v = a / 2.0**e
+            if np.array_equal(v, np.round(v)):
+                return Quantised(v.astype(_int_dtype(bits)), np.float64(2.0**e), bits)
+    return quantise(a, bits)
+
+
 def dequantise(q: Quantised) -> np.ndarray:
     """``values * scale`` as float64 (the real numbers the integers stand for)."""
     s = q.scale.reshape(q.scale.shape + (1,) * (q.values.ndim - q.scale.ndim))

@@ -9,6 +9,10 @@ class NeuralError(ValueError):
     """Bad input or a bad checkpoint for Neural SeqSLAM."""
 
 
+# fields added after the first checkpoints were written, with the behaviour those had
+FORMER_DEFAULTS = {"input_steps": 0, "l1_levels": 0, "l3_levels": 0}
+
+
 @dataclass
 class NeuralConfig:
     """Settings of :class:`torchseq.neural.NeuralSeqSLAM`.
@@ -19,14 +23,22 @@ class NeuralConfig:
     ``k_fraction=0.10`` (Table 1's example: 5%), ``patch_size=4``, ``ring_decay=0.97``,
     ``hebbian="centred"``, ``rectify=True``. :meth:`table1` gives 5% winners;
     :meth:`dense_readout` a dense L2 -> L3 layer, which measured better on the corridor.
+    The L1 input, the L1 weights and the L2 -> L3 weights sit on integer grids
+    (:mod:`torchseq.neural.fixed_point`): the L2 code is exact in float32 and in int8.
 
     Attributes:
         input_size: ``(H, W)`` the frames are resized to (L1 has ``H * W`` units).
         patch_size: patch-normalisation block side (0 disables it).
         patch_mode: ``"zscore"`` (float z-scores) or ``"seqslam"`` (OpenSeqSLAM rounding).
+        input_steps: L1 input (z-scores) rounded to multiples of ``1 / input_steps``
+            (32: signed 8-bit for 4x4 patches); 0 keeps float input.
         hidden: L2 units.
         density: connection density of L1 -> L2.
         density_out: connection density of L2 -> L3.
+        l1_levels: L1 weights are integers ``-l1_levels..l1_levels`` times a power of two
+            (at most 64: the int8 products stay exact); 0 keeps float weights.
+        l3_levels: each unit's Hebbian weights are rounded to integers
+            ``-l3_levels..l3_levels`` times a per-unit scale (127: int8); 0 keeps floats.
         k_fraction: fraction of L2 units that win the k-WTA.
         n_output: most L3 units; a route of ``R`` frames uses ``min(R, n_output)``.
         ring_decay: weight of the shifted old activity in the ring.
@@ -48,9 +60,12 @@ class NeuralConfig:
     input_size: tuple[int, int] = (24, 32)
     patch_size: int = 4
     patch_mode: str = "zscore"
+    input_steps: int = 32
     hidden: int = 3072
     density: float = 0.2
     density_out: float = 0.2
+    l1_levels: int = 64
+    l3_levels: int = 127
     k_fraction: float = 0.10
     n_output: int = 555
     ring_decay: float = 0.97
@@ -96,6 +111,11 @@ class NeuralConfig:
                               f"{self.patch_size}")
         if self.patch_mode not in ("zscore", "seqslam"):
             raise NeuralError(f"patch_mode must be 'zscore' or 'seqslam', got {self.patch_mode!r}")
+        if self.input_steps < 0:
+            raise NeuralError(f"input_steps must be >= 0, got {self.input_steps}")
+        if not 0 <= self.l1_levels <= 64 or not 0 <= self.l3_levels <= 127:
+            raise NeuralError(f"need 0 <= l1_levels <= 64 and 0 <= l3_levels <= 127, got "
+                              f"{self.l1_levels} and {self.l3_levels}")
         if self.hidden < 1 or self.n_output < 1:
             raise NeuralError("hidden and n_output must be >= 1")
         for name in ("density", "density_out", "k_fraction"):
@@ -139,7 +159,11 @@ class NeuralConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> NeuralConfig:
-        """Build from :meth:`to_dict` output; unknown keys raise :class:`NeuralError`."""
+        """Build from :meth:`to_dict` output; unknown keys raise :class:`NeuralError`.
+
+        Keys missing from older checkpoints take the value those models were made with.
+        """
+        d = {**FORMER_DEFAULTS, **d}
         names = {f.name for f in fields(cls)}
         unknown = set(d) - names
         if unknown:

@@ -4,15 +4,21 @@
   of frames with folded (dense) weights; the binary k-WTA code is never materialised: the
   L3 evidence is the sum of the ``k`` winners' columns of ``l3.weight * l3.mask``
   (``F.embedding_bag`` in sum mode).
-- :func:`ring_scan`: the ring recurrence over a whole single-stream sequence; when the shift
-  matrix is banded (units recruited in order, no wrap) it runs on diagonals instead of an
-  ``N x N`` product per step.
+- :func:`feedforward_int8`: the same for a model on its integer grids
+  (:mod:`torchseq.neural.fixed_point`): L1 and L3 as oneDNN int8 GEMMs (:class:`Int8Linear`)
+  and the k-WTA threshold from NumPy's introselect (:func:`kwta_code`). The L2 code is
+  identical to the float path's; the evidence equal up to float rounding.
+- :func:`ring_scan`: the ring recurrence over a whole single-stream sequence, in blocks of
+  frames (a few dozen tensor operations per block instead of several per frame); when the
+  shift matrix is banded (units recruited in order, no wrap) it runs on diagonals instead of
+  ``N x N`` products.
 
 Results equal the step-by-step path up to float rounding (sums in another order).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -92,6 +98,103 @@ def feedforward(x: torch.Tensor, w1_t: torch.Tensor, w3_t: torch.Tensor, k: int,
     return z.clamp_min(0.0) if rectify else z
 
 
+class Int8Linear:
+    """``y = ((x - x_zero) @ n.T) * x_scale * scale`` with uint8 ``x`` and int8 ``n``, as float32.
+
+    oneDNN's int8 GEMM (``torch.ops.onednn.qlinear_pointwise``, the kernel behind PyTorch's
+    x86 quantisation; VNNI/AMX where the CPU has them) with int32 accumulation. Build with
+    :meth:`create`, which returns None when the operator is missing or does not reproduce a
+    float32 product of the same integers on a check batch.
+
+    Args:
+        n: ``(N, K)`` int8 weights (``|n| <= 64`` keeps pairs of products inside int16 on
+            CPUs without VNNI, so no kernel saturates).
+        scale: ``(N,)`` float32 per-row scales.
+        x_scale: scale of the input integers.
+        x_zero: zero point of the input integers.
+    """
+
+    def __init__(self, n: torch.Tensor, scale: torch.Tensor, x_scale: float, x_zero: int):
+        self.shape = tuple(n.shape)
+        self.x_scale, self.x_zero = float(x_scale), int(x_zero)
+        self.scale = scale.to(torch.float32).contiguous()
+        self.zeros = torch.zeros(n.shape[0], dtype=torch.int64)
+        self.packed = torch.ops.onednn.qlinear_prepack(n.contiguous(), None)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, K)`` uint8 -> ``(B, N)`` float32."""
+        return torch.ops.onednn.qlinear_pointwise(
+            x, self.x_scale, self.x_zero, self.packed, self.scale, self.zeros, None, 1.0, 0,
+            torch.float32, "none", [], "")
+
+    @classmethod
+    def create(cls, n: torch.Tensor, scale: torch.Tensor, x_scale: float,
+               x_zero: int) -> Int8Linear | None:
+        """An :class:`Int8Linear`, or None when the int8 GEMM is unavailable or inexact here."""
+        if not hasattr(torch.ops.onednn, "qlinear_pointwise"):
+            return None
+        try:
+            lin = cls(n, scale, x_scale, x_zero)
+            gen = torch.Generator().manual_seed(0)
+            x = torch.randint(0, 256, (37, n.shape[1]), generator=gen, dtype=torch.uint8)
+            got = lin(x)
+        except (RuntimeError, NotImplementedError):
+            return None
+        acc = (x.to(torch.float64) - x_zero) @ n.to(torch.float64).T  # exact integers
+        want = (acc * x_scale * scale.to(torch.float64)).to(torch.float32)
+        return lin if torch.allclose(got, want, rtol=1e-6, atol=0.0) else None
+
+
+def kwta_code(h: torch.Tensor, k: int) -> torch.Tensor:
+    """Binary k-WTA code ``(B, M)`` uint8 of float32 CPU rows.
+
+    The same code as :func:`torchseq.layers.kwta` (ties at the threshold go to the lowest
+    indices).
+    The ``k``-th largest value ``v`` of each row comes from ``numpy.partition``
+    (introselect, several times faster than ``torch.topk`` on one CPU thread); the winners
+    are the entries ``>= v``, except in rows with a tie at ``v``, which keep the entries
+    ``> v`` and the lowest-index entries ``== v``.
+
+    Args:
+        h: ``(B, M)`` float32 on the CPU, no NaN.
+        k: winners per row.
+    """
+    m = h.shape[1]
+    v = torch.from_numpy(np.partition(h.numpy(), m - k, axis=1)[:, m - k : m - k + 1])
+    win = h >= v  # (B, M)
+    tied = (win.sum(1, dtype=torch.int32) != k).nonzero()[:, 0]
+    if tied.numel():
+        ht, vt = h[tied], v[tied]
+        greater, equal = ht > vt, ht == vt
+        room = k - greater.sum(1, keepdim=True, dtype=torch.int32)
+        win[tied] = greater | (equal & (equal.cumsum(1, dtype=torch.int32) <= room))
+    return win.view(torch.uint8)
+
+
+def feedforward_int8(x: torch.Tensor, l1: Int8Linear, l3: Int8Linear, steps: int, k: int,
+                     cohorts: torch.Tensor, eps: float, rectify: bool = True) -> torch.Tensor:
+    """:func:`feedforward` of a model on its integer grids, with int8 GEMMs.
+
+    Args:
+        x: ``(B, D)`` encoded frames on the ``1 / steps`` grid, ``|x| * steps <= 127``.
+        l1: L1 weights (zero point 128, scale ``1 / steps``).
+        l3: L3 weights (zero point 0, scale 1).
+        steps: input grid steps.
+        k: L2 winners.
+        cohorts: ``(N, C)`` membership.
+        eps: normalisation floor.
+        rectify: clamp the z-scores at 0.
+
+    Returns:
+        ``(B, N)`` z-scored (and rectified) evidence.
+    """
+    xq = (x * steps + 128.0).to(torch.uint8)  # exact: x is on the grid and inside int8
+    h = l1(xq)  # (B, M) float32: exact integer sums times a power of two
+    e = l3(kwta_code(h, k))  # (B, N)
+    z = cohort_normalise(e, cohorts, eps)
+    return z.clamp_min(0.0) if rectify else z
+
+
 def band_diagonals(shift: torch.Tensor, max_lag: int) -> torch.Tensor | None:
     """Diagonals ``(L + 1, N)`` of a banded shift matrix, or None when it is not banded.
 
@@ -109,9 +212,46 @@ def band_diagonals(shift: torch.Tensor, max_lag: int) -> torch.Tensor | None:
     return d
 
 
+RING_BLOCK = 16  # frames per block of ring_scan
+
+
+def ring_advance(a: torch.Tensor, a_mat: torch.Tensor,
+                 diag: torch.Tensor | None) -> torch.Tensor:
+    """``a @ a_mat.T`` for ``a`` ``(B, N)``.
+
+    On the diagonals ``(L + 1, N)`` of ``a_mat`` when it is banded (:func:`band_diagonals`),
+    else a dense product.
+    """
+    if diag is None:
+        return a @ a_mat.T
+    m = a * diag[0]
+    for lag in range(1, diag.shape[0]):
+        m[:, lag:].addcmul_(diag[lag, lag:], a[:, :-lag])
+    return m
+
+
+def ring_power(shift: torch.Tensor, decay: float, diagonals: torch.Tensor | None = None,
+               block: int = RING_BLOCK) -> torch.Tensor:
+    """``(decay * shift)**block`` ``(N, N)``: ``block`` advances of the identity's rows."""
+    a_mat = shift * decay
+    diag = None if diagonals is None else diagonals * decay
+    x = torch.eye(shift.shape[0], dtype=shift.dtype, device=shift.device)
+    for _ in range(block):
+        x = ring_advance(x, a_mat, diag)  # rows of (A.T)**i
+    return x.T.contiguous()
+
+
 def ring_scan(drive: torch.Tensor, activity: torch.Tensor, shift: torch.Tensor, decay: float,
-              diagonals: torch.Tensor | None = None) -> torch.Tensor:
+              diagonals: torch.Tensor | None = None, block: int = RING_BLOCK,
+              power: torch.Tensor | None = None) -> torch.Tensor:
     """Run ``a_t = decay * a_{t-1} @ shift.T + drive_t`` over a single stream.
+
+    The linear recurrence runs in blocks of ``C`` frames: (1) each block's response to its
+    own drive from a zero start, all blocks at once (``C`` steps); (2) the state entering
+    each block, block after block, through ``(decay * shift)**C`` (one matrix-vector product
+    per block); (3) each block's response to that entering state, all blocks at once (``C``
+    steps). About ``4 C + T / C`` tensor operations instead of several per frame; sums run
+    in another order than frame by frame, so results are equal up to float rounding.
 
     Args:
         drive: ``(T, N)`` ``gain * evidence``.
@@ -119,23 +259,34 @@ def ring_scan(drive: torch.Tensor, activity: torch.Tensor, shift: torch.Tensor, 
         shift: ``(N, N)``.
         decay: ring decay.
         diagonals: output of :func:`band_diagonals` (None: dense products).
+        block: frames per block ``C``.
+        power: :func:`ring_power` for these arguments (None: computed here).
 
     Returns:
         ``(T, N)`` activity after each step.
     """
-    out = torch.empty_like(drive)
-    a = activity
-    if diagonals is None:
-        for t in range(drive.shape[0]):
-            a = torch.addmv(drive[t], shift, a, alpha=decay)
-            out[t] = a
-        return out
-    d = diagonals * decay  # (L + 1, N)
-    lags = range(1, d.shape[0])
-    for t in range(drive.shape[0]):
-        m = torch.addcmul(drive[t], d[0], a)
-        for lag in lags:
-            m[lag:].addcmul_(d[lag, lag:], a[:-lag])
-        a = m
-        out[t] = a
-    return out
+    t_len, n = drive.shape
+    c = max(1, min(block, t_len))
+    n_blocks = -(-t_len // c)
+    d = drive.new_zeros(n_blocks * c, n)
+    d[:t_len] = drive
+    d = d.view(n_blocks, c, n)
+    a_mat = shift.to(drive.dtype) * decay  # (N, N)
+    diag = None if diagonals is None else diagonals.to(drive.dtype) * decay  # (L + 1, N)
+    if power is None or c != block:
+        power = ring_power(shift.to(drive.dtype), decay, diagonals, c)
+    local = torch.empty_like(d)  # (blocks, C, N)
+    a = d[:, 0]
+    local[:, 0] = a
+    for i in range(1, c):  # (1) zero-start response of every block
+        a = ring_advance(a, a_mat, diag) + d[:, i]
+        local[:, i] = a
+    entering = torch.empty(n_blocks, n, dtype=drive.dtype, device=drive.device)
+    s = activity.to(drive.dtype)
+    for b in range(n_blocks):  # (2) state entering each block
+        entering[b] = s
+        s = torch.addmv(local[b, c - 1], power, s)
+    for i in range(c):  # (3) add the entering state's response
+        entering = ring_advance(entering, a_mat, diag)
+        local[:, i] += entering
+    return local.view(-1, n)[:t_len]

@@ -8,6 +8,7 @@ equations of one step are in ``docs/neural.md`` ("Step maths").
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -19,7 +20,21 @@ from torchseq.layers.functional import cohort_normalise
 from torchseq.matches import Matches
 from torchseq.neural.checkpoint import load_checkpoint, save_checkpoint
 from torchseq.neural.config import NeuralConfig, NeuralError
-from torchseq.neural.fast import band_diagonals, feedforward, ring_scan
+from torchseq.neural.fast import (
+    Int8Linear,
+    band_diagonals,
+    feedforward,
+    feedforward_int8,
+    ring_power,
+    ring_scan,
+)
+from torchseq.neural.fixed_point import (
+    factor_power_of_two,
+    factor_rows,
+    integer_weights,
+    quantise_input,
+    round_rows,
+)
 from torchseq.neural.learning import (
     cohort_membership,
     decide,
@@ -47,6 +62,10 @@ class NeuralSeqSLAM(nn.Module):
         self.l1 = MaskedLinear(cfg.n_input, cfg.hidden, cfg.density, bias=False, seed=cfg.seed,
                                device=device)
         self.l1.weight.requires_grad_(False)
+        if cfg.l1_levels:
+            with torch.no_grad():
+                bound = math.sqrt(3.0 / self.l1.fan_in)  # MaskedLinear's uniform init
+                self.l1.weight.copy_(integer_weights(self.l1.weight, bound, cfg.l1_levels))
         self.l2 = KWinnersTakeAll(k=cfg.k, binary=True)
         self.l3: MaskedLinear | None = None
         self.ring: OutputRing | None = None
@@ -88,7 +107,7 @@ class NeuralSeqSLAM(nn.Module):
             frames: ``(B, H, W)`` grey or ``(B, H, W, 3)`` RGB, any size, 0..255.
 
         Returns:
-            ``(B, input_size[0] * input_size[1])`` float32.
+            ``(B, input_size[0] * input_size[1])`` float32 (on the ``1 / input_steps`` grid).
         """
         cfg = self.config
         if frames.dim() not in (3, 4) or (frames.dim() == 4 and frames.shape[-1] != 3):
@@ -102,7 +121,7 @@ class NeuralSeqSLAM(nn.Module):
         x = resize(x, cfg.input_size)
         if cfg.patch_size:
             x = patch_normalise(x, cfg.patch_size, cfg.patch_mode)
-        return x.reshape(x.shape[0], -1)
+        return quantise_input(x.reshape(x.shape[0], -1), cfg.input_steps)
 
     def code(self, x: torch.Tensor) -> torch.Tensor:
         """L1 -> L2: random masked projection then binary k-WTA. ``(B, 768) -> (B, hidden)``."""
@@ -138,10 +157,8 @@ class NeuralSeqSLAM(nn.Module):
             raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
                               f"{tuple(state.activity.shape)}")
         x = self.encode(frames)  # (B, D)
-        f = self._folded
-        if f is not None and not torch.is_grad_enabled():  # same maths, fewer memory reads
-            e = feedforward(x, f["w1_t"], f["w3_t"], self.config.k, self.cohorts,
-                            self.config.eps, self.config.rectify)  # (B, N)
+        if self._folded is not None and not torch.is_grad_enabled():  # same maths, faster
+            e = self._feedforward(x)  # (B, N)
         else:
             e = self.evidence(self.code(x))  # (B, N)
         activity, state = self.ring(e, state)
@@ -189,6 +206,8 @@ class NeuralSeqSLAM(nn.Module):
             total += c.sum(0)
         counts = (spans[:, 1] - spans[:, 0]).to(dev, torch.float32)
         w = hebbian_weights(sums, counts, total / t_len, self.l3.mask, cfg.hebbian, cfg.eps)
+        if cfg.l3_levels:
+            w = round_rows(w, cfg.l3_levels)
         self.l3.weight.copy_(w)
         self.ring.learn(unit_of_frame)
         self.unit_to_reference.copy_(spans.to(dev))
@@ -230,23 +249,38 @@ class NeuralSeqSLAM(nn.Module):
         self.fold()
         f = self._folded
         decay, gain = self.ring.params
-        w1_t = f["w1_t"]
-        if l1_dtype is not None and l1_dtype != w1_t.dtype:
-            w1_t = f.setdefault(f"w1_t.{l1_dtype}", w1_t.to(l1_dtype))
-        parts = [feedforward(self.encode(query[lo:lo + cfg.chunk]), w1_t, f["w3_t"],
-                             cfg.k, self.cohorts, cfg.eps, cfg.rectify)
+        w1_t = None
+        if l1_dtype is not None and l1_dtype != f["w1_t"].dtype:
+            w1_t = f.setdefault(f"w1_t.{l1_dtype}", f["w1_t"].to(l1_dtype))
+        parts = [self._feedforward(self.encode(query[lo:lo + cfg.chunk]), w1_t)
                  for lo in _chunks(query.shape[0], cfg.chunk, progress, "run")]
         drive = torch.cat(parts) * gain  # (T, N)
         a0 = torch.zeros(self.n_units, device=drive.device)
-        activity = ring_scan(drive, a0, self.ring.shift, decay, f["diagonals"])
+        activity = ring_scan(drive, a0, self.ring.shift, decay, f["diagonals"],
+                             power=f["ring_power"])
         reference, confidence = decide(activity, self.unit_centre, cfg.uniqueness_window)
         matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
         return NeuralResult(matches, activity.cpu(), time.perf_counter() - t0)
 
-    def fold(self) -> None:
-        """Cache ``weight * mask`` of both masked layers as dense tensors (fast inference).
+    def _feedforward(self, x: torch.Tensor, w1_t: torch.Tensor | None = None) -> torch.Tensor:
+        """Folded L1 -> L3 evidence of encoded frames ``(B, D) -> (B, N)`` (see :meth:`fold`).
 
-        Called by :meth:`run`; cleared by :meth:`fit` and :meth:`load_state_dict`.
+        ``w1_t``: a low-precision L1 copy (``run(l1_dtype=...)``), which forces float products.
+        """
+        f, cfg = self._folded, self.config
+        if f["l1_int8"] is not None and w1_t is None and x.device.type == "cpu":
+            return feedforward_int8(x, f["l1_int8"], f["l3_int8"], cfg.input_steps, cfg.k,
+                                    self.cohorts, cfg.eps, cfg.rectify)
+        return feedforward(x, f["w1_t"] if w1_t is None else w1_t, f["w3_t"], cfg.k,
+                           self.cohorts, cfg.eps, cfg.rectify)
+
+    def fold(self) -> None:
+        """Cache ``weight * mask`` of both masked layers for fast inference.
+
+        Dense float copies always; int8 copies for oneDNN's int8 GEMM when the model's
+        numbers sit on its integer grids (:mod:`torchseq.neural.fixed_point`) and the GEMM
+        reproduces the float products on a check batch. Called by :meth:`run`; cleared by
+        :meth:`fit` and :meth:`load_state_dict`.
         """
         self._require_fit()
         if self._folded is None:
@@ -255,7 +289,29 @@ class NeuralSeqSLAM(nn.Module):
                 self._folded = {
                     "w1": w1, "w3": w3, "w1_t": w1.T.contiguous(), "w3_t": w3.T.contiguous(),
                     "diagonals": None if self.config.ring_wrap else band_diagonals(
-                        self.ring.shift, self.config.ring_spread)}
+                        self.ring.shift, self.config.ring_spread),
+                    "l1_int8": None, "l3_int8": None}
+                self._folded["ring_power"] = ring_power(
+                    self.ring.shift, self.ring.params.decay, self._folded["diagonals"])
+                self._folded.update(self._int8_layers(w1, w3))
+
+    def _int8_layers(self, w1: torch.Tensor, w3: torch.Tensor) -> dict:
+        """``{"l1_int8", "l3_int8"}``: :class:`Int8Linear` copies, or nothing when unusable."""
+        cfg = self.config
+        steps, n = cfg.input_steps, cfg.patch_size ** 2
+        if (w1.device.type != "cpu" or not steps or not n or cfg.patch_mode != "zscore"
+                or (n - 1) / math.sqrt(n) * steps > 127):  # |z| <= (n-1)/sqrt(n): int8 fits
+            return {}
+        l1 = factor_power_of_two(w1, 64)  # |n| <= 64: no int16 pair overflow on any CPU
+        l3 = factor_rows(w3, 127)
+        if l1 is None or l3 is None:
+            return {}
+        n1, step1 = l1
+        lin1 = Int8Linear.create(n1, torch.full((n1.shape[0],), step1), 1.0 / steps, 128)
+        lin3 = Int8Linear.create(*l3, 1.0, 0)
+        if lin1 is None or lin3 is None:
+            return {}
+        return {"l1_int8": lin1, "l3_int8": lin3}
 
     def unfold(self) -> None:
         """Drop the folded weights (the next call recomputes ``weight * mask``)."""
