@@ -116,6 +116,9 @@ def run_seqslam(ref, query, gt) -> dict | None:
 
 ABLATION = {
     "default": {},
+    "float input (input_steps 0)": dict(input_steps=0),
+    "float weights (l1_levels 0, l3_levels 0)": dict(l1_levels=0, l3_levels=0),
+    "all float (no integer grids)": dict(input_steps=0, l1_levels=0, l3_levels=0),
     "Table 1 winners (k 5%)": dict(k_fraction=0.05),
     "dense readout (density_out 1.0, decay 0.96)": dict(density_out=1.0, ring_decay=0.96),
     "patch 8": dict(patch_size=8),
