@@ -59,3 +59,38 @@ def test_ring_scan_band_equals_dense_and_loop(dtype):
 def test_band_diagonals_rejects_wrap():
     shift = learn_shift_matrix(torch.arange(10), 10, spread=2, wrap=True)
     assert band_diagonals(shift, 2) is None
+
+
+@pytest.mark.parametrize("t_len", [1, 5, 16, 17, 100])
+@pytest.mark.parametrize("block", [1, 4, 16])
+@pytest.mark.parametrize("wrap", [False, True])
+def test_ring_scan_blocks_equal_frame_by_frame(t_len, block, wrap):
+    g = torch.Generator().manual_seed(t_len)
+    shift = learn_shift_matrix(torch.arange(30), 30, spread=2, stay=0.5, wrap=wrap).double()
+    diag = None if wrap else band_diagonals(shift, 2)
+    drive = torch.rand(t_len, 30, generator=g, dtype=torch.float64)
+    a0 = torch.rand(30, generator=g, dtype=torch.float64)
+    got = ring_scan(drive, a0, shift, 0.95, diag, block=block)
+    a, want = a0, []
+    for t in range(t_len):  # the step's recurrence, one frame at a time
+        a = 0.95 * (shift @ a) + drive[t]
+        want.append(a)
+    torch.testing.assert_close(got, torch.stack(want), atol=1e-12, rtol=1e-12)
+
+
+def test_decide_equals_loop():
+    from torchseq.neural.learning import decide
+
+    g = torch.Generator().manual_seed(5)
+    act = torch.rand(50, 40, generator=g)
+    act[3] = 1.0  # all tied: first index wins
+    centre = torch.arange(40) * 3
+    for window, n in ((5, 40), (2, 40), (30, 40), (39, 40), (0, 40), (5, 6)):
+        a = act[:, :n]
+        ref, conf = decide(a, centre[:n], window)
+        for b in range(a.shape[0]):
+            u = max(range(n), key=lambda i: (float(a[b, i]), -i))
+            rivals = [float(a[b, v]) for v in range(n) if abs(v - u) > window]
+            second = max(rivals) if rivals else float(a[b].min())
+            assert int(ref[b]) == int(centre[u])
+            assert float(conf[b]) == pytest.approx(float(a[b, u]) - second, abs=1e-7)

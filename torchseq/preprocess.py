@@ -96,7 +96,7 @@ def patch_normalise(frames: torch.Tensor, patch: int = 8, mode: str = "seqslam")
     dev = blocks - mean
     var = F.avg_pool2d((dev * dev).reshape(t, 1, h, w), patch).reshape(mean.shape)
     std = (var * (patch * patch / (patch * patch - 1))).sqrt()
-    z = torch.where(std > 0, dev / torch.where(std > 0, std, torch.ones_like(std)), 0.0 * dev)
+    z = dev / torch.where(std > 0, std, torch.ones_like(std))  # a flat block: dev == 0 -> 0
     if mode == "seqslam":
         z = (127.0 + round_half_away(z)).clamp(0.0, 255.0)
     return z.reshape(t, h, w)

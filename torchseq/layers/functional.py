@@ -223,6 +223,9 @@ def cohort_normalise(
         ``(B, N)``: ``(e - mean_c) / (std_c + eps)`` with the mean and (population) std of
         each unit's cohort.
     """
+    if membership.shape[1] == 1:  # one cohort: plain row statistics (fewer passes)
+        dev = evidence - evidence.mean(dim=1, keepdim=True)
+        return dev / ((dev * dev).mean(dim=1, keepdim=True).sqrt() + eps)
     count = membership.sum(0).clamp_min(1.0)  # (C,)
     mean = F.linear(F.linear(evidence, membership.T) / count, membership)  # (B, N)
     dev = evidence - mean

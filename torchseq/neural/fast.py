@@ -160,15 +160,16 @@ def kwta_code(h: torch.Tensor, k: int) -> torch.Tensor:
         k: winners per row.
     """
     m = h.shape[1]
-    v = torch.from_numpy(np.partition(h.numpy(), m - k, axis=1)[:, m - k : m - k + 1])
-    win = h >= v  # (B, M)
-    tied = (win.sum(1, dtype=torch.int32) != k).nonzero()[:, 0]
-    if tied.numel():
-        ht, vt = h[tied], v[tied]
+    hn = h.numpy()
+    v = np.partition(hn, m - k, axis=1)[:, m - k : m - k + 1]  # (B, 1)
+    win = (hn >= v).view(np.uint8)  # (B, M); NumPy: about twice torch's speed here
+    tied = np.flatnonzero(win.sum(1, dtype=np.int32) != k)
+    if tied.size:
+        ht, vt = hn[tied], v[tied]
         greater, equal = ht > vt, ht == vt
-        room = k - greater.sum(1, keepdim=True, dtype=torch.int32)
-        win[tied] = greater | (equal & (equal.cumsum(1, dtype=torch.int32) <= room))
-    return win.view(torch.uint8)
+        room = k - greater.sum(1, keepdims=True, dtype=np.int32)
+        win[tied] = greater | (equal & (equal.cumsum(1, dtype=np.int32) <= room))
+    return torch.from_numpy(win)
 
 
 def feedforward_int8(x: torch.Tensor, l1: Int8Linear, l3: Int8Linear, steps: int, k: int,

@@ -83,8 +83,9 @@ def decide(activity: torch.Tensor, unit_centre: torch.Tensor,
         ``(reference (B,) int64, confidence (B,) float)``.
     """
     best, unit = activity.max(dim=1)  # (B,)
-    idx = torch.arange(activity.shape[1], device=activity.device)
-    rival = (idx[None, :] - unit[:, None]).abs() > window  # (B, N)
-    floor = activity.min(dim=1, keepdim=True).values
-    second = torch.where(rival, activity, floor).max(dim=1).values
+    n = activity.shape[1]
+    near = (unit[:, None] + torch.arange(-window, window + 1, device=activity.device))
+    masked = activity.scatter(1, near.clamp(0, n - 1), float("-inf"))  # (B, N)
+    second = masked.max(dim=1).values  # -inf: every unit is inside the window
+    second = torch.where(torch.isinf(second), activity.min(dim=1).values, second)
     return unit_centre[unit], best - second

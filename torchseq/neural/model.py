@@ -116,7 +116,8 @@ class NeuralSeqSLAM(nn.Module):
         if frames.shape[0] == 0:
             raise NeuralError("frames are empty (no frame in the batch)")
         x = to_grey(frames.to(self.l1.weight.device)).to(torch.float32)
-        if not bool(torch.isfinite(x).all()):
+        # one sum first (NaN and inf propagate), the element-wise test only when it fails
+        if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
             raise NeuralError("frames hold NaN or infinite values")
         x = resize(x, cfg.input_size)
         if cfg.patch_size:

@@ -1,0 +1,141 @@
+import math
+
+import pytest
+import torch
+
+from torchseq.layers import kwta
+from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+from torchseq.neural.config import NeuralError
+from torchseq.neural.fast import Int8Linear, feedforward, feedforward_int8, kwta_code
+from torchseq.neural.fixed_point import (
+    factor_power_of_two,
+    factor_rows,
+    integer_weights,
+    quantise_input,
+    round_rows,
+)
+
+
+def test_quantise_input_grid_and_identity():
+    x = torch.tensor([0.0, 0.01, 0.016, -0.02, 1.0 / 64, 3.75])
+    q = quantise_input(x, 32)
+    assert torch.equal(q * 32, torch.round(q * 32))  # on the 1/32 grid
+    assert torch.equal(q, torch.tensor([0.0, 0.0, 1 / 32, -1 / 32, 0.0, 120 / 32]))  # 0.5 -> even
+    assert quantise_input(x, 0) is x
+
+
+def test_integer_weights_round_trip():
+    g = torch.Generator().manual_seed(0)
+    bound = math.sqrt(3 / 154)
+    w = (torch.rand(50, 80, generator=g) * 2 - 1) * bound
+    iw = integer_weights(w, bound, 64)
+    n, step = factor_power_of_two(iw, 64)
+    assert math.log2(step) == round(math.log2(step))
+    assert n.dtype == torch.int8 and int(n.abs().max()) <= 64
+    assert torch.equal(n.float() * step, iw)
+    assert torch.equal(n.float(), torch.round(w / bound * 64))  # w rescaled to +-64, rounded
+    assert factor_power_of_two(w, 64) is None  # float weights are not on a grid
+    assert factor_power_of_two(iw * 3, 64) is None  # 3 * 2**e is not a power of two
+
+
+def test_round_rows_round_trip():
+    g = torch.Generator().manual_seed(1)
+    w = torch.randn(20, 300, generator=g) * (torch.rand(20, 300, generator=g) < 0.2)
+    w[3] = 0.0  # an all-zero row stays zero
+    r = round_rows(w, 127)
+    assert torch.equal(r[3], torch.zeros(300))
+    n, scale = factor_rows(r, 127)
+    assert n.dtype == torch.int8 and int(n.abs().max()) == 127
+    torch.testing.assert_close(n.float() * scale[:, None], r, rtol=1e-6, atol=0.0)
+    step = w.abs().amax(1, keepdim=True) / 127
+    assert ((r - w).abs() <= step / 2 + 1e-7).all()  # nearest grid point
+    assert factor_rows(w, 127) is None
+
+
+def test_int8_linear_is_exact():
+    g = torch.Generator().manual_seed(2)
+    n = torch.randint(-64, 65, (96, 200), generator=g, dtype=torch.int8)
+    n[0] = 64
+    n[1] = -64  # extreme rows
+    scale = torch.full((96,), 2.0**-8)
+    lin = Int8Linear.create(n, scale, 1 / 32, 128)
+    if lin is None:
+        pytest.skip("oneDNN's int8 GEMM is missing or inexact on this CPU (float path is used)")
+    x = torch.randint(0, 256, (33, 200), generator=g, dtype=torch.uint8)
+    x[0] = 255
+    x[1] = 0
+    want = ((x.double() - 128) @ n.double().T) * (2.0**-8 / 32)  # exact integers, float64
+    assert torch.equal(lin(x), want.float())
+
+
+@pytest.mark.parametrize("ties", [False, True])
+def test_kwta_code_equals_kwta(ties):
+    g = torch.Generator().manual_seed(3)
+    h = torch.randn(40, 500, generator=g)
+    if ties:
+        h = torch.randint(-6, 7, (40, 500), generator=g).float()  # many ties at the threshold
+        h[5] = 0.0  # every entry tied
+    code = kwta_code(h, 37)
+    assert code.dtype == torch.uint8
+    assert torch.equal(code.float(), kwta(h, 37, binary=True))
+
+
+@pytest.fixture(scope="module")
+def model():
+    from torchseq.demo import make_demo
+
+    demo = make_demo(n_reference=80, speed=0.8)
+    m = NeuralSeqSLAM(NeuralConfig(hidden=1024, n_output=60))
+    m.fit(demo.reference, log=False)
+    m.fold()
+    return m, demo
+
+
+def test_default_model_sits_on_its_integer_grids(model):
+    m, _ = model
+    assert factor_power_of_two(m.l1.folded_weight(), 64) is not None
+    assert factor_rows(m.l3.folded_weight(), 127) is not None
+    x = m.encode(torch.rand(3, 24, 32) * 255)
+    assert torch.equal(x * 32, torch.round(x * 32)) and float((x * 32).abs().max()) <= 120
+
+
+def test_int8_path_equals_float_path(model):
+    m, demo = model
+    f, cfg = m._folded, m.config
+    if f["l1_int8"] is None:
+        pytest.skip("oneDNN's int8 GEMM is missing or inexact on this CPU (float path is used)")
+    x = m.encode(demo.query)
+    with torch.no_grad():
+        h_float = x @ f["w1_t"]
+        assert torch.equal(f["l1_int8"]((x * 32 + 128).to(torch.uint8)), h_float)  # exact L1
+        got = feedforward_int8(x, f["l1_int8"], f["l3_int8"], 32, cfg.k, m.cohorts, cfg.eps)
+        want = feedforward(x, f["w1_t"], f["w3_t"], cfg.k, m.cohorts, cfg.eps)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    fast = m.run(demo.query)
+    f["l1_int8"], keep = None, f["l1_int8"]  # force the float path
+    try:
+        slow = m.run(demo.query)
+    finally:
+        f["l1_int8"] = keep
+    assert torch.equal(fast.matches.reference, slow.matches.reference)
+    torch.testing.assert_close(fast.activity, slow.activity, rtol=1e-4, atol=1e-5)
+
+
+def test_float_model_falls_back():
+    m = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=10, input_steps=0, l1_levels=0,
+                                   l3_levels=0))
+    m.fit(torch.rand(20, 24, 32) * 255, log=False)
+    m.fold()
+    assert m._folded["l1_int8"] is None
+    assert m.run(torch.rand(5, 24, 32) * 255).matches.reference.shape == (5,)
+
+
+def test_config_grid_fields():
+    old = NeuralConfig().to_dict()
+    for key in ("input_steps", "l1_levels", "l3_levels"):
+        del old[key]
+    cfg = NeuralConfig.from_dict(old)  # a checkpoint written before the grids existed
+    assert (cfg.input_steps, cfg.l1_levels, cfg.l3_levels) == (0, 0, 0)
+    for bad in (dict(input_steps=-1), dict(l1_levels=65), dict(l3_levels=128)):
+        with pytest.raises(NeuralError):
+            NeuralConfig(**bad).validate()
