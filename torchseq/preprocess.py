@@ -89,14 +89,19 @@ def patch_normalise(frames: torch.Tensor, patch: int = 8, mode: str = "seqslam")
         raise ValueError(f"frame size {h}x{w} is not a multiple of the patch side {patch}")
     if mode not in ("seqslam", "zscore"):
         raise ValueError(f"mode must be 'seqslam' or 'zscore', got {mode!r}")
-    # block sums with avg_pool2d on the (T, 1, H, W) view: reductions over the strided block
-    # axes of a 5-D view are several times slower on the CPU
-    blocks = frames.reshape(t, h // patch, patch, w // patch, patch)
-    mean = F.avg_pool2d(frames.unsqueeze(1), patch).reshape(t, h // patch, 1, w // patch, 1)
-    dev = blocks - mean
-    var = F.avg_pool2d((dev * dev).reshape(t, 1, h, w), patch).reshape(mean.shape)
-    std = (var * (patch * patch / (patch * patch - 1))).sqrt()
-    z = dev / torch.where(std > 0, std, torch.ones_like(std))  # a flat block: dev == 0 -> 0
+    # block statistics with avg_pool2d, spread back over each block by expand + reshape (one
+    # copy): reductions and broadcasts over the strided block axes of a 5-D view are several
+    # times slower on the CPU
+    x = frames.unsqueeze(1)  # (T, 1, H, W)
+
+    def spread(s: torch.Tensor) -> torch.Tensor:  # (T, 1, H/p, W/p) -> (T, 1, H, W)
+        return (s[:, :, :, None, :, None].expand(t, 1, h // patch, patch, w // patch, patch)
+                .reshape(t, 1, h, w))
+
+    dev = x - spread(F.avg_pool2d(x, patch))
+    var = F.avg_pool2d(dev * dev, patch) * (patch * patch / (patch * patch - 1))
+    std = var.sqrt()
+    z = (dev / spread(torch.where(std > 0, std, torch.ones_like(std)))).squeeze(1)  # flat: 0
     if mode == "seqslam":
         z = (127.0 + round_half_away(z)).clamp(0.0, 255.0)
     return z.reshape(t, h, w)
