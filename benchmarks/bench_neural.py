@@ -4,7 +4,8 @@
 
 Compares, side by side in one run: the eager step (masks multiplied in on every call), the
 step with masks folded into dense weights, the step with torch.sparse CSR weights, batched
-streams, and the single-stream ``run`` fast path. Frames are given at the model's input size
+streams, the single-stream ``run`` on its float32 path and on its int8 fast path, and the
+cost of each stage. Frames are given at the model's input size
 (24x32) unless the row says otherwise. Prints a Markdown table and writes it into
 docs/neural.md between the ``bench`` markers.
 """
@@ -28,7 +29,6 @@ from torchseq.atomic import write_text  # noqa: E402
 from torchseq.demo import make_demo  # noqa: E402
 from torchseq.layers import cohort_normalise, kwta  # noqa: E402
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
-from torchseq.neural.fast import feedforward  # noqa: E402
 from torchseq.neural.learning import decide  # noqa: E402
 from torchseq.preprocess import resize  # noqa: E402
 
@@ -56,36 +56,56 @@ def sparse_step(model: NeuralSeqSLAM, w1, w3, frames, state):
     return decide(a, model.unit_centre, model.config.uniqueness_window), state
 
 
-def winners_rowcheck(h, k):
-    """``fast.winners`` before the one-count tie check (per-row sums), for side-by-side rows."""
-    vals, idx = torch.topk(h, k, dim=1, sorted=False)
-    v = vals.min(dim=1, keepdim=True).values
-    if bool(((h >= v).sum(1) == k).all()):
-        return idx
-    return fast.winners(h, k)
+def ring_loop(drive, a0, shift, decay, diagonals):
+    """The ring frame by frame on the diagonals (the scan before blocks), for a side-by-side row."""
+    d = diagonals * decay
+    out, a = torch.empty_like(drive), a0
+    for t in range(drive.shape[0]):
+        m = torch.addcmul(drive[t], d[0], a)
+        for lag in range(1, d.shape[0]):
+            m[lag:].addcmul_(d[lag, lag:], a[:-lag])
+        a = m
+        out[t] = a
+    return out
 
 
 def stage_rows(row, model, small, repeats):
-    """Per-stage cost of the exact float32 feed-forward over one ``chunk`` of frames."""
-    f, k = model._folded, model.config.k
-    x = model.encode(small[:model.config.chunk])
+    """Per-stage cost of the feed-forward over one ``chunk`` of frames, and of the ring."""
+    f, cfg = model._folded, model.config
+    k = cfg.k
+    x = model.encode(small[:cfg.chunk])
     b = x.shape[0]
     h = x @ f["w1_t"]
-    vals, idx = torch.topk(h, k, dim=1, sorted=False)
-    v = vals.amin(1, keepdim=True)
-    code = torch.zeros_like(h).scatter_(1, idx, 1.0)
+    idx = torch.topk(h, k, dim=1, sorted=False).indices
+    code = fast.kwta_code(h, k)
     stages = [
-        ("encode (patch normalisation)", lambda: model.encode(small[:b])),
-        ("L1 product (fp32 GEMM)", lambda: x @ f["w1_t"]),
+        ("encode (grey, patch normalisation, 1/32 grid)", lambda: model.encode(small[:b])),
+        ("L1 float32 GEMM", lambda: x @ f["w1_t"]),
         ("k-WTA torch.topk(k, sorted=False)", lambda: torch.topk(h, k, dim=1, sorted=False)),
-        ("k-WTA tie check, old: per-row sums", lambda: bool(((h >= v).sum(1) == k).all())),
-        ("k-WTA tie check, new: one count_nonzero", lambda: fast.has_tie(h, v, k)),
-        ("L3 embedding_bag over winners (used)", lambda: F.embedding_bag(idx, f["w3_t"],
-                                                                         mode="sum")),
-        ("L3 dense code @ W3 (not bit-identical)", lambda: code @ f["w3_t"]),
+        ("k-WTA NumPy partition + tie fix (used)", lambda: fast.kwta_code(h, k)),
+        ("L3 embedding_bag over winners (float path)",
+         lambda: F.embedding_bag(idx, f["w3_t"], mode="sum")),
+        ("cohort normalisation", lambda: cohort_normalise(h[:, :model.n_units], model.cohorts,
+                                                          cfg.eps)),
     ]
+    if f["l1_int8"] is not None:
+        xq = (x * cfg.input_steps + 128).to(torch.uint8)
+        stages[2:2] = [("L1 int8 GEMM, oneDNN (used)", lambda: f["l1_int8"](xq))]
+        stages.insert(5, ("L3 int8 GEMM, oneDNN (used)", lambda: f["l3_int8"](code)))
     for name, fn in stages:
         row(f"stage: {name}, chunk of {b}", b, best_time(fn, repeats, 3))
+    q = small.shape[0]
+    drive = model._feedforward(model.encode(small)) * model.ring.params.gain
+    a0 = torch.zeros(model.n_units)
+    decay = model.ring.params.decay
+    row(f"stage: ring frame by frame, {q} frames", q, best_time(
+        lambda: ring_loop(drive, a0, model.ring.shift, decay, f["diagonals"]), repeats, 1))
+    row(f"stage: ring in blocks of {fast.RING_BLOCK} (used), {q} frames", q, best_time(
+        lambda: fast.ring_scan(drive, a0, model.ring.shift, decay, f["diagonals"],
+                               power=f["ring_power"]), repeats, 1))
+    act = fast.ring_scan(drive, a0, model.ring.shift, decay, f["diagonals"])
+    row(f"stage: decide, {q} frames", q, best_time(
+        lambda: decide(act, model.unit_centre, cfg.uniqueness_window), repeats, 1))
 
 
 def main(argv=None) -> str:
@@ -132,25 +152,24 @@ def main(argv=None) -> str:
         row("step, sparse CSR, 256 streams", 256,
             best_time(lambda: sparse_step(model, w1, w3, w_b, sb), args.repeats, 3))
         q = small.shape[0]
-        new_run = model.run(small)
-        fast.winners, new_winners = winners_rowcheck, fast.winners
+        fast_run = model.run(small)
+        l1_int8 = model._folded["l1_int8"]
+        model._folded["l1_int8"] = None  # the float path, side by side
         try:
-            old_run = model.run(small)
-            same = (torch.equal(old_run.activity, new_run.activity)
-                    and torch.equal(old_run.matches.reference, new_run.matches.reference))
-            old_s = best_time(lambda: model.run(small), args.repeats, 1)
+            float_run = model.run(small)
+            float_s = best_time(lambda: model.run(small), args.repeats, 1)
         finally:
-            fast.winners = new_winners
-        row(f"run, old tie check (per-row sums), {q} frames", q, old_s)
-        row(f"run (single stream fast path), {q} frames, bit-identical to old: {same}", q,
+            model._folded["l1_int8"] = l1_int8
+        same = torch.equal(fast_run.matches.reference, float_run.matches.reference)
+        row(f"run, float32 path (int8 GEMMs off), {q} frames", q, float_s)
+        row(f"run (single stream fast path, int8 GEMMs: {l1_int8 is not None}), {q} frames, "
+            f"same decisions as the float path: {same}", q,
             best_time(lambda: model.run(small), args.repeats, 1))
         stage_rows(row, model, small, args.repeats)
         row(f"run, raw 96x128 frames, {q} frames", q,
             best_time(lambda: model.run(raw), args.repeats, 1))
-        f = model._folded
-        row(f"feed-forward only (encode..evidence), fp32, {q} frames", q,
-            best_time(lambda: feedforward(model.encode(small), f["w1_t"], f["w3_t"], cfg.k,
-                                          model.cohorts, cfg.eps), args.repeats, 1))
+        row(f"feed-forward only (encode..evidence, fast path), {q} frames", q,
+            best_time(lambda: model._feedforward(model.encode(small)), args.repeats, 1))
         exact = model.run(small).matches.reference
         approx = model.run(small, l1_dtype=torch.bfloat16).matches.reference
         same = float((approx == exact).float().mean())
