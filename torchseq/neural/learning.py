@@ -82,17 +82,18 @@ def decide(activity: torch.Tensor, unit_centre: torch.Tensor,
     Returns:
         ``(reference (B,) int64, confidence (B,) float)``.
     """
-    a = activity.detach()
-    if a.device.type == "cpu":  # NumPy's argmax (first index too) is ~10x torch.max(dim)'s
-        unit = torch.from_numpy(a.numpy().argmax(axis=1))  # (B,)
+    tracing = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()  # no data-dependence
+    if activity.device.type == "cpu" and not tracing:
+        # NumPy's argmax (first index on ties, like torch's) is ~10x torch.max(dim)'s speed
+        unit = torch.from_numpy(activity.detach().numpy().argmax(axis=1))  # (B,)
     else:
-        unit = a.argmax(dim=1)
+        unit = activity.argmax(dim=1)
     best = activity.gather(1, unit[:, None])[:, 0]
     n = activity.shape[1]
     near = (unit[:, None] + torch.arange(-window, window + 1, device=activity.device))
     masked = activity.scatter(1, near.clamp(0, n - 1), float("-inf"))  # (B, N)
     second = masked.amax(dim=1)  # -inf: every unit is inside the window
     inside = torch.isinf(second)
-    if bool(inside.any()):
+    if tracing or bool(inside.any()):
         second = torch.where(inside, activity.amin(dim=1), second)
     return unit_centre[unit], best - second
