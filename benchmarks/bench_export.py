@@ -5,7 +5,8 @@
 Default-size Neural SeqSLAM (NeuralConfig()) fitted on the demo route (200 reference frames,
 so N = 200 output units). Variants: PyTorch eager (``model.step`` after ``fold``), float ONNX,
 quantised ONNX, integer ONNX, NumPy integer runtime; plus single-stream traverse throughput
-of ``model.run`` (feed-forward batched over time, ring sequential) and the bare per-call
+of ``model.run`` (feed-forward batched over time, blocked ring scan) and of the integer
+``StreamRuntime`` (the integer file's arithmetic batched over time), and the bare per-call
 overhead of onnxruntime and of a PyTorch call. Prints a Markdown table and writes it into
 ``docs/export.md`` between the ``bench_export`` markers.
 """
@@ -29,6 +30,7 @@ from torchseq.export.int_format import encode
 from torchseq.export.int_model import device_frames, integer_model
 from torchseq.export.int_onnx import build_integer_onnx, session
 from torchseq.export.int_runtime import IntegerRuntime
+from torchseq.export.int_stream import StreamRuntime
 from torchseq.export.onnx_float import build_float_onnx
 from torchseq.export.validate import quantise_onnx
 from torchseq.layers import RingState
@@ -96,6 +98,11 @@ def main() -> None:
         t = timed(lambda f=frames: model.run(f), secs)
         rows.append((f"PyTorch model.run (one stream, {frames.shape[0]} {what})",
                      frames.shape[0], t))
+    stream = StreamRuntime(im1)  # the integer file's arithmetic, batched over time
+    t = timed(lambda: stream.run(u8), secs)
+    rows.append((f"integer StreamRuntime.run (one stream, {u8.shape[0]} frames, bit-exact with "
+                 f"the NumPy runtime, int8 GEMMs: {stream.l1_int8 is not None})",
+                 u8.shape[0], t))
     # bare per-call overheads
     ident = helper.make_model(helper.make_graph(
         [helper.make_node("Identity", ["x"], ["y"])], "id",

@@ -46,3 +46,13 @@ def test_v1_file_reproduces_the_stored_outputs_onnx(released):
     assert np.array_equal(act, exp["activity"])
     assert np.array_equal(ref, exp["reference"])
     assert np.array_equal(conf, exp["confidence"])
+
+
+def test_v1_file_reproduces_the_stored_outputs_stream_runtime(released):
+    from torchseq.export.int_stream import StreamRuntime
+
+    model, exp = released
+    ref, conf, act = StreamRuntime(model, chunk=7).run(exp["frames"])
+    assert np.array_equal(act, exp["activity"])
+    assert np.array_equal(ref, exp["reference"])
+    assert np.array_equal(conf, exp["confidence"])

@@ -74,10 +74,14 @@ def kwta_int(hidden: np.ndarray, k: int) -> np.ndarray:
     """Binary k-WTA of int32 ``(B, M)``: the ``k`` largest, ties to the lowest indices."""
     m = hidden.shape[1]
     kth = np.partition(hidden, m - k, axis=1)[:, m - k:m - k + 1]  # k-th largest value
-    greater = hidden > kth
-    equal = hidden == kth
-    room = k - greater.sum(1, keepdims=True)
-    return greater | (equal & (np.cumsum(equal, axis=1) <= room))
+    win = hidden >= kth
+    tied = np.flatnonzero(win.sum(1) != k)  # rows with a tie at the k-th value
+    if tied.size:
+        h, v = hidden[tied], kth[tied]
+        greater, equal = h > v, h == v
+        room = k - greater.sum(1, keepdims=True)
+        win[tied] = greater | (equal & (np.cumsum(equal, axis=1) <= room))
+    return win
 
 
 class IntegerRuntime:

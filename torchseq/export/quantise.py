@@ -95,9 +95,10 @@ def integer_grid(w, bits: int = 8) -> Quantised:
     peak = float(np.abs(a).max()) if a.size else 0.0
     if peak > 0:
         qmax = 2 ** (bits - 1) - 1
-        for e in range(math.ceil(math.log2(peak / qmax)), math.ceil(math.log2(peak)) + 1):
+        # the coarsest power-of-two step that leaves integers: the smallest integers
+        for e in range(math.ceil(math.log2(peak)), math.ceil(math.log2(peak / qmax)) - 1, -1):
             v = a / 2.0**e
-            if np.array_equal(v, np.round(v)):
+            if np.abs(v).max() <= qmax and np.array_equal(v, np.round(v)):
                 return Quantised(v.astype(_int_dtype(bits)), np.float64(2.0**e), bits)
     return quantise(a, bits)
 

@@ -1,0 +1,115 @@
+"""Single-stream integer runtime: the integer format's arithmetic, batched over time.
+
+:class:`StreamRuntime` computes exactly what :meth:`IntegerRuntime.run
+<torchseq.export.int_runtime.IntegerRuntime.run>` computes (same integers, bit for bit) for
+one stream of frames, but runs every state-free stage (input stage, L1, k-WTA, L3, cohort
+z-score and gain) on all frames at once and only the fixed-point ring frame by frame. The
+two products use oneDNN's int8 GEMM (:class:`torchseq.neural.fast.Int8Linear`) where their
+integers fit int8 and every sum stays below ``2**24`` (so the float32 result of the kernel is
+the exact integer); otherwise the NumPy runtime's own integer products.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchseq.export.int_format import IntegerModel
+from torchseq.export.int_runtime import INT32_MAX, IntegerRuntime, input_stage, kwta_int, round_div
+
+EXACT_F32 = 2**24  # integers below this are exact in float32
+
+
+class StreamRuntime(IntegerRuntime):
+    """Run an integer model over one stream, batched over time (bit-exact with ``run``).
+
+    Args:
+        model: an :class:`IntegerModel` or a path to a ``.tsq`` file.
+        chunk: frames per batch of the state-free stages (memory bound, not a result change).
+    """
+
+    def __init__(self, model: IntegerModel | str | Path, chunk: int = 256) -> None:
+        super().__init__(model)
+        self.chunk = int(chunk)
+        p = self.params
+        w1 = np.zeros((p["hidden"], p["n_input"]), np.int64)  # (M, D) dense
+        np.put_along_axis(w1, self.l1_cols, self.l1_values.astype(np.int64), axis=1)
+        self.l1_int8 = None  # used for chunks whose |x| <= 127 (checked per chunk)
+        if np.abs(w1).max(initial=0) <= 64 and 127 * np.abs(w1).sum(1).max(initial=0) < EXACT_F32:
+            from torchseq.neural.fast import Int8Linear
+
+            self.l1_int8 = Int8Linear.create(torch.from_numpy(w1.astype(np.int8)),
+                                             torch.ones(p["hidden"]), 1.0, 128)
+        w3 = self.l3_t.T  # (N, M)
+        self.l3_int8 = None
+        if np.abs(w3).max(initial=0) <= 127 and p["k"] * 127 < EXACT_F32:
+            from torchseq.neural.fast import Int8Linear
+
+            self.l3_int8 = Int8Linear.create(torch.from_numpy(np.ascontiguousarray(w3, np.int8)),
+                                             torch.ones(p["n_units"]), 1.0, 0)
+
+    def evidence_stage(self, frames: np.ndarray) -> np.ndarray:
+        """uint8 frames ``(T, H, W)`` -> ``gain * z`` ``(T, N)`` int64 (state-free stages)."""
+        p = self.params
+        x = input_stage(frames, p)  # (T, D) int32
+        if self.l1_int8 is not None and -128 < x.min() and x.max() < 128:
+            xq = torch.from_numpy((x + 128).astype(np.uint8))
+            hidden = self.l1_int8(xq).numpy().astype(np.int32)  # exact: sums < 2**24
+        else:
+            hidden = self.hidden(x)
+        win = kwta_int(hidden, p["k"])  # (T, M) bool
+        if self.l3_int8 is not None:
+            sums = self.l3_int8(torch.from_numpy(win.view(np.uint8))).numpy().astype(np.int64)
+            e = round_div(sums * self.row_scale, np.int64(1) << p["e_shift"])
+        else:
+            e = self.evidence(win)
+        return self.gain_z(e)
+
+    def run(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stream a traverse ``(T, h * pool_h, w * pool_w)`` uint8 (one stream, zero start).
+
+        Returns:
+            ``(reference (T,) int64, confidence (T,) int64, activity (T, N) int32)``, the
+            same integers as :meth:`IntegerRuntime.run`.
+        """
+        p = self.params
+        frames = np.asarray(frames)
+        size = (p["height"] * p["pool_h"], p["width"] * p["pool_w"])
+        if frames.dtype != np.uint8 or frames.ndim != 3 or frames.shape[1:] != size:
+            raise ValueError(f"frames must be uint8 (T, {size[0]}, {size[1]}), got "
+                             f"{frames.dtype} {frames.shape}")
+        if frames.shape[0] == 0:
+            raise ValueError("frames are empty (no frame in the traverse)")
+        g = np.concatenate([self.evidence_stage(frames[lo:lo + self.chunk])
+                            for lo in range(0, frames.shape[0], self.chunk)])  # (T, N)
+        act = self.ring_scan(g)
+        return (*self.decide(act), act)
+
+    def ring_scan(self, g: np.ndarray) -> np.ndarray:
+        """The fixed-point ring over ``gain * z`` ``(T, N)`` int64 -> activity ``(T, N)`` int32.
+
+        ``a_t = clip(round_half_away(sum_j R[i, j] a_{t-1}[j] / 2**ring_frac) + g_t)``, the
+        runtime's step; the division by a power of two rounds with one shift:
+        ``(m + 2**(f-1) - [m < 0]) >> f``.
+        """
+        f = self.params["ring_frac"]
+        half = np.int64(1) << (f - 1)
+        cols, vals = self.ring_cols, self.ring_values
+        out = np.empty(g.shape, np.int32)
+        a = np.zeros(g.shape[1], np.int64)
+        for t in range(g.shape[0]):
+            m = (a[cols] * vals).sum(1)
+            a = ((m + half - (m < 0)) >> f) + g[t]
+            np.clip(a, -INT32_MAX, INT32_MAX, out=a)
+            out[t] = a
+        return out
+
+    def decide(self, act: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The runtime's decision for every row of ``act`` ``(T, N)`` int32."""
+        unit = act.argmax(1)  # first index on ties
+        best = act[np.arange(act.shape[0]), unit].astype(np.int64)
+        rival = np.abs(np.arange(self.n_units)[None, :] - unit[:, None]) > self.params["window"]
+        second = np.where(rival, act, act.min(1, keepdims=True)).max(1).astype(np.int64)
+        return self.unit_centre[unit], best - second
