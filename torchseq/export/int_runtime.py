@@ -116,6 +116,18 @@ class IntegerRuntime:
         """Output units ``N``."""
         return self.params["n_units"]
 
+    def check_frames(self, frames: np.ndarray) -> np.ndarray:
+        """``frames`` as a uint8 ``(B, h * pool_h, w * pool_w)`` array, or ``ValueError``."""
+        p = self.params
+        frames = np.asarray(frames)
+        size = (p["height"] * p["pool_h"], p["width"] * p["pool_w"])
+        if frames.dtype != np.uint8 or frames.ndim != 3 or frames.shape[1:] != size:
+            raise ValueError(f"frames must be uint8 (B, {size[0]}, {size[1]}), got "
+                             f"{frames.dtype} {frames.shape}")
+        if frames.shape[0] == 0:
+            raise ValueError("frames are empty (no frame in the batch)")
+        return frames
+
     def initial_state(self, batch: int) -> np.ndarray:
         """Zero activity ``(batch, N)`` int32."""
         return np.zeros((batch, self.n_units), np.int32)
@@ -157,11 +169,7 @@ class IntegerRuntime:
             ``(IntegerStep, new state (B, N) int32)``.
         """
         p = self.params
-        frames = np.asarray(frames)
-        size = (p["height"] * p["pool_h"], p["width"] * p["pool_w"])
-        if frames.dtype != np.uint8 or frames.ndim != 3 or frames.shape[1:] != size:
-            raise ValueError(f"frames must be uint8 (B, {size[0]}, {size[1]}), got "
-                             f"{frames.dtype} {frames.shape}")
+        frames = self.check_frames(frames)
         if state is None:
             state = self.initial_state(frames.shape[0])
         if state.dtype != np.int32 or state.shape != (frames.shape[0], self.n_units):

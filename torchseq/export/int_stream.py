@@ -74,14 +74,7 @@ class StreamRuntime(IntegerRuntime):
             ``(reference (T,) int64, confidence (T,) int64, activity (T, N) int32)``, the
             same integers as :meth:`IntegerRuntime.run`.
         """
-        p = self.params
-        frames = np.asarray(frames)
-        size = (p["height"] * p["pool_h"], p["width"] * p["pool_w"])
-        if frames.dtype != np.uint8 or frames.ndim != 3 or frames.shape[1:] != size:
-            raise ValueError(f"frames must be uint8 (T, {size[0]}, {size[1]}), got "
-                             f"{frames.dtype} {frames.shape}")
-        if frames.shape[0] == 0:
-            raise ValueError("frames are empty (no frame in the traverse)")
+        frames = self.check_frames(frames)
         g = np.concatenate([self.evidence_stage(frames[lo:lo + self.chunk])
                             for lo in range(0, frames.shape[0], self.chunk)])  # (T, N)
         act = self.ring_scan(g)

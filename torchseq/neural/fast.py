@@ -149,8 +149,7 @@ def kwta_code(h: torch.Tensor, k: int) -> torch.Tensor:
     """Binary k-WTA code ``(B, M)`` uint8 of float32 CPU rows.
 
     The same code as :func:`torchseq.layers.kwta` (ties at the threshold go to the lowest
-    indices).
-    The ``k``-th largest value ``v`` of each row comes from ``numpy.partition``
+    indices). The ``k``-th largest value ``v`` of each row comes from ``numpy.partition``
     (introselect, several times faster than ``torch.topk`` on one CPU thread); the winners
     are the entries ``>= v``, except in rows with a tie at ``v``, which keep the entries
     ``> v`` and the lowest-index entries ``== v``.
