@@ -7,8 +7,8 @@ import torchseq.export as export
 from torchseq.export.int_runtime import IntegerRuntime
 
 PUBLIC = ["FORMAT_VERSION", "ExportError", "IntegerFormatError", "IntegerModel",
-          "IntegerRuntime", "IntegerStep", "Quantised", "StreamingStep", "build_float_onnx",
-          "build_integer_onnx", "choose_pool", "dequantise", "device_frames",
+          "IntegerRuntime", "IntegerStep", "Quantised", "StreamRuntime", "StreamingStep",
+          "build_float_onnx", "build_integer_onnx", "choose_pool", "dequantise", "device_frames",
           "export_checkpoint", "export_float_onnx", "fixed_point", "integer_model", "quantise",
           "read_integer_model", "write_integer_model"]
 

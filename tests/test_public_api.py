@@ -37,12 +37,6 @@ PUBLIC = {
         "read_csv", "read_events", "read_npz", "refractory_mask", "simulate_run",
         "write_aedat2", "write_npz",
     ],
-    "torchseq.export": [
-        "FORMAT_VERSION", "ExportError", "IntegerFormatError", "IntegerModel", "IntegerRuntime",
-        "IntegerStep", "StreamRuntime", "StreamingStep", "build_float_onnx", "build_integer_onnx",
-        "choose_pool", "device_frames", "export_checkpoint", "integer_model", "quantise",
-        "read_integer_model", "write_integer_model",
-    ],
     "torchseq.neural.fixed_point": [
         "factor_power_of_two", "factor_rows", "integer_weights", "quantise_input", "round_rows",
     ],
