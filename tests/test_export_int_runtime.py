@@ -57,7 +57,8 @@ def test_round_div_and_isqrt_against_python_ints():
     for x, y, q in zip(a.tolist(), b.tolist(), got.tolist()):
         want = (2 * abs(x) + y) // (2 * y)
         assert q == (want if x >= 0 else -want)
-    v = np.concatenate([rng.integers(0, 2**62 - 1, 3000), np.arange(0, 300),
+    k = rng.integers(1, 2**31 - 1, 1000)
+    v = np.concatenate([rng.integers(0, 2**62 - 1, 3000), np.arange(0, 300), k * k, k * k - 1,
                         np.array([2**62 - 1, (2**31 - 1) ** 2, (2**31 - 1) ** 2 - 1])])
     assert isqrt(v).tolist() == [math.isqrt(x) for x in v.tolist()]
 

@@ -54,3 +54,39 @@ def test_kwta_int_ties_go_to_the_lowest_index():
     for row, w in zip(h, win):  # loop reference: sort by value, then by lower index
         order = sorted(range(200), key=lambda j: (-int(row[j]), j))[:25]
         assert set(np.flatnonzero(w)) == set(order)
+
+
+@pytest.mark.parametrize("pool", [(1, 1), (2, 3), (5, 5)])
+def test_input_stage_fast_equals_input_stage(pool):
+    from torchseq.export.int_runtime import input_stage
+    from torchseq.export.int_stream import input_stage_fast
+
+    im, _ = fitted()
+    p = dict(im.params, pool_h=pool[0], pool_w=pool[1])
+    g = np.random.default_rng(sum(pool))
+    size = (p["height"] * pool[0], p["width"] * pool[1])
+    frames = g.integers(0, 256, (20, *size)).astype(np.uint8)
+    frames[1] = 7  # flat: every block has zero variance
+    frames[2] = 0
+    frames[2, ::2] = 255  # extreme contrast
+    frames[3] = g.integers(100, 102, size)  # tiny variance, near-ties of the rounding
+    for x_frac in (5, 9):
+        q = dict(p, x_frac=x_frac)
+        assert np.array_equal(input_stage_fast(frames, q), input_stage(frames, q))
+
+
+@pytest.mark.parametrize("scale", [1000, 2**30])
+def test_ring_scan_equals_the_step_rule_with_and_without_saturation(scale):
+    from torchseq.export.int_runtime import INT32_MAX, round_div
+
+    im, _ = fitted()
+    runtime = StreamRuntime(im)
+    g = np.random.default_rng(scale % 97).integers(-scale, scale, (30, runtime.n_units))
+    got = runtime.ring_scan(g)
+    a = np.zeros(runtime.n_units, np.int64)
+    for t in range(g.shape[0]):  # the step's rule, literally
+        moved = (a[runtime.ring_cols] * runtime.ring_values).sum(-1)
+        a = np.clip(round_div(moved, np.int64(1) << im.params["ring_frac"]) + g[t],
+                    -INT32_MAX, INT32_MAX)
+        assert np.array_equal(got[t], a)
+    assert (np.abs(got).max() == INT32_MAX) == (scale == 2**30)  # saturation did happen
