@@ -51,12 +51,18 @@ def test_runtime_and_onnx_match_the_plain_python_oracle(kind):
 
 def test_round_div_and_isqrt_against_python_ints():
     rng = np.random.default_rng(0)
-    a = np.concatenate([rng.integers(-2**60, 2**60, 2000), np.arange(-20, 21)])
-    b = np.concatenate([rng.integers(1, 2**40, 2000), np.full(41, 4)])
-    got = round_div(a, b)
-    for x, y, q in zip(a.tolist(), b.tolist(), got.tolist()):
-        want = (2 * abs(x) + y) // (2 * y)
-        assert q == (want if x >= 0 else -want)
+    for top, bmax in ((2**60, 2**40), (2**51, 2**40), (2**40, 2**20), (2**30, 2**30)):
+        # the first case takes integer division, the others the float64 one
+        a = np.concatenate([rng.integers(-top, top, 2000), np.arange(-20, 21)])
+        b = np.concatenate([rng.integers(1, bmax, 2000), np.full(41, 4)])
+        b[:50] = 2 * np.abs(a[:50]) + 1  # quotients just below one half
+        b[50:100] += b[50:100] % 2  # even: the halves below are exact
+        a[50:100] = b[50:100] * rng.integers(-9, 9, 50) + b[50:100] // 2
+        b[100:110] = 2**20  # powers of two (the rescaling shifts)
+        got = round_div(a, b)
+        for x, y, q in zip(a.tolist(), b.tolist(), got.tolist()):
+            want = (2 * abs(x) + y) // (2 * y)
+            assert q == (want if x >= 0 else -want)
     k = rng.integers(1, 2**31 - 1, 1000)
     v = np.concatenate([rng.integers(0, 2**62 - 1, 3000), np.arange(0, 300), k * k, k * k - 1,
                         np.array([2**62 - 1, (2**31 - 1) ** 2, (2**31 - 1) ** 2 - 1])])

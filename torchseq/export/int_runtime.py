@@ -33,10 +33,21 @@ class IntegerStep(NamedTuple):
 
 
 def round_div(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a / b`` rounded half away from zero, for int64 ``a`` and ``b > 0`` (``|a| < 2**61``)."""
+    """``a / b`` rounded half away from zero, for int64 ``a`` and ``b > 0`` (``|a| < 2**61``).
+
+    ``q = floor((2|a| + b) / 2b)`` with the sign of ``a``. When every numerator
+    ``N = 2|a| + b`` is below ``2**53`` the quotient runs as one float64 division, which is
+    exact here: a non-integer ``N / D`` lies at least ``1 / D`` below the next integer, more
+    than its rounding error ``(N / D) * 2**-53`` since ``N < 2**53`` (and much faster than
+    NumPy's integer division); otherwise integer division.
+    """
     a = np.asarray(a, np.int64)
     b = np.asarray(b, np.int64)
-    q = (2 * np.abs(a) + b) // (2 * b)
+    num = 2 * np.abs(a) + b
+    if num.size and num.max() < 2**53:
+        q = np.floor(num.astype(np.float64) / (2.0 * b)).astype(np.int64)
+    else:
+        q = num // (2 * b)
     return np.where(a < 0, -q, q)
 
 
@@ -52,6 +63,20 @@ def isqrt(v: np.ndarray) -> np.ndarray:
     r -= r * r > v
     r += (r + 1) * (r + 1) <= v
     return r
+
+
+def cohort_sums(e: np.ndarray, members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(e @ members, (e * e) @ members)`` as int64, for int64 ``e`` ``(B, N)``.
+
+    Through float64 matrix products (BLAS) when every sum is below ``2**53`` and so exact;
+    NumPy's integer matrix product is many times slower.
+    """
+    sq = e * e
+    if sq.size and int(sq.max()) * e.shape[1] < 2**53:
+        m = members.astype(np.float64)
+        return ((e.astype(np.float64) @ m).astype(np.int64),
+                (sq.astype(np.float64) @ m).astype(np.int64))
+    return e @ members, sq @ members
 
 
 def input_stage(frames: np.ndarray, p: dict) -> np.ndarray:
@@ -153,8 +178,8 @@ class IntegerRuntime:
     def gain_z(self, e: np.ndarray) -> np.ndarray:
         """Cohort z-score times gain on the activity grid (rectified), ``(B, N)`` int64."""
         p = self.params
-        total = e @ self.members  # (B, C)
-        var = self.cohort_size * ((e * e) @ self.members) - total * total  # (B, C)
+        total, squares = cohort_sums(e, self.members)  # (B, C) each
+        var = self.cohort_size * squares - total * total  # (B, C)
         root = isqrt(var)
         dev = self.cohort_size[self.cohort] * e - total[:, self.cohort]  # (B, N)
         div = np.maximum(root[:, self.cohort], 1) << p["gain_shift"]
