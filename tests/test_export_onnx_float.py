@@ -96,3 +96,22 @@ def test_onnx_keeps_the_lowest_index_tie_rule_on_flat_frames(setup):
     out, _ = model.step(frames)
     np.testing.assert_allclose(act, out.activity.numpy(), atol=1e-5)
     assert np.array_equal(ref, out.reference.numpy())
+
+
+def test_seqslam_patch_mode_exports_the_same_centred_input():
+    from torchseq.demo import make_demo
+    from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+
+    demo = make_demo(n_reference=60, size=(48, 64), seed=2)
+    model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=40, patch_mode="seqslam"))
+    model.fit(demo.reference, log=False)
+    small = resize(demo.query.float(), model.config.input_size)
+    x = model.encode(small)
+    assert x.min() >= -127 and x.max() <= 128 and abs(float(x.mean())) < 1.0  # centred
+    want = model.run(small)
+    sess = session(build_float_onnx(model))
+    ref, _, act = run_float_onnx(sess, small.numpy())
+    assert np.array_equal(ref, want.matches.reference.numpy())
+    np.testing.assert_allclose(act, want.activity.numpy(), atol=1e-4)
+    assert float((want.matches.reference - torch.arange(len(small)) * 0.8).abs().lt(3)
+                 .float().mean()) > 0.9  # it recognises the route (it did not before centring)

@@ -69,6 +69,8 @@ class StreamingStep(nn.Module):
         x = frames
         if self.patch:
             x = patch_normalise(x, self.patch, self.mode)
+            if self.mode == "seqslam":  # as NeuralSeqSLAM.encode: centred on 0
+                x = x - 127.0
         x = quantise_input(x.reshape(x.shape[0], -1), self.steps)  # (B, D); ONNX Round
         h = x @ self.w1_t  # (B, M)
         if torch.onnx.is_in_onnx_export():

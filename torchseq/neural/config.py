@@ -29,7 +29,8 @@ class NeuralConfig:
     Attributes:
         input_size: ``(H, W)`` the frames are resized to (L1 has ``H * W`` units).
         patch_size: patch-normalisation block side (0 disables it).
-        patch_mode: ``"zscore"`` (float z-scores) or ``"seqslam"`` (OpenSeqSLAM rounding).
+        patch_mode: ``"zscore"`` (float z-scores) or ``"seqslam"`` (OpenSeqSLAM rounding,
+            ``round(z)`` clamped to -127..128 once centred).
         input_steps: L1 input (z-scores) rounded to multiples of ``1 / input_steps``
             (32: signed 8-bit for 4x4 patches); 0 keeps float input.
         hidden: L2 units.

@@ -122,6 +122,8 @@ class NeuralSeqSLAM(nn.Module):
         x = resize(x, cfg.input_size)
         if cfg.patch_size:
             x = patch_normalise(x, cfg.patch_size, cfg.patch_mode)
+            if cfg.patch_mode == "seqslam":  # OpenSeqSLAM's 127 + round(z): centre it on 0
+                x = x - 127.0
         return quantise_input(x.reshape(x.shape[0], -1), cfg.input_steps)
 
     def code(self, x: torch.Tensor) -> torch.Tensor:
