@@ -6,13 +6,15 @@ import torch
 from torchseq.layers import kwta
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.neural.config import NeuralError
-from torchseq.neural.fast import Int8Linear, feedforward, feedforward_int8, kwta_code
+from torchseq.neural.fast import Int8Linear, feedforward, feedforward_uint8, kwta_code
 from torchseq.neural.fixed_point import (
+    block_order,
     factor_power_of_two,
     factor_rows,
     integer_weights,
     quantise_input,
     round_rows,
+    zscore_blocks,
 )
 
 
@@ -105,11 +107,13 @@ def test_int8_path_equals_float_path(model):
     if f["l1_int8"] is None:
         pytest.skip("oneDNN's int8 GEMM is missing or inexact on this CPU (float path is used)")
     x = m.encode(demo.query)
+    xq = (x * 32 + 128).to(torch.uint8)[:, block_order(24, 32, 4)]  # the int8 path's order
     with torch.no_grad():
         h_float = x @ f["w1_t"]
-        assert torch.equal(f["l1_int8"]((x * 32 + 128).to(torch.uint8)), h_float)  # exact L1
-        got = feedforward_int8(x, f["l1_int8"], f["l3_int8"], 32, cfg.k, m.cohorts, cfg.eps)
+        assert torch.equal(f["l1_int8"](xq), h_float)  # exact L1
+        got = feedforward_uint8(xq, f["l1_int8"], f["l3_int8"], cfg.k, m.cohorts, cfg.eps)
         want = feedforward(x, f["w1_t"], f["w3_t"], cfg.k, m.cohorts, cfg.eps)
+        assert torch.equal(m._feedforward(demo.query), got)  # raw frames: the same integers
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
     fast = m.run(demo.query)
     f["l1_int8"], keep = None, f["l1_int8"]  # force the float path
@@ -139,3 +143,20 @@ def test_config_grid_fields():
     for bad in (dict(input_steps=-1), dict(l1_levels=65), dict(l3_levels=128)):
         with pytest.raises(NeuralError):
             NeuralConfig(**bad).validate()
+
+
+def test_zscore_blocks_equal_patch_normalise():
+    from torchseq.preprocess import patch_normalise
+
+    g = torch.Generator().manual_seed(4)
+    frames = torch.rand(6, 24, 32, generator=g) * 255
+    frames[1] = 9.0  # flat
+    frames[2, :4, :4] = 3.0  # one flat block
+    z = zscore_blocks(frames, 4)  # (6, 48, 16)
+    order = block_order(24, 32, 4)
+    want = patch_normalise(frames, 4, "zscore").reshape(6, -1)[:, order].reshape(6, 48, 16)
+    torch.testing.assert_close(z, want, rtol=1e-5, atol=1e-5)
+    assert torch.equal(z[1], torch.zeros(48, 16)) and torch.equal(z[2, 0], torch.zeros(16))
+    loop = [int(r) * 32 + int(c) for br in range(6) for bc in range(8)
+            for r in range(4 * br, 4 * br + 4) for c in range(4 * bc, 4 * bc + 4)]
+    assert order.tolist() == loop

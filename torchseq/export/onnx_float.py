@@ -23,7 +23,7 @@ from torch import nn
 
 from torchseq.export.int_onnx import run_step_session, write_onnx
 from torchseq.layers.functional import cohort_normalise, kwta
-from torchseq.neural.fixed_point import quantise_input
+from torchseq.neural.fixed_point import block_order, quantise_input, zscore_blocks
 from torchseq.neural.learning import decide
 from torchseq.preprocess import patch_normalise
 
@@ -49,7 +49,11 @@ class StreamingStep(nn.Module):
         self.decay, self.gain = (float(v) for v in model.ring.params)
         self.input_size = tuple(cfg.input_size)
         with torch.no_grad():
-            self.register_buffer("w1_t", model.l1.folded_weight().detach().float().T.contiguous())
+            w1_t = model.l1.folded_weight().detach().float().T  # (D, M)
+            self.blocks = bool(self.patch) and self.mode == "zscore"
+            if self.blocks:
+                w1_t = w1_t[block_order(*self.input_size, self.patch)]
+            self.register_buffer("w1_t", w1_t.contiguous())
             self.register_buffer("w3_t", model.l3.folded_weight().detach().float().T.contiguous())
             self.register_buffer("shift_t", model.ring.shift.detach().float().T.contiguous())
         self.register_buffer("cohorts", model.cohorts.detach().float().clone())
@@ -67,10 +71,10 @@ class StreamingStep(nn.Module):
             int64, ``confidence (B,)`` float32.
         """
         x = frames
-        if self.patch:
-            x = patch_normalise(x, self.patch, self.mode)
-            if self.mode == "seqslam":  # as NeuralSeqSLAM.encode: centred on 0
-                x = x - 127.0
+        if self.blocks:  # NeuralSeqSLAM's z-scores, block-major (w1_t's rows follow)
+            x = zscore_blocks(x, self.patch)
+        elif self.patch:  # as NeuralSeqSLAM.encode: OpenSeqSLAM's code centred on 0
+            x = patch_normalise(x, self.patch, self.mode) - 127.0
         x = quantise_input(x.reshape(x.shape[0], -1), self.steps)  # (B, D); ONNX Round
         h = x @ self.w1_t  # (B, M)
         if torch.onnx.is_in_onnx_export():

@@ -4,7 +4,7 @@
   of frames with folded (dense) weights; the binary k-WTA code is never materialised: the
   L3 evidence is the sum of the ``k`` winners' columns of ``l3.weight * l3.mask``
   (``F.embedding_bag`` in sum mode).
-- :func:`feedforward_int8`: the same for a model on its integer grids
+- :func:`feedforward_uint8`: the same for a model on its integer grids
   (:mod:`torchseq.neural.fixed_point`): L1 and L3 as oneDNN int8 GEMMs (:class:`Int8Linear`)
   and the k-WTA threshold from NumPy's introselect (:func:`kwta_code`). The L2 code is
   identical to the float path's; the evidence equal up to float rounding.
@@ -171,15 +171,15 @@ def kwta_code(h: torch.Tensor, k: int) -> torch.Tensor:
     return torch.from_numpy(win)
 
 
-def feedforward_int8(x: torch.Tensor, l1: Int8Linear, l3: Int8Linear, steps: int, k: int,
-                     cohorts: torch.Tensor, eps: float, rectify: bool = True) -> torch.Tensor:
+def feedforward_uint8(xq: torch.Tensor, l1: Int8Linear, l3: Int8Linear, k: int,
+                      cohorts: torch.Tensor, eps: float, rectify: bool = True) -> torch.Tensor:
     """:func:`feedforward` of a model on its integer grids, with int8 GEMMs.
 
     Args:
-        x: ``(B, D)`` encoded frames on the ``1 / steps`` grid, ``|x| * steps <= 127``.
+        xq: ``(B, D)`` uint8 L1 input: ``x * steps + 128`` (exact on the model's grid), in the
+            column order of ``l1``.
         l1: L1 weights (zero point 128, scale ``1 / steps``).
         l3: L3 weights (zero point 0, scale 1).
-        steps: input grid steps.
         k: L2 winners.
         cohorts: ``(N, C)`` membership.
         eps: normalisation floor.
@@ -188,7 +188,6 @@ def feedforward_int8(x: torch.Tensor, l1: Int8Linear, l3: Int8Linear, steps: int
     Returns:
         ``(B, N)`` z-scored (and rectified) evidence.
     """
-    xq = (x * steps + 128.0).to(torch.uint8)  # exact: x is on the grid and inside int8
     h = l1(xq)  # (B, M) float32: exact integer sums times a power of two
     e = l3(kwta_code(h, k))  # (B, N)
     z = cohort_normalise(e, cohorts, eps)

@@ -33,6 +33,38 @@ def quantise_input(x: torch.Tensor, steps: int) -> torch.Tensor:
     return torch.round(x * steps) / steps
 
 
+def block_order(height: int, width: int, patch: int) -> torch.Tensor:
+    """``(H * W,)`` pixel index (row-major) of each position in block-major order.
+
+    Block-major: blocks row by row, and within a block its pixels row by row.
+    """
+    idx = torch.arange(height * width).reshape(height // patch, patch, width // patch, patch)
+    return idx.permute(0, 2, 1, 3).reshape(-1)
+
+
+def zscore_blocks(frames: torch.Tensor, patch: int) -> torch.Tensor:
+    """Sample z-scores of non-overlapping ``patch x patch`` blocks, in block-major order.
+
+    The same numbers as :func:`torchseq.preprocess.patch_normalise` in ``"zscore"`` mode up
+    to float rounding (a flat block gives 0), computed on contiguous ``(T, blocks, p*p)``
+    rows: reductions and broadcasts over the strided block axes of an image are several
+    times slower on the CPU. Neural SeqSLAM uses this one definition on every path.
+
+    Args:
+        frames: ``(T, H, W)`` float, ``H`` and ``W`` multiples of ``patch``.
+        patch: block side.
+
+    Returns:
+        ``(T, (H / p) * (W / p), p * p)``.
+    """
+    t, h, w = frames.shape
+    blocks = (frames.reshape(t, h // patch, patch, w // patch, patch)
+              .permute(0, 1, 3, 2, 4).reshape(t, -1, patch * patch))
+    dev = blocks - blocks.mean(dim=-1, keepdim=True)
+    std = ((dev * dev).sum(dim=-1, keepdim=True) / (patch * patch - 1)).sqrt()
+    return dev / torch.where(std > 0, std, torch.ones_like(std))  # a flat block: 0 / 1
+
+
 def power_of_two_scale(bound: float, levels: int) -> float:
     """The power of two nearest (in log) to ``bound / levels``: the step of an integer grid."""
     return 2.0 ** round(math.log2(bound / levels))

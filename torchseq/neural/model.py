@@ -24,16 +24,18 @@ from torchseq.neural.fast import (
     Int8Linear,
     band_diagonals,
     feedforward,
-    feedforward_int8,
+    feedforward_uint8,
     ring_power,
     ring_scan,
 )
 from torchseq.neural.fixed_point import (
+    block_order,
     factor_power_of_two,
     factor_rows,
     integer_weights,
     quantise_input,
     round_rows,
+    zscore_blocks,
 )
 from torchseq.neural.learning import (
     cohort_membership,
@@ -110,6 +112,18 @@ class NeuralSeqSLAM(nn.Module):
             ``(B, input_size[0] * input_size[1])`` float32 (on the ``1 / input_steps`` grid).
         """
         cfg = self.config
+        x = self._grey(frames)  # (B, h, w)
+        if cfg.patch_size and cfg.patch_mode == "zscore":
+            z = zscore_blocks(x, cfg.patch_size)  # (B, blocks, p*p), block-major
+            p, (h, w) = cfg.patch_size, cfg.input_size
+            x = z.reshape(-1, h // p, w // p, p, p).permute(0, 1, 3, 2, 4)  # back to rows
+        elif cfg.patch_size:
+            # OpenSeqSLAM's 127 + round(z), centred on 0
+            x = patch_normalise(x, cfg.patch_size, cfg.patch_mode) - 127.0
+        return quantise_input(x.reshape(x.shape[0], -1), cfg.input_steps)
+
+    def _grey(self, frames: torch.Tensor) -> torch.Tensor:
+        """Checked raw frames -> float32 grey ``(B, h, w)`` at the input size."""
         if frames.dim() not in (3, 4) or (frames.dim() == 4 and frames.shape[-1] != 3):
             raise NeuralError(f"frames must be (B, H, W) or (B, H, W, 3), got "
                               f"{tuple(frames.shape)}")
@@ -119,12 +133,7 @@ class NeuralSeqSLAM(nn.Module):
         # one sum first (NaN and inf propagate), the element-wise test only when it fails
         if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
             raise NeuralError("frames hold NaN or infinite values")
-        x = resize(x, cfg.input_size)
-        if cfg.patch_size:
-            x = patch_normalise(x, cfg.patch_size, cfg.patch_mode)
-            if cfg.patch_mode == "seqslam":  # OpenSeqSLAM's 127 + round(z): centre it on 0
-                x = x - 127.0
-        return quantise_input(x.reshape(x.shape[0], -1), cfg.input_steps)
+        return resize(x, self.config.input_size)
 
     def code(self, x: torch.Tensor) -> torch.Tensor:
         """L1 -> L2: random masked projection then binary k-WTA. ``(B, 768) -> (B, hidden)``."""
@@ -159,11 +168,10 @@ class NeuralSeqSLAM(nn.Module):
                                   or state.activity.shape[0] != frames.shape[0]):
             raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
                               f"{tuple(state.activity.shape)}")
-        x = self.encode(frames)  # (B, D)
         if self._folded is not None and not torch.is_grad_enabled():  # same maths, faster
-            e = self._feedforward(x)  # (B, N)
+            e = self._feedforward(frames)  # (B, N)
         else:
-            e = self.evidence(self.code(x))  # (B, N)
+            e = self.evidence(self.code(self.encode(frames)))  # (B, N)
         activity, state = self.ring(e, state)
         reference, confidence = decide(activity, self.unit_centre,
                                        self.config.uniqueness_window)
@@ -255,7 +263,7 @@ class NeuralSeqSLAM(nn.Module):
         w1_t = None
         if l1_dtype is not None and l1_dtype != f["w1_t"].dtype:
             w1_t = f.setdefault(f"w1_t.{l1_dtype}", f["w1_t"].to(l1_dtype))
-        parts = [self._feedforward(self.encode(query[lo:lo + cfg.chunk]), w1_t)
+        parts = [self._feedforward(query[lo:lo + cfg.chunk], w1_t)
                  for lo in _chunks(query.shape[0], cfg.chunk, progress, "run")]
         drive = torch.cat(parts) * gain  # (T, N)
         a0 = torch.zeros(self.n_units, device=drive.device)
@@ -265,17 +273,23 @@ class NeuralSeqSLAM(nn.Module):
         matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
         return NeuralResult(matches, activity.cpu(), time.perf_counter() - t0)
 
-    def _feedforward(self, x: torch.Tensor, w1_t: torch.Tensor | None = None) -> torch.Tensor:
-        """Folded L1 -> L3 evidence of encoded frames ``(B, D) -> (B, N)`` (see :meth:`fold`).
+    def _feedforward(self, frames: torch.Tensor,
+                     w1_t: torch.Tensor | None = None) -> torch.Tensor:
+        """Folded L1 -> L3 evidence of raw frames ``(B, ...) -> (B, N)`` (see :meth:`fold`).
 
-        ``w1_t``: a low-precision L1 copy (``run(l1_dtype=...)``), which forces float products.
+        On the int8 path the z-scores go straight to uint8 in block-major order (the L1
+        weights' columns were permuted to match), skipping the float grid of :meth:`encode`;
+        the integers are the same. ``w1_t``: a low-precision L1 copy (``run(l1_dtype=...)``),
+        which forces float products.
         """
         f, cfg = self._folded, self.config
-        if f["l1_int8"] is not None and w1_t is None and x.device.type == "cpu":
-            return feedforward_int8(x, f["l1_int8"], f["l3_int8"], cfg.input_steps, cfg.k,
-                                    self.cohorts, cfg.eps, cfg.rectify)
-        return feedforward(x, f["w1_t"] if w1_t is None else w1_t, f["w3_t"], cfg.k,
-                           self.cohorts, cfg.eps, cfg.rectify)
+        if f["l1_int8"] is not None and w1_t is None and frames.device.type == "cpu":
+            z = zscore_blocks(self._grey(frames), cfg.patch_size)  # (B, blocks, p*p)
+            xq = z.mul_(cfg.input_steps).round_().add_(128.0).to(torch.uint8)
+            return feedforward_uint8(xq.reshape(xq.shape[0], -1), f["l1_int8"], f["l3_int8"],
+                                     cfg.k, self.cohorts, cfg.eps, cfg.rectify)
+        return feedforward(self.encode(frames), f["w1_t"] if w1_t is None else w1_t, f["w3_t"],
+                           cfg.k, self.cohorts, cfg.eps, cfg.rectify)
 
     def fold(self) -> None:
         """Cache ``weight * mask`` of both masked layers for fast inference.
@@ -309,7 +323,8 @@ class NeuralSeqSLAM(nn.Module):
         l3 = factor_rows(w3, 127)
         if l1 is None or l3 is None:
             return {}
-        n1, step1 = l1
+        n1, step1 = l1  # columns to block-major order: the int8 path's input order
+        n1 = n1[:, block_order(*cfg.input_size, cfg.patch_size)].contiguous()
         lin1 = Int8Linear.create(n1, torch.full((n1.shape[0],), step1), 1.0 / steps, 128)
         lin3 = Int8Linear.create(*l3, 1.0, 0)
         if lin1 is None or lin3 is None:
