@@ -58,11 +58,25 @@ def zscore_blocks(frames: torch.Tensor, patch: int) -> torch.Tensor:
         ``(T, (H / p) * (W / p), p * p)``.
     """
     t, h, w = frames.shape
+    n = patch * patch
     blocks = (frames.reshape(t, h // patch, patch, w // patch, patch)
-              .permute(0, 1, 3, 2, 4).reshape(t, -1, patch * patch))
-    dev = blocks - blocks.mean(dim=-1, keepdim=True)
-    std = ((dev * dev).sum(dim=-1, keepdim=True) / (patch * patch - 1)).sqrt()
+              .permute(0, 1, 3, 2, 4).reshape(t, -1, n))
+    dev = blocks - in_order_sum(blocks) / n
+    std = (in_order_sum(dev * dev) / (n - 1)).sqrt()
     return dev / torch.where(std > 0, std, torch.ones_like(std))  # a flat block: 0 / 1
+
+
+def in_order_sum(x: torch.Tensor) -> torch.Tensor:
+    """Sum over the last axis, left to right, keeping it: ``(..., n) -> (..., 1)``.
+
+    Element-wise additions in a fixed order round the same way in PyTorch and in any ONNX
+    runtime (a reduction kernel may add in another order), so the exported graph computes
+    bit for bit the model's z-scores.
+    """
+    s = x[..., 0:1]
+    for i in range(1, x.shape[-1]):
+        s = s + x[..., i:i + 1]
+    return s
 
 
 def power_of_two_scale(bound: float, levels: int) -> float:
