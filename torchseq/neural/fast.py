@@ -138,8 +138,8 @@ class Int8Linear:
             gen = torch.Generator().manual_seed(0)
             x = torch.randint(0, 256, (37, n.shape[1]), generator=gen, dtype=torch.uint8)
             got = lin(x)
-        except (RuntimeError, NotImplementedError):
-            return None
+        except (RuntimeError, NotImplementedError, TypeError, ValueError, AttributeError):
+            return None  # an optional kernel: any failure means the float path
         acc = (x.to(torch.float64) - x_zero) @ n.to(torch.float64).T  # exact integers
         want = (acc * x_scale * scale.to(torch.float64)).to(torch.float32)
         return lin if torch.allclose(got, want, rtol=1e-6, atol=0.0) else None
