@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from torchseq.export.int_format import INPUT_ZSCORE, X_MAX, IntegerModel, read_integer_model
+from torchseq.layers.functional import kwta_numpy
 
 ISQRT_BITS = 31  # isqrt handles 0 <= v < 2**62; result bits 30..0
 INT32_MAX = 2**31 - 1
@@ -99,18 +100,8 @@ def input_stage(frames: np.ndarray, p: dict) -> np.ndarray:
     return x.reshape(b, h * w).astype(np.int32)
 
 
-def kwta_int(hidden: np.ndarray, k: int) -> np.ndarray:
-    """Binary k-WTA of int32 ``(B, M)``: the ``k`` largest, ties to the lowest indices."""
-    m = hidden.shape[1]
-    kth = np.partition(hidden, m - k, axis=1)[:, m - k:m - k + 1]  # k-th largest value
-    win = hidden >= kth
-    tied = np.flatnonzero(win.sum(1) != k)  # rows with a tie at the k-th value
-    if tied.size:
-        h, v = hidden[tied], kth[tied]
-        greater, equal = h > v, h == v
-        room = k - greater.sum(1, keepdims=True)
-        win[tied] = greater | (equal & (np.cumsum(equal, axis=1) <= room))
-    return win
+# binary k-WTA of int32 (B, M): the k largest, ties to the lowest indices (NumPy only)
+kwta_int = kwta_numpy
 
 
 class IntegerRuntime:

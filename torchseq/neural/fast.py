@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from torchseq.layers.functional import cohort_normalise
+from torchseq.layers.functional import cohort_normalise, kwta_numpy
 
 # Tie-break step for a low-precision L1 product: far below a bfloat16 ulp at the k-WTA
 # threshold (|h| ~ 1, ulp 2^-7), so it only orders values that rounded to the same number.
@@ -146,29 +146,12 @@ class Int8Linear:
 
 
 def kwta_code(h: torch.Tensor, k: int) -> torch.Tensor:
-    """Binary k-WTA code ``(B, M)`` uint8 of float32 CPU rows.
+    """Binary k-WTA code ``(B, M)`` uint8 of float32 CPU rows (no NaN).
 
-    The same code as :func:`torchseq.layers.kwta` (ties at the threshold go to the lowest
-    indices). The ``k``-th largest value ``v`` of each row comes from ``numpy.partition``
-    (introselect, several times faster than ``torch.topk`` on one CPU thread); the winners
-    are the entries ``>= v``, except in rows with a tie at ``v``, which keep the entries
-    ``> v`` and the lowest-index entries ``== v``.
-
-    Args:
-        h: ``(B, M)`` float32 on the CPU, no NaN.
-        k: winners per row.
+    The same code as :func:`torchseq.layers.kwta`, through
+    :func:`~torchseq.layers.functional.kwta_numpy`.
     """
-    m = h.shape[1]
-    hn = h.numpy()
-    v = np.partition(hn, m - k, axis=1)[:, m - k : m - k + 1]  # (B, 1)
-    win = (hn >= v).view(np.uint8)  # (B, M); NumPy: about twice torch's speed here
-    tied = np.flatnonzero(win.sum(1, dtype=np.int32) != k)
-    if tied.size:
-        ht, vt = hn[tied], v[tied]
-        greater, equal = ht > vt, ht == vt
-        room = k - greater.sum(1, keepdims=True, dtype=np.int32)
-        win[tied] = greater | (equal & (equal.cumsum(1, dtype=np.int32) <= room))
-    return torch.from_numpy(win)
+    return torch.from_numpy(kwta_numpy(h.numpy(), k).view(np.uint8))
 
 
 def feedforward_uint8(xq: torch.Tensor, l1: Int8Linear, l3: Int8Linear, k: int,
