@@ -44,11 +44,16 @@ def round_div(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """
     a = np.asarray(a, np.int64)
     b = np.asarray(b, np.int64)
-    num = 2 * np.abs(a) + b
+    num = np.abs(a)
+    num *= 2
+    num += b  # N = 2|a| + b (in place: this runs on every pixel of every frame)
     if num.size and num.max() < 2**53:
-        q = np.floor(num.astype(np.float64) / (2.0 * b)).astype(np.int64)
-    else:
-        q = num // (2 * b)
+        q = num.astype(np.float64)
+        q /= 2.0 * b
+        np.floor(q, out=q)
+        np.copysign(q, a, out=q)  # a == 0 gives q == 0: floor(1/2)
+        return q.astype(np.int64)
+    q = num // (2 * b)
     return np.where(a < 0, -q, q)
 
 
@@ -80,18 +85,30 @@ def cohort_sums(e: np.ndarray, members: np.ndarray) -> tuple[np.ndarray, np.ndar
     return e @ members, sq @ members
 
 
+def block_sums(v: np.ndarray, bh: int, bw: int) -> np.ndarray:
+    """Sums of ``bh x bw`` blocks of ``(B, H, W)`` integers -> ``(B, H / bh, W / bw)``.
+
+    Summed over contiguous axes, one direction at a time: NumPy reduces the strided block
+    axes of a 5-D view several times slower (integers: the same sums).
+    """
+    b, h, w = v.shape
+    if bh == bw == 1:
+        return v
+    rows = v.reshape(b, h // bh, bh, w).sum(2)  # (B, H / bh, W)
+    return rows.reshape(b, h // bh, w // bw, bw).sum(3)
+
+
 def input_stage(frames: np.ndarray, p: dict) -> np.ndarray:
     """uint8 frames ``(B, h*ph, w*pw)`` -> int32 L1 activity ``(B, h*w)`` (patch z-scores)."""
     b, h, w = frames.shape[0], p["height"], p["width"]
-    ph, pw = p["pool_h"], p["pool_w"]
-    pix = frames.astype(np.int64).reshape(b, h, ph, w, pw).sum(axis=(2, 4))  # block sums
+    pix = block_sums(frames.astype(np.int64), p["pool_h"], p["pool_w"])  # (B, h, w)
     if p["input_mode"] != INPUT_ZSCORE:
         return pix.reshape(b, h * w).astype(np.int32)
     s = p["patch"]
     n = s * s
     blocks = pix.reshape(b, h // s, s, w // s, s)
-    total = blocks.sum(axis=(2, 4), keepdims=True)  # S
-    squares = (blocks * blocks).sum(axis=(2, 4), keepdims=True)  # Q
+    total = block_sums(pix, s, s)[:, :, None, :, None]  # S
+    squares = block_sums(pix * pix, s, s)[:, :, None, :, None]  # Q
     var = n * squares - total * total  # V = n Q - S^2 >= 0
     root = isqrt(var << (2 * p["sqrt_frac"]))  # ~ sqrt(V) * 2**F
     dev = n * blocks - total  # d = n p - S
@@ -160,10 +177,14 @@ class IntegerRuntime:
             out[lo:lo + chunk] = (g * self.l1_values).sum(-1, dtype=np.int32)
         return out
 
+    def l3_sums(self, win: np.ndarray) -> np.ndarray:
+        """Binary code ``(B, M)`` -> L3 sums ``(B, N)`` int64 (the winners' weight rows)."""
+        idx = np.nonzero(win)[1].reshape(win.shape[0], self.params["k"])  # (B, k)
+        return self.l3_t[idx].sum(1, dtype=np.int64)
+
     def evidence(self, win: np.ndarray) -> np.ndarray:
         """Binary code ``(B, M)`` -> per-row rescaled evidence ``E`` ``(B, N)`` int64."""
-        idx = np.nonzero(win)[1].reshape(win.shape[0], self.params["k"])  # (B, k)
-        e = self.l3_t[idx].sum(1, dtype=np.int64)  # (B, N)
+        e = self.l3_sums(win)  # (B, N)
         return round_div(e * self.row_scale, np.int64(1) << self.params["e_shift"])
 
     def gain_z(self, e: np.ndarray) -> np.ndarray:
@@ -176,6 +197,20 @@ class IntegerRuntime:
         div = np.maximum(root[:, self.cohort], 1) << p["gain_shift"]
         g = np.where(var[:, self.cohort] > 0, round_div(dev * p["gain_const"], div), 0)
         return np.maximum(g, 0) if p["rectify"] else g
+
+    def drive(self, frames: np.ndarray) -> np.ndarray:
+        """The state-free stages: checked uint8 frames -> ``gain * z`` ``(B, N)`` int64."""
+        p = self.params
+        win = kwta_int(self.hidden(input_stage(frames, p)), p["k"])
+        return self.gain_z(self.evidence(win))
+
+    def decide(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Activity ``(B, N)`` int32 -> ``(reference (B,), confidence (B,))`` int64."""
+        unit = a.argmax(1)  # first index on ties
+        best = a[np.arange(a.shape[0]), unit].astype(np.int64)
+        rival = np.abs(np.arange(self.n_units)[None, :] - unit[:, None]) > self.params["window"]
+        second = np.where(rival, a, a.min(1, keepdims=True)).max(1).astype(np.int64)
+        return self.unit_centre[unit], best - second
 
     def step(self, frames: np.ndarray,
              state: np.ndarray | None = None) -> tuple[IntegerStep, np.ndarray]:
@@ -195,16 +230,11 @@ class IntegerRuntime:
         if state.dtype != np.int32 or state.shape != (frames.shape[0], self.n_units):
             raise ValueError(f"state must be int32 ({frames.shape[0]}, {self.n_units}), got "
                              f"{state.dtype} {state.shape}")
-        win = kwta_int(self.hidden(input_stage(frames, p)), p["k"])
-        g = self.gain_z(self.evidence(win))
+        g = self.drive(frames)
         moved = (state.astype(np.int64)[:, self.ring_cols] * self.ring_values).sum(-1)
         a = np.clip(round_div(moved, np.int64(1) << p["ring_frac"]) + g, -INT32_MAX, INT32_MAX)
         a = a.astype(np.int32)
-        unit = a.argmax(1)  # first index on ties
-        best = a[np.arange(a.shape[0]), unit].astype(np.int64)
-        rival = np.abs(np.arange(self.n_units)[None, :] - unit[:, None]) > p["window"]
-        second = np.where(rival, a, a.min(1, keepdims=True)).max(1).astype(np.int64)
-        return IntegerStep(self.unit_centre[unit], best - second, a), a
+        return IntegerStep(*self.decide(a), a), a
 
     def run(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Stream a traverse ``(T, h * pool_h, w * pool_w)`` uint8 (one stream).
