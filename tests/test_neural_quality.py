@@ -18,7 +18,7 @@ def test_demo_recall_default_config():
     model = NeuralSeqSLAM()
     model.fit(d.reference, log=False)
     m = evaluate(model.run(d.query).matches, d.ground_truth)
-    assert m["recall_at_1"] >= 0.99  # measured 1.000
+    assert m["recall_at_1"] >= 0.99  # measured 0.996
 
 
 @pytest.mark.slow
@@ -30,8 +30,8 @@ def test_corridor_recall_default_config():
     model = NeuralSeqSLAM()
     model.fit(ref, log=False)
     m = evaluate(model.run(query).matches, gt)
-    assert m["recall_at_1"] >= 0.78  # measured 0.811 (the seed reported about 80%)
-    assert m["auc"] >= 0.72  # measured 0.770
+    assert m["recall_at_1"] >= 0.78  # measured 0.838 (the seed reported about 80%)
+    assert m["auc"] >= 0.72  # measured 0.798
 
 
 @pytest.mark.slow
@@ -43,4 +43,4 @@ def test_lens_within_two_frames():
     model.fit(ref, log=False)
     got = model.run(query).matches.reference.numpy()
     near = np.abs(got - np.arange(len(query))) <= 2  # the file's ground truth is the identity
-    assert near.mean() >= 0.78  # measured 0.85
+    assert near.mean() >= 0.78  # measured 0.83

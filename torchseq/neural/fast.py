@@ -115,7 +115,6 @@ class Int8Linear:
     """
 
     def __init__(self, n: torch.Tensor, scale: torch.Tensor, x_scale: float, x_zero: int):
-        self.shape = tuple(n.shape)
         self.x_scale, self.x_zero = float(x_scale), int(x_zero)
         self.scale = scale.to(torch.float32).contiguous()
         self.zeros = torch.zeros(n.shape[0], dtype=torch.int64)
