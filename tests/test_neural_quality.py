@@ -1,5 +1,5 @@
 """Recognition quality floors (default config, seed 0), measured with
-experiments/neural_quality.py; over 8 seeds the corridor gives 0.820 +- 0.059 recall@1."""
+experiments/neural_quality.py; over 8 seeds the corridor gives 0.796 +- 0.078 recall@1."""
 
 import numpy as np
 import pytest
