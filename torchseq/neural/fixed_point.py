@@ -46,36 +46,53 @@ def zscore_blocks(frames: torch.Tensor, patch: int) -> torch.Tensor:
     """Sample z-scores of non-overlapping ``patch x patch`` blocks, in block-major order.
 
     The same numbers as :func:`torchseq.preprocess.patch_normalise` in ``"zscore"`` mode up
-    to float rounding (a flat block gives 0), computed on contiguous ``(T, blocks, p*p)``
-    rows: reductions and broadcasts over the strided block axes of an image are several
-    times slower on the CPU. Neural SeqSLAM uses this one definition on every path.
+    to float rounding (a flat block gives 0). Neural SeqSLAM uses this one definition on
+    every path; :func:`zscore_pixel_major` computes it.
 
     Args:
         frames: ``(T, H, W)`` float, ``H`` and ``W`` multiples of ``patch``.
         patch: block side.
 
     Returns:
-        ``(T, (H / p) * (W / p), p * p)``.
+        ``(T, (H / p) * (W / p), p * p)`` (a permuted view).
+    """
+    return zscore_pixel_major(frames, patch).permute(1, 2, 0)
+
+
+def zscore_pixel_major(frames: torch.Tensor, patch: int) -> torch.Tensor:
+    """:func:`zscore_blocks` laid out ``(p * p, T, blocks)``, contiguous.
+
+    Each pixel position of a block is one contiguous row over all frames and blocks, so the
+    fixed-order sums (:func:`in_order_sum`) are whole-row additions: several times faster
+    on the CPU than reductions over the strided block axes of an image, and the same
+    numbers (the additions are element-wise, in the same order).
+
+    Args:
+        frames: ``(T, H, W)`` float, ``H`` and ``W`` multiples of ``patch``.
+        patch: block side.
+
+    Returns:
+        ``(p * p, T, (H / p) * (W / p))``.
     """
     t, h, w = frames.shape
     n = patch * patch
-    blocks = (frames.reshape(t, h // patch, patch, w // patch, patch)
-              .permute(0, 1, 3, 2, 4).reshape(t, -1, n))
-    dev = blocks - in_order_sum(blocks) / n
+    pixels = (frames.reshape(t, h // patch, patch, w // patch, patch)
+              .permute(2, 4, 0, 1, 3).reshape(n, t, -1))
+    dev = pixels - in_order_sum(pixels) / n
     std = (in_order_sum(dev * dev) / (n - 1)).sqrt()
     return dev / torch.where(std > 0, std, torch.ones_like(std))  # a flat block: 0 / 1
 
 
 def in_order_sum(x: torch.Tensor) -> torch.Tensor:
-    """Sum over the last axis, left to right, keeping it: ``(..., n) -> (..., 1)``.
+    """Sum over the first axis, first to last: ``(n, ...) -> (...)``.
 
     Element-wise additions in a fixed order round the same way in PyTorch and in any ONNX
     runtime (a reduction kernel may add in another order), so the exported graph computes
     bit for bit the model's z-scores.
     """
-    s = x[..., 0:1]
-    for i in range(1, x.shape[-1]):
-        s = s + x[..., i:i + 1]
+    s = x[0]
+    for i in range(1, x.shape[0]):
+        s = s + x[i]
     return s
 
 

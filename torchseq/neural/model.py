@@ -36,6 +36,7 @@ from torchseq.neural.fixed_point import (
     quantise_input,
     round_rows,
     zscore_blocks,
+    zscore_pixel_major,
 )
 from torchseq.neural.learning import (
     cohort_membership,
@@ -284,8 +285,8 @@ class NeuralSeqSLAM(nn.Module):
         """
         f, cfg = self._folded, self.config
         if f["l1_int8"] is not None and w1_t is None and frames.device.type == "cpu":
-            z = zscore_blocks(self._grey(frames), cfg.patch_size)  # (B, blocks, p*p)
-            xq = z.mul_(cfg.input_steps).round_().add_(128.0).to(torch.uint8)
+            z = zscore_pixel_major(self._grey(frames), cfg.patch_size)  # (p*p, B, blocks)
+            xq = z.mul_(cfg.input_steps).round_().add_(128.0).to(torch.uint8).permute(1, 2, 0)
             return feedforward_uint8(xq.reshape(xq.shape[0], -1), f["l1_int8"], f["l3_int8"],
                                      cfg.k, self.cohorts, cfg.eps, cfg.rectify)
         return feedforward(self.encode(frames), f["w1_t"] if w1_t is None else w1_t, f["w3_t"],
