@@ -1,8 +1,10 @@
+import numpy as np
 import pytest
 import torch
 from conftest import DEVICES
 
 from torchseq.layers import KWinnersTakeAll, kwta
+from torchseq.layers.functional import kwta_numpy
 
 DTYPES = [torch.float32, torch.float64]
 
@@ -83,3 +85,19 @@ def test_errors():
         kwta(torch.zeros(2, 3), 4)
     with pytest.raises(ValueError, match="k must be"):
         KWinnersTakeAll(k=5)(torch.zeros(2, 3))
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32, np.float64, np.int32, np.int64])
+@pytest.mark.parametrize("offset", [-10.0, 0.0, 10.0])
+def test_kwta_numpy_matches_loop_reference(dtype, offset):
+    """Thresholds above, at and below zero (float rows are selected on their bits)."""
+    rng = np.random.default_rng(int(offset) + 20)
+    x = (rng.normal(size=(12, 64)) * 4 + offset).round().astype(dtype)  # many ties
+    x[0] = 0  # all tied at +0.0
+    if x.dtype.kind == "f":
+        x[1, ::2] = -0.0  # -0.0 == +0.0 must tie, whatever its bits
+        x[1, 1::2] = 0.0
+        x[2, :40] = np.linspace(-1.0, -0.01, 40)
+    for k in (1, 9, 40):
+        want = loop_kwta(torch.from_numpy(x.astype(np.float64)), k, binary=True)
+        assert np.array_equal(kwta_numpy(x, k), want.numpy().astype(bool))

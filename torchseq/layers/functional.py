@@ -123,13 +123,24 @@ def kwta_numpy(values: np.ndarray, k: int) -> np.ndarray:
     (introselect, several times faster than ``torch.topk`` on one CPU thread); the winners
     are the entries ``>= v``, except in rows with a tie at ``v``, which keep the entries
     ``> v`` and the lowest-index entries ``== v``. Any real or integer dtype, no NaN.
+
+    Float rows are selected on their bits read as signed integers (faster to partition):
+    positive floats sort like those integers and every negative float reads as a negative
+    one, so the result is the same whenever each row's ``v`` is above ``+0.0``; otherwise
+    the floats themselves are partitioned.
     """
     m = values.shape[1]
-    v = np.partition(values, m - k, axis=1)[:, m - k : m - k + 1]  # (B, 1)
-    win = values >= v  # (B, M)
+    keys = values
+    if values.dtype.kind == "f":
+        keys = values.view(np.dtype(f"i{values.itemsize}"))
+    v = np.partition(keys, m - k, axis=1)[:, m - k : m - k + 1]  # (B, 1)
+    if keys is not values and not bool((v > 0).all()):
+        keys = values
+        v = np.partition(keys, m - k, axis=1)[:, m - k : m - k + 1]
+    win = keys >= v  # (B, M)
     tied = np.flatnonzero(win.view(np.uint8).sum(1, dtype=np.int32) != k)
     if tied.size:
-        row, vt = values[tied], v[tied]
+        row, vt = keys[tied], v[tied]
         greater, equal = row > vt, row == vt
         room = k - greater.sum(1, keepdims=True, dtype=np.int32)
         win[tied] = greater | (equal & (equal.cumsum(1, dtype=np.int32) <= room))
