@@ -196,30 +196,45 @@ def band_diagonals(shift: torch.Tensor, max_lag: int) -> torch.Tensor | None:
 RING_BLOCK = 16  # frames per block of ring_scan
 
 
-def ring_advance(a: torch.Tensor, a_mat: torch.Tensor,
-                 diag: torch.Tensor | None) -> torch.Tensor:
-    """``a @ a_mat.T`` for ``a`` ``(B, N)``.
+def ring_steps(shift: torch.Tensor, decay: float, diagonals: torch.Tensor | None,
+               columns: int) -> torch.Tensor:
+    """The advance operator of :func:`ring_advance` for ``(N, columns)`` states.
 
-    On the diagonals ``(L + 1, N)`` of ``a_mat`` when it is banded (:func:`band_diagonals`),
-    else a dense product.
+    ``decay * shift`` ``(N, N)``, or with ``diagonals`` ``(L + 1, N)``
+    (:func:`band_diagonals`) each diagonal repeated per column: ``(L + 1, N * columns)``.
     """
-    if diag is None:
-        return a @ a_mat.T
-    m = a * diag[0]
-    for lag in range(1, diag.shape[0]):
-        m[:, lag:].addcmul_(diag[lag, lag:], a[:, :-lag])
-    return m
+    if diagonals is None:
+        return shift * decay
+    return (diagonals * decay).repeat_interleave(columns, dim=1)
+
+
+def ring_advance(a, steps, banded: bool):
+    """``decay * shift @ a`` for states in columns, ``a`` ``(N, columns)`` contiguous.
+
+    NumPy arrays or tensors alike. ``steps`` from :func:`ring_steps`; when ``banded``, the
+    product runs on the diagonals: row ``i`` of the state moved down by ``lag`` rows is
+    the flat state moved by ``lag * columns`` elements, so each lag is one multiply-add
+    over contiguous memory.
+    """
+    if not banded:
+        return steps @ a
+    flat = a.reshape(-1)
+    m = flat * steps[0]
+    for lag in range(1, steps.shape[0]):
+        o = lag * a.shape[1]
+        m[o:] += steps[lag, o:] * flat[:-o]
+    return m.reshape(a.shape)
 
 
 def ring_power(shift: torch.Tensor, decay: float, diagonals: torch.Tensor | None = None,
                block: int = RING_BLOCK) -> torch.Tensor:
-    """``(decay * shift)**block`` ``(N, N)``: ``block`` advances of the identity's rows."""
-    a_mat = shift * decay
-    diag = None if diagonals is None else diagonals * decay
-    x = torch.eye(shift.shape[0], dtype=shift.dtype, device=shift.device)
+    """``(decay * shift)**block`` ``(N, N)``: ``block`` advances of the identity's columns."""
+    n = shift.shape[0]
+    steps = ring_steps(shift, decay, diagonals, n)
+    x = torch.eye(n, dtype=shift.dtype, device=shift.device)
     for _ in range(block):
-        x = ring_advance(x, a_mat, diag)  # rows of (A.T)**i
-    return x.T.contiguous()
+        x = ring_advance(x, steps, diagonals is not None)
+    return x
 
 
 def ring_scan(drive: torch.Tensor, activity: torch.Tensor, shift: torch.Tensor, decay: float,
@@ -231,8 +246,9 @@ def ring_scan(drive: torch.Tensor, activity: torch.Tensor, shift: torch.Tensor, 
     own drive from a zero start, all blocks at once (``C`` steps); (2) the state entering
     each block, block after block, through ``(decay * shift)**C`` (one matrix-vector product
     per block); (3) each block's response to that entering state, all blocks at once (``C``
-    steps). About ``4 C + T / C`` tensor operations instead of several per frame; sums run
-    in another order than frame by frame, so results are equal up to float rounding.
+    steps). About ``4 C + T / C`` small operations instead of several per frame; on the CPU
+    they run in NumPy (a fraction of a tensor call's overhead at these sizes). Sums run in
+    another order than frame by frame, so results are equal up to float rounding.
 
     Args:
         drive: ``(T, N)`` ``gain * evidence``.
@@ -249,25 +265,43 @@ def ring_scan(drive: torch.Tensor, activity: torch.Tensor, shift: torch.Tensor, 
     t_len, n = drive.shape
     c = max(1, min(block, t_len))
     n_blocks = -(-t_len // c)
-    d = drive.new_zeros(n_blocks * c, n)
-    d[:t_len] = drive
-    d = d.view(n_blocks, c, n)
-    a_mat = shift.to(drive.dtype) * decay  # (N, N)
-    diag = None if diagonals is None else diagonals.to(drive.dtype) * decay  # (L + 1, N)
     if power is None or c != block:
         power = ring_power(shift.to(drive.dtype), decay, diagonals, c)
-    local = torch.empty_like(d)  # (blocks, C, N)
-    a = d[:, 0]
-    local[:, 0] = a
+    d = drive.new_zeros(n_blocks * c, n)
+    d[:t_len] = drive
+    d = d.view(n_blocks, c, n).permute(1, 2, 0).contiguous()  # (C, N, blocks): states in columns
+    steps = ring_steps(shift.to(drive.dtype), decay,
+                       None if diagonals is None else diagonals.to(drive.dtype), n_blocks)
+    local, entering = torch.empty_like(d), d.new_empty(n, n_blocks)
+    arrays = (d, local, entering, activity.to(drive.dtype), steps, power.to(drive.dtype))
+    if drive.device.type == "cpu" and not any(x.requires_grad for x in arrays):
+        arrays = tuple(x.numpy() for x in arrays)  # local is filled in place either way
+    _scan_blocks(*arrays, diagonals is not None)
+    return local.permute(2, 0, 1).reshape(-1, n)[:t_len]
+
+
+def _scan_blocks(d, local, entering, s, steps, power, banded: bool) -> None:
+    """Steps (1)-(3) of :func:`ring_scan` on ``(C, N, blocks)`` arrays (NumPy or torch).
+
+    Args:
+        d: ``(C, N, blocks)`` drive, frame ``b * C + i`` in ``d[i, :, b]``.
+        local: ``(C, N, blocks)`` output, same layout.
+        entering: ``(N, blocks)`` work space.
+        s: ``(N,)`` activity before the first frame.
+        steps: :func:`ring_steps` for ``blocks`` columns.
+        power: ``(N, N)`` ``(decay * shift)**C``.
+        banded: ``steps`` holds diagonals.
+    """
+    c, _, n_blocks = d.shape
+    a = d[0]
+    local[0] = a
     for i in range(1, c):  # (1) zero-start response of every block
-        a = ring_advance(a, a_mat, diag) + d[:, i]
-        local[:, i] = a
-    entering = torch.empty(n_blocks, n, dtype=drive.dtype, device=drive.device)
-    s = activity.to(drive.dtype)
+        a = ring_advance(a, steps, banded)
+        a += d[i]
+        local[i] = a
     for b in range(n_blocks):  # (2) state entering each block
-        entering[b] = s
-        s = torch.addmv(local[b, c - 1], power, s)
+        entering[:, b] = s
+        s = local[c - 1, :, b] + power @ s
     for i in range(c):  # (3) add the entering state's response
-        entering = ring_advance(entering, a_mat, diag)
-        local[:, i] += entering
-    return local.view(-1, n)[:t_len]
+        entering = ring_advance(entering, steps, banded)
+        local[i] += entering
