@@ -91,8 +91,9 @@ def test_input_stage_equals_the_spec_loop(pool):
     frames[2] = 0
     frames[2, ::2] = 255  # extreme contrast
     frames[3] = g.integers(100, 102, size)  # tiny variance, near-ties of the rounding
-    for x_frac in (5, 9):
-        q = dict(p, x_frac=x_frac)
+    # the model's constant takes the exact float64 path; a 45-bit one the int64 path
+    for x_frac, const in ((5, p["norm_const"]), (9, p["norm_const"]), (5, 2**44 + 12345)):
+        q = dict(p, x_frac=x_frac, norm_const=const)
         got = input_stage(frames, q)
         for t in range(frames.shape[0]):
             assert got[t].tolist() == input_stage_loop(frames[t], q)
