@@ -94,3 +94,23 @@ def test_decide_equals_loop():
             second = max(rivals) if rivals else float(a[b].min())
             assert int(ref[b]) == int(centre[u])
             assert float(conf[b]) == pytest.approx(float(a[b, u]) - second, abs=1e-7)
+
+
+@pytest.mark.parametrize("wrap", [False, True])
+def test_ring_scan_tensor_path_equals_numpy_path(wrap):
+    """The block steps run in NumPy on the CPU and as tensor operations elsewhere (CUDA, or
+    inputs that need gradients); both give the frame-by-frame recurrence."""
+    g = torch.Generator().manual_seed(7)
+    shift = learn_shift_matrix(torch.arange(30), 30, spread=2, stay=0.5, wrap=wrap).double()
+    diag = None if wrap else band_diagonals(shift, 2)
+    drive = torch.rand(37, 30, generator=g, dtype=torch.float64)
+    a0 = torch.rand(30, generator=g, dtype=torch.float64)
+    via_numpy = ring_scan(drive, a0, shift, 0.95, diag, block=8)
+    tracked = drive.clone().requires_grad_(True)
+    via_tensors = ring_scan(tracked, a0, shift, 0.95, diag, block=8)
+    torch.testing.assert_close(via_tensors.detach(), via_numpy, atol=1e-12, rtol=1e-12)
+    via_tensors[-1].sum().backward()  # d a_T / d drive_t = (0.95 * shift)**(T - t), summed
+    want = torch.ones(30, dtype=torch.float64)
+    for t in range(36, -1, -1):
+        torch.testing.assert_close(tracked.grad[t], want, atol=1e-10, rtol=1e-10)
+        want = 0.95 * (shift.T @ want)
