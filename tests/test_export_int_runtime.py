@@ -63,6 +63,10 @@ def test_round_div_and_isqrt_against_python_ints():
         for x, y, q in zip(a.tolist(), b.tolist(), got.tolist()):
             want = (2 * abs(x) + y) // (2 * y)
             assert q == (want if x >= 0 else -want)
+        if top < 2**52:  # the same integers held in float64 give the same quotients
+            assert round_div(a.astype(np.float64), b.astype(np.float64)).tolist() == got.tolist()
+    with pytest.raises(ValueError, match="below 2\\*\\*53"):
+        round_div(np.array([2.0**52]), np.array([3.0]))
     k = rng.integers(1, 2**31 - 1, 1000)
     v = np.concatenate([rng.integers(0, 2**62 - 1, 3000), np.arange(0, 300), k * k, k * k - 1,
                         np.array([2**62 - 1, (2**31 - 1) ** 2, (2**31 - 1) ** 2 - 1])])

@@ -34,27 +34,41 @@ class IntegerStep(NamedTuple):
 
 
 def round_div(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a / b`` rounded half away from zero, for int64 ``a`` and ``b > 0`` (``|a| < 2**61``).
+    """``a / b`` rounded half away from zero, for integer ``a`` and ``b > 0`` (``|a| < 2**61``).
 
     ``q = floor((2|a| + b) / 2b)`` with the sign of ``a``. When every numerator
     ``N = 2|a| + b`` is below ``2**53`` the quotient runs as one float64 division, which is
     exact here: a non-integer ``N / D`` lies at least ``1 / D`` below the next integer, more
     than its rounding error ``(N / D) * 2**-53`` since ``N < 2**53`` (and much faster than
     NumPy's integer division); otherwise integer division.
+
+    ``a`` and ``b`` are int64 (the result is int64), or float64 arrays holding integers
+    whose numerators stay below ``2**53`` (the result is float64, without int64 copies;
+    ``ValueError`` when a numerator is too large to be exact).
     """
+    if np.asarray(a).dtype == np.float64:
+        num = np.abs(a)
+        num *= 2.0
+        num += b
+        if num.size and not num.max() < 2**53:
+            raise ValueError("round_div: float64 numerators 2|a| + b must stay below 2**53")
+        return _half_away_quotient(num, b, a)
     a = np.asarray(a, np.int64)
     b = np.asarray(b, np.int64)
     num = np.abs(a)
     num *= 2
     num += b  # N = 2|a| + b (in place: this runs on every pixel of every frame)
     if num.size and num.max() < 2**53:
-        q = num.astype(np.float64)
-        q /= 2.0 * b
-        np.floor(q, out=q)
-        np.copysign(q, a, out=q)  # a == 0 gives q == 0: floor(1/2)
-        return q.astype(np.int64)
+        return _half_away_quotient(num.astype(np.float64), b, a).astype(np.int64)
     q = num // (2 * b)
     return np.where(a < 0, -q, q)
+
+
+def _half_away_quotient(num: np.ndarray, b: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``floor(num / 2b)`` with the sign of ``a``, in place in float64 ``num``."""
+    num /= 2.0 * b
+    np.floor(num, out=num)
+    return np.copysign(num, a, out=num)  # a == 0 gives 0: floor(1/2)
 
 
 def isqrt(v: np.ndarray) -> np.ndarray:
@@ -99,7 +113,14 @@ def block_sums(v: np.ndarray, bh: int, bw: int) -> np.ndarray:
 
 
 def input_stage(frames: np.ndarray, p: dict) -> np.ndarray:
-    """uint8 frames ``(B, h*ph, w*pw)`` -> int32 L1 activity ``(B, h*w)`` (patch z-scores)."""
+    """uint8 frames ``(B, h*ph, w*pw)`` -> int32 L1 activity ``(B, h*w)`` (patch z-scores).
+
+    Computed pixel-major: each pixel position of a block is one contiguous row
+    ``(p*p, B * blocks)``, 2-3x faster than arithmetic broadcast over the strided block axes.
+    The values are integers; they are held in float64 (exact, no int64 copies) whenever the
+    file's constants keep every one of them below ``2**53``, else in int64. A flat block
+    (``V = 0``) has ``d = 0`` everywhere, so its quotient is 0 as the spec says.
+    """
     b, h, w = frames.shape[0], p["height"], p["width"]
     pix = block_sums(frames.astype(np.int64), p["pool_h"], p["pool_w"])  # (B, h, w)
     if p["input_mode"] != INPUT_ZSCORE:
@@ -107,57 +128,19 @@ def input_stage(frames: np.ndarray, p: dict) -> np.ndarray:
     s = p["patch"]
     n = s * s
     peak = n * 255 * p["pool_h"] * p["pool_w"]  # bounds |S|, |d| and sqrt(V)
-    if (n * peak * peak < 2**53
-            and 2 * peak * (p["norm_const"] + 2 ** p["sqrt_frac"]) < 2**53):
-        return _zscore_float64(pix, p)
-    blocks = pix.reshape(b, h // s, s, w // s, s)
-    total = block_sums(pix, s, s)[:, :, None, :, None]  # S
-    squares = block_sums(pix * pix, s, s)[:, :, None, :, None]  # Q
-    var = n * squares - total * total  # V = n Q - S^2 >= 0
-    root = isqrt(var << (2 * p["sqrt_frac"]))  # ~ sqrt(V) * 2**F
-    dev = n * blocks - total  # d = n p - S
-    z = round_div(dev * p["norm_const"], np.maximum(root, 1))
-    x = np.where(var > 0, np.clip(z, -X_MAX, X_MAX), 0)
-    return x.reshape(b, h * w).astype(np.int32)
-
-
-def _zscore_float64(pix: np.ndarray, p: dict) -> np.ndarray:
-    """The z-score branch of :func:`input_stage` on exact float64 integers, pixel-major.
-
-    The same integers: every value below is an integer under ``2**53`` (the caller checks
-    the bounds), so float64 sums and products are exact, and the rounded quotient is
-    :func:`round_div`'s single float64 division. A flat block (``V = 0``) has ``d = 0``
-    everywhere, so its quotient is already 0. Each pixel position of a block is one
-    contiguous row ``(p*p, B * blocks)``: 2-3x faster than int64 arithmetic broadcast over
-    the strided block axes.
-
-    Args:
-        pix: ``(B, h, w)`` pooled pixels, int64.
-        p: the model's parameters.
-
-    Returns:
-        ``(B, h * w)`` int32.
-    """
-    b, h, w = pix.shape
-    s = p["patch"]
-    n = s * s
+    exact = (n * peak * peak < 2**53
+             and 2 * peak * (p["norm_const"] + 2 ** p["sqrt_frac"]) < 2**53)
+    dtype = np.float64 if exact else np.int64
     rows = (pix.reshape(b, h // s, s, w // s, s).transpose(2, 4, 0, 1, 3)
-            .astype(np.float64).reshape(n, -1))  # (p*p, B * blocks)
+            .astype(dtype).reshape(n, -1))  # (p*p, B * blocks)
     total = rows.sum(0)  # S
-    var = n * np.einsum("ij,ij->j", rows, rows) - total * total  # V = n Q - S^2
-    root = isqrt(var.astype(np.int64) << (2 * p["sqrt_frac"]))
-    r = np.maximum(root, 1).astype(np.float64)
-    a = rows * float(n)
-    a -= total  # d = n p - S
-    a *= float(p["norm_const"])
-    q = np.abs(a)
-    q *= 2.0
-    q += r  # 2|a| + r: round_div's numerator
-    q /= 2.0 * r
-    np.floor(q, out=q)
-    np.copysign(q, a, out=q)
-    np.clip(q, -X_MAX, X_MAX, out=q)
-    x = q.astype(np.int32).reshape(s, s, b, h // s, w // s)
+    var = n * np.einsum("ij,ij->j", rows, rows) - total * total  # V = n Q - S^2 >= 0
+    root = isqrt(var.astype(np.int64) << (2 * p["sqrt_frac"]))  # ~ sqrt(V) * 2**F
+    dev = rows * n
+    dev -= total  # d = n p - S
+    dev *= p["norm_const"]
+    z = round_div(dev, np.maximum(root, 1).astype(dtype))
+    x = np.clip(z, -X_MAX, X_MAX).astype(np.int32).reshape(s, s, b, h // s, w // s)
     return x.transpose(2, 3, 0, 4, 1).reshape(b, h * w)
 
 
