@@ -67,6 +67,19 @@ def _small_integer_range(ref: torch.Tensor, query: torch.Tensor) -> tuple[float,
     return lo, levels
 
 
+def check_descriptors(reference: torch.Tensor, query: torch.Tensor) -> None:
+    """Check a descriptor pair: ``ValueError`` unless both are non-empty, finite, 2-D.
+
+    ``reference`` ``(R, D)`` and ``query`` ``(Q, D)`` must agree on ``D``.
+    """
+    check_not_empty(reference, "reference descriptors")
+    check_not_empty(query, "query descriptors")
+    check_shape(reference, ("R", "D"), "reference descriptors")
+    check_shape(query, ("Q", reference.shape[1]), "query descriptors")
+    check_finite(reference, "reference descriptors")
+    check_finite(query, "query descriptors")
+
+
 def difference_matrix(
     reference: torch.Tensor,
     query: torch.Tensor,
@@ -86,12 +99,7 @@ def difference_matrix(
         ``(R, Q)`` distances, reference rows by query columns (a transposed view of a
         contiguous ``(Q, R)`` buffer).
     """
-    check_not_empty(reference, "reference descriptors")
-    check_not_empty(query, "query descriptors")
-    check_shape(reference, ("R", "D"), "reference descriptors")
-    check_shape(query, ("Q", reference.shape[1]), "query descriptors")
-    check_finite(reference, "reference descriptors")
-    check_finite(query, "query descriptors")
+    check_descriptors(reference, query)
     if metric not in METRICS:
         raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
     if not reference.is_floating_point():

@@ -8,11 +8,11 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from torchseq._checks import check_finite, check_not_empty, check_shape
+from torchseq._checks import check_not_empty
 from torchseq.matches import Matches
 from torchseq.preprocess import preprocess
 from torchseq.seqslam.config import SeqSLAMConfig
-from torchseq.seqslam.difference import difference_matrix
+from torchseq.seqslam.difference import check_descriptors, difference_matrix
 from torchseq.seqslam.enhance import enhance_contrast
 from torchseq.seqslam.search import search, velocities
 
@@ -106,12 +106,7 @@ class SeqSLAM(nn.Module):
         """Match ``(Q, D)`` query descriptors against ``(R, D)`` reference descriptors."""
         c = self.config
         reference, query = torch.as_tensor(reference), torch.as_tensor(query)
-        check_not_empty(reference, "reference descriptors")
-        check_not_empty(query, "query descriptors")
-        check_shape(reference, ("R", "D"), "reference descriptors")
-        check_shape(query, ("Q", reference.shape[1]), "query descriptors")
-        check_finite(reference, "reference descriptors")
-        check_finite(query, "query descriptors")
+        check_descriptors(reference, query)
         ds = c.sequence_length
         if reference.shape[0] < 2:
             raise ValueError(f"need at least 2 reference frames, got {reference.shape[0]}")
