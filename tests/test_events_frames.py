@@ -14,15 +14,17 @@ from torchseq.events import (
     write_aedat2,
     write_npz,
 )
+from torchseq.events import frames as frames_module
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="no CUDA device"))]
 DTYPES = [torch.float32, torch.float64]
 
 
-def loop_frames(ev, w, h, window_us=None, event_count=None, mode="signed"):
+def loop_frames(ev, w, h, window_us=None, event_count=None, mode="signed", origin=None):
     """Plain-Python reference: one event at a time into a list of frames."""
-    t0 = int(ev["t"].min())
+    t0 = int(ev["t"].min()) if origin is None else origin
+    ev = [e for e in ev if int(e["t"]) >= t0]
     chans = 2 if mode == "two_channel" else 1
     frames = {}
     for i, e in enumerate(ev):
@@ -148,3 +150,105 @@ def test_load_event_frames_and_load_traverse(tmp_path):
     signed = load_event_frames(tmp_path / "e.npz", window_ms=10.0, mode="signed")
     assert (signed >= 0).all()
     np.testing.assert_array_equal(signed.numpy(), np.abs(loop_frames(ev, 128, 128, 10_000)))
+
+
+def torch_kernel(monkeypatch):
+    """Make the CPU build its frames with the torch kernel (the one CUDA runs)."""
+    monkeypatch.setattr(frames_module, "_kernel_for",
+                        lambda device: ("torch", frames_module._bins_torch))
+
+
+@pytest.mark.parametrize("kernel", ["numpy", "torch"])
+@pytest.mark.parametrize("anchor", ["first", "zero", 30_000, -5_000])
+@pytest.mark.parametrize("mode", ["signed", "two_channel", "count"])
+def test_anchor_against_loop(monkeypatch, kernel, anchor, mode):
+    ev = sample(500, 12, 8, seed=4, span=100_000)
+    ev["t"] += 12_345  # first event well after sensor time zero
+    if kernel == "torch":
+        torch_kernel(monkeypatch)
+    origin = {"first": int(ev["t"].min()), "zero": 0}.get(anchor, anchor)
+    got = accumulate(EventStream(ev, (12, 8)), window_us=7_000, mode=mode, anchor=anchor)
+    ref = loop_frames(ev, 12, 8, 7_000, None, mode, origin=origin)
+    assert tuple(got.shape) == ref.shape
+    np.testing.assert_array_equal(got.numpy(), ref)
+    if anchor == "zero":  # frame k covers [k * window, (k + 1) * window) in sensor time
+        assert got.shape[0] == int(ev["t"].max()) // 7_000 + 1
+        assert got[:12_345 // 7_000].abs().sum() == 0
+    counted = accumulate(ev, (12, 8), window_us=None, event_count=37, mode=mode, anchor=anchor)
+    ref = loop_frames(ev, 12, 8, None, 37, mode, origin=origin)
+    np.testing.assert_array_equal(counted.numpy(), ref)
+
+
+@pytest.mark.parametrize("kernel", ["numpy", "torch"])
+def test_kernels_agree_on_unsorted_pooled_and_filtered_input(monkeypatch, kernel):
+    ev = sample(3000, 16, 12, seed=9, span=90_000)
+    shuffled = ev[np.random.default_rng(1).permutation(len(ev))]  # the division path
+    if kernel == "torch":
+        torch_kernel(monkeypatch)
+    for mode in ("signed", "two_channel", "count", "binary"):
+        ref = loop_frames(ev, 16, 12, 10_000, None, mode)
+        got = accumulate(shuffled, (16, 12), window_us=10_000, mode=mode)
+        np.testing.assert_array_equal(got.numpy(), ref)
+        for size in ((3, 4), (4, 4), (5, 7)):  # divisible: pooled bins; else adaptive pool
+            pooled = accumulate(ev, (16, 12), window_us=10_000, mode=mode, downsample=size)
+            want = torch.nn.functional.adaptive_avg_pool2d(
+                torch.from_numpy(ref), size).numpy()
+            np.testing.assert_allclose(pooled.numpy(), want, atol=1e-5)
+    keep = hot_pixel_mask(ev, (16, 12), 1.2) & refractory_mask(ev, (16, 12), 3_000)
+    got = accumulate(ev, (16, 12), window_us=10_000, mode="count", hot_pixel=1.2,
+                     refractory_us=3_000, anchor="zero")
+    np.testing.assert_array_equal(got.numpy(),
+                                  loop_frames(ev[keep], 16, 12, 10_000, None, "count", 0))
+
+
+def test_kernel_selection():
+    assert frames_module._kernel_for(torch.device("cpu"))[0] == "numpy"
+    assert frames_module._kernel_for(torch.device("cuda"))[0] == "torch"
+    if torch.cuda.is_available():
+        ev = sample()
+        got = accumulate(ev, (12, 8), device="cuda")
+        np.testing.assert_array_equal(got.cpu().numpy(), accumulate(ev, (12, 8)).numpy())
+
+
+def test_anchor_errors_and_bounds(monkeypatch):
+    ev = sample(50, 12, 8, span=10_000)
+    ev["t"] += 1_000
+    for bad in ("last", 1.5, True, None):
+        with pytest.raises(ValueError, match="anchor"):
+            accumulate(ev, (12, 8), anchor=bad)
+    with pytest.raises(EventFormatError, match="no events"):
+        accumulate(ev, (12, 8), anchor=10**9)  # every event before the anchor
+    with pytest.raises(ValueError, match="t_start"):
+        accumulate(ev, (12, 8), t_start=5_000)
+    np.testing.assert_array_equal(accumulate(ev, (12, 8), t_start=0).numpy(),
+                                  accumulate(ev, (12, 8), anchor="zero").numpy())
+    with pytest.raises(ValueError, match="not both"):
+        accumulate(ev, (12, 8), t_start=0, anchor=0)
+    with pytest.raises(ValueError, match="elements"):  # a far anchor: ~10**12 empty windows
+        accumulate(ev, (12, 8), window_us=1, anchor=-10**12)
+    monkeypatch.setattr(frames_module, "MAX_FRAME_ELEMENTS", 9 * 96)
+    with pytest.raises(ValueError, match="elements"):
+        accumulate(ev, (12, 8), window_us=1_000)
+    bad_p = ev.copy()
+    bad_p["p"][3] = 255
+    with pytest.raises(ValueError, match="polarity"):
+        accumulate(bad_p, (12, 8))
+    neg = ev.copy()
+    neg["x"][0] = -1
+    with pytest.raises(ValueError, match="outside"):
+        accumulate(neg, (12, 8))
+
+
+def test_load_event_frames_anchor(tmp_path):
+    ev = sample(3000, 32, 32, seed=6, span=45_000)
+    ev["t"] += 20_000
+    write_npz(tmp_path / "e.npz", EventStream(ev, (32, 32)))
+    first = load_event_frames(tmp_path / "e.npz", window_ms=10.0)
+    zero = load_event_frames(tmp_path / "e.npz", window_ms=10.0, anchor="zero")
+    given = load_event_frames(tmp_path / "e.npz", window_ms=10.0, anchor=40_000)
+    assert zero.shape[0] == int(ev["t"].max()) // 10_000 + 1 and zero[:2].sum() == 0
+    np.testing.assert_array_equal(zero.numpy(), np.clip(loop_frames(
+        ev, 32, 32, 10_000, None, "count", 0), 0, 255))
+    np.testing.assert_array_equal(given.numpy(), np.clip(loop_frames(
+        ev, 32, 32, 10_000, None, "count", 40_000), 0, 255))
+    assert float(first.sum()) == 3000 and float(given.sum()) == (ev["t"] >= 40_000).sum()

@@ -1,14 +1,23 @@
 """Frames from events: time-window or event-count accumulation, downsampled by area pooling.
 
-Event ``i`` falls into window ``(t_i - t_start) // window_us`` (or ``i // event_count``) and
-lands at flat index ``window * H * W + y * W + x`` (``((window * 2 + p) * H + y) * W + x``
-for two channels); one ``torch.bincount`` builds all frames, on the CPU or CUDA. Windows
-without events give zero frames (they are kept, so frame ``k`` always covers
-``[t_start + k * window_us, t_start + (k + 1) * window_us)``). A last, partial event-count
+Windows start at an *anchor* (see :func:`window_origin`): the first event (default), sensor
+time zero, or a given sensor time; events before the anchor are dropped. Event ``i`` falls
+into window ``(t_i - origin) // window_us`` (or ``i // event_count`` among the kept events)
+and lands at flat index ``(window * C + c) * H * W + y * W + x`` (channel ``c = p`` for two
+channels, else 0); one scatter-add (``torch.bincount``) builds all frames. Windows without
+events give zero frames (they are kept, so frame ``k`` always covers
+``[origin + k * window_us, origin + (k + 1) * window_us)``). A last, partial event-count
 window is kept.
+
+Two kernels compute the flat indices, chosen by the device the frames are built on
+(:func:`_kernel_for`): on the CPU NumPy does the index arithmetic in int32 where it fits and
+uses the time order (window bounds by ``searchsorted`` instead of a division per event); on
+other devices (CUDA) the same arithmetic runs in torch on the device.
 """
 
 from __future__ import annotations
+
+import numbers
 
 import numpy as np
 import torch
@@ -18,20 +27,44 @@ from torchseq.events.filters import check_events_present, hot_pixel_mask, refrac
 from torchseq.events.stream import EventStream, as_event_array, infer_sensor_size
 
 MODES = ("signed", "two_channel", "binary", "count")
+MAX_FRAME_ELEMENTS = 2**32  # bound on T * C * H * W of one accumulation (16 GiB float32)
+
+
+def window_origin(t: np.ndarray, anchor: str | int = "first") -> int:
+    """Sensor time (us) where window 0 starts.
+
+    Args:
+        t: ``(N,)`` event times in microseconds (N >= 1 for ``"first"``).
+        anchor: ``"first"`` (the earliest event), ``"zero"`` (sensor time 0) or an int
+            sensor time in microseconds.
+
+    Returns:
+        The origin; frame ``k`` of a time-window accumulation covers
+        ``[origin + k * window_us, origin + (k + 1) * window_us)``.
+    """
+    if isinstance(anchor, str):
+        if anchor == "first":
+            if len(t) == 0:
+                raise ValueError("anchor='first' needs at least one event")
+            return int(t.min())
+        if anchor == "zero":
+            return 0
+        raise ValueError(f"anchor must be 'first', 'zero' or an int time in us, got {anchor!r}")
+    if isinstance(anchor, bool) or not isinstance(anchor, numbers.Integral):
+        raise ValueError(f"anchor must be 'first', 'zero' or an int time in us, got {anchor!r}")
+    return int(anchor)
 
 
 def window_index(t: np.ndarray, window_us: int | None, event_count: int | None,
                  t_start: int | None = None) -> tuple[np.ndarray, int]:
-    """``(N,)`` window of each event and the number of windows ``T``."""
-    if (window_us is None) == (event_count is None):
-        raise ValueError("give exactly one of window_us and event_count")
+    """``(N,)`` window of each event and the number of windows ``T`` (reference form).
+
+    ``t_start`` is the origin (default the first event); events must not precede it.
+    """
+    _check_window(window_us, event_count)
     if event_count is not None:
-        if event_count < 1:
-            raise ValueError(f"event_count must be >= 1, got {event_count}")
         idx = np.arange(len(t), dtype=np.int64) // int(event_count)
     else:
-        if window_us <= 0:
-            raise ValueError(f"window_us must be > 0, got {window_us}")
         t0 = int(t.min()) if t_start is None else int(t_start)
         if t0 > t.min():
             raise ValueError(f"t_start {t0} is after the first event ({int(t.min())} us)")
@@ -39,12 +72,21 @@ def window_index(t: np.ndarray, window_us: int | None, event_count: int | None,
     return idx, int(idx.max()) + 1
 
 
+def _check_window(window_us, event_count) -> None:
+    if (window_us is None) == (event_count is None):
+        raise ValueError("give exactly one of window_us and event_count")
+    if event_count is not None and event_count < 1:
+        raise ValueError(f"event_count must be >= 1, got {event_count}")
+    if window_us is not None and window_us <= 0:
+        raise ValueError(f"window_us must be > 0, got {window_us}")
+
+
 def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | None = None,
                window_us: int | None = 10_000, event_count: int | None = None,
                mode: str = "signed", hot_pixel: float | None = None,
                refractory_us: int | None = None, downsample: tuple[int, int] | None = None,
                t_start: int | None = None, device: torch.device | str | None = None,
-               dtype: torch.dtype = torch.float32) -> torch.Tensor:
+               dtype: torch.dtype = torch.float32, anchor: str | int = "first") -> torch.Tensor:
     """Accumulate events into frames.
 
     Args:
@@ -57,20 +99,31 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
         hot_pixel: drop pixels with more than this many times the median count of active
             pixels (None: off).
         refractory_us: drop events within this time of the pixel's last kept event.
-        downsample: ``(H', W')`` output size by area pooling (mean over each block).
-        t_start: time of the first window's start (default the first event's time).
-        device: where to build the frames.
-        dtype: output float dtype.
+        downsample: ``(H', W')`` output size by area pooling (mean over each block). When
+            ``H'``, ``W'`` divide the sensor size (and the mode is not ``"binary"``) events
+            are binned straight into the pooled pixels: same frames, no full-size buffer.
+        t_start: older spelling of an int ``anchor`` that raises when events precede it.
+        device: where to build the frames (picks the kernel, see the module docstring).
+        dtype: output float dtype (float64 accumulates in float64, others in float32: exact
+            up to 2**24 events per pixel and window).
+        anchor: where window 0 starts: ``"first"`` (the first event, default), ``"zero"``
+            (sensor time 0, so frame ``k`` covers ``[k * window_us, (k + 1) * window_us)``)
+            or an int sensor time in microseconds. **Events before the anchor are dropped**
+            (also with ``event_count``, which then counts from the first kept event).
 
     Returns:
         ``(T, H, W)`` frames, or ``(T, 2, H, W)`` for ``"two_channel"``.
 
     Raises:
-        EventFormatError: no events.
-        ValueError: bad mode, window or size.
+        EventFormatError: no events (or none at or after the anchor).
+        ValueError: bad mode, window, anchor or size, polarity not 0/1, or frames of more
+            than ``MAX_FRAME_ELEMENTS`` elements (a far anchor, tiny windows).
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if event_count is not None:
+        window_us = None
+    _check_window(window_us, event_count)
     if isinstance(events, EventStream):
         sensor_size = sensor_size or events.sensor_size
         events = events.events
@@ -78,40 +131,143 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
     check_events_present(events)
     sensor_size = tuple(sensor_size) if sensor_size else infer_sensor_size(events)
     EventStream(events[:0], sensor_size)  # checks the size
-    win, n_frames = window_index(events["t"], window_us if event_count is None else None,
-                                 event_count, t_start)
+    w, h = sensor_size
+    if t_start is not None:
+        if not (isinstance(anchor, str) and anchor == "first"):
+            raise ValueError("give anchor or t_start, not both")
+        if int(t_start) > int(events["t"].min()):
+            raise ValueError(f"t_start {int(t_start)} is after the first event "
+                             f"({int(events['t'].min())} us)")
+        anchor = int(t_start)
+    origin = window_origin(events["t"], anchor)
+    if not (isinstance(anchor, str) and anchor == "first"):
+        events = events[events["t"] >= origin] if events["t"].min() < origin else events
+        check_events_present(events)
+    _check_fields(events, w, h)
     keep = None
     if hot_pixel is not None:
         keep = hot_pixel_mask(events, sensor_size, hot_pixel)
     if refractory_us is not None:
         mask = refractory_mask(events, sensor_size, refractory_us)
         keep = mask if keep is None else keep & mask
-    w, h = sensor_size
-    x, y, p = events["x"], events["y"], events["p"]
-    if x.min() < 0 or y.min() < 0 or x.max() >= w or y.max() >= h:
-        raise ValueError(f"events outside the {w}x{h} sensor: wrong sensor_size?")
     if keep is not None:
-        x, y, p, win = x[keep], y[keep], p[keep], win[keep]
+        events = events[keep]
     channels = 2 if mode == "two_channel" else 1
-    flat = win * (channels * h * w)  # int64
-    if channels == 2:
-        flat += p.astype(np.int64) * (h * w)
-    flat += y.astype(np.int64) * w
-    flat += x
-    dev = torch.device(device) if device is not None else torch.device("cpu")
-    acc = torch.float64 if dtype == torch.float64 else torch.float32  # exact below 2**24
-    weights = None
-    if mode == "signed":
-        weights = torch.from_numpy(p).to(dev).to(acc).mul_(2).sub_(1)
-    size = n_frames * channels * h * w
-    frames = torch.bincount(torch.from_numpy(flat).to(dev), weights=weights,
-                            minlength=size).to(dtype)
-    if mode == "binary":
-        frames = (frames > 0).to(dtype)
-    frames = frames.reshape(n_frames, channels, h, w)
+    out_h, out_w, fh, fw = h, w, 1, 1
     if downsample is not None:
-        dh, dw = downsample
+        dh, dw = (int(v) for v in downsample)
         if not (0 < dh <= h and 0 < dw <= w):
             raise ValueError(f"downsample size {downsample} must be within the {h}x{w} frame")
-        frames = F.adaptive_avg_pool2d(frames, (int(dh), int(dw)))
+        if mode != "binary" and h % dh == 0 and w % dw == 0:
+            out_h, out_w, fh, fw = dh, dw, h // dh, w // dw
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    acc = torch.float64 if dtype == torch.float64 else torch.float32
+    geometry = _Geometry(out_w, out_h, fw, fh, channels)
+    n_frames = _count_windows(events["t"], origin, window_us, event_count)
+    size = n_frames * channels * out_h * out_w
+    if size > MAX_FRAME_ELEMENTS:
+        raise ValueError(
+            f"{n_frames} windows of {channels}x{out_h}x{out_w} would need {size:,} elements "
+            f"(> {MAX_FRAME_ELEMENTS:,}): use a later anchor, longer windows or downsample")
+    _, kernel = _kernel_for(dev)
+    frames = kernel(events, origin, window_us, event_count, n_frames, geometry,
+                    mode == "signed", acc, dev)
+    frames = frames.reshape(n_frames, channels, out_h, out_w)
+    if mode == "binary":
+        frames = (frames > 0).to(acc)
+    if fh * fw > 1:
+        frames = frames / (fh * fw)
+    elif downsample is not None and (out_h, out_w) != (int(downsample[0]), int(downsample[1])):
+        frames = F.adaptive_avg_pool2d(frames, (int(downsample[0]), int(downsample[1])))
+    frames = frames.to(dtype)
     return frames if channels == 2 else frames[:, 0]
+
+
+class _Geometry:
+    """Output layout: ``(C, H', W')`` and the integer pooling factors ``(fh, fw)``."""
+
+    def __init__(self, w: int, h: int, fw: int, fh: int, channels: int) -> None:
+        self.w, self.h, self.fw, self.fh, self.channels = w, h, fw, fh, channels
+        self.plane = w * h
+
+
+def _check_fields(events: np.ndarray, w: int, h: int) -> None:
+    # int16 seen as uint16: negative coordinates become >= 32768, so one max checks both ends
+    if len(events) == 0:
+        return
+    if (int(events["x"].view(np.uint16).max()) >= w
+            or int(events["y"].view(np.uint16).max()) >= h):
+        raise ValueError(f"events outside the {w}x{h} sensor: wrong sensor_size?")
+    if int(events["p"].max()) > 1:
+        raise ValueError(f"polarity must be 0 or 1, found {int(events['p'].max())}")
+
+
+def _count_windows(t: np.ndarray, origin: int, window_us, event_count) -> int:
+    if event_count is not None:
+        return max(1, -(-len(t) // int(event_count)))
+    return (int(t.max()) - origin) // int(window_us) + 1
+
+
+def _kernel_for(device: torch.device):
+    """``(name, kernel)`` that builds frames on ``device``.
+
+    ``"numpy"`` on the CPU, else ``"torch"`` (the index arithmetic on the device).
+    """
+    if device.type == "cpu":
+        return "numpy", _bins_numpy
+    return "torch", _bins_torch
+
+
+def _bins_numpy(events, origin, window_us, event_count, n_frames, g: _Geometry, signed, acc,
+                device) -> torch.Tensor:
+    t, x, y, p = events["t"], events["x"], events["y"], events["p"]
+    n = len(t)
+    stride = g.channels * g.plane
+    itype = np.int32 if n_frames * stride < 2**31 else np.int64
+    if event_count is not None:
+        counts = np.full(n_frames, int(event_count), np.int64)
+        counts[-1] = n - (n_frames - 1) * int(event_count)
+        flat = np.repeat(np.arange(n_frames, dtype=itype) * itype(stride), counts)
+    elif n < 2 or bool((t[1:] >= t[:-1]).all()):  # time-ordered: bounds by searchsorted
+        bounds = np.searchsorted(t, origin + np.arange(1, n_frames) * int(window_us))
+        counts = np.diff(np.concatenate(([0], bounds, [n])))
+        flat = np.repeat(np.arange(n_frames, dtype=itype) * itype(stride), counts)
+    else:
+        flat = np.subtract(t, origin)
+        np.floor_divide(flat, int(window_us), out=flat)
+        flat = flat.astype(itype, copy=False)
+        flat *= itype(stride)
+    if g.fh > 1:
+        flat += np.floor_divide(y, g.fh, dtype=itype) * itype(g.w)
+    else:
+        flat += np.multiply(y, itype(g.w), dtype=itype)
+    flat += np.floor_divide(x, g.fw, dtype=itype) if g.fw > 1 else x
+    if g.channels == 2:
+        flat += np.multiply(p, itype(g.plane), dtype=itype)
+    ftype = np.float64 if acc == torch.float64 else np.float32
+    if signed:
+        weights = np.multiply(p, ftype(2), dtype=ftype)
+        weights -= 1
+    else:
+        weights = np.ones(n, ftype)
+    frames = torch.bincount(torch.from_numpy(flat), torch.from_numpy(weights),
+                            minlength=n_frames * stride)
+    return frames.to(device)
+
+
+def _bins_torch(events, origin, window_us, event_count, n_frames, g: _Geometry, signed, acc,
+                device) -> torch.Tensor:
+    t, x, y, p = (torch.from_numpy(events[f]).to(device) for f in "txyp")
+    stride = g.channels * g.plane
+    if event_count is not None:
+        flat = torch.arange(len(t), device=device).div_(int(event_count), rounding_mode="floor")
+    else:
+        flat = (t - origin).div_(int(window_us), rounding_mode="floor")
+    flat *= stride
+    flat += y.long().div_(g.fh, rounding_mode="floor") * g.w
+    flat += x.long().div_(g.fw, rounding_mode="floor")
+    if g.channels == 2:
+        flat += p.long() * g.plane
+    weights = p.to(acc).mul_(2).sub_(1) if signed else torch.ones(len(t), dtype=acc,
+                                                                  device=device)
+    return torch.bincount(flat, weights, minlength=n_frames * stride)

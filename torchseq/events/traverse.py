@@ -13,7 +13,7 @@ from torchseq.events.io import read_events
 def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: int | None = None,
                       frame_size: tuple[int, int] | None = None,
                       sensor_size: tuple[int, int] | None = None, mode: str = "count",
-                      **options) -> torch.Tensor:
+                      anchor: str | int = "first", **options) -> torch.Tensor:
     """Read an event file and accumulate it into grey frames.
 
     Each pixel of a frame is the number of events (both polarities) it fired in the window
@@ -28,6 +28,10 @@ def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: in
         frame_size: ``(H, W)`` to area-pool the frames to, or None for the sensor size.
         sensor_size: ``(W, H)`` override of the file's sensor size.
         mode: ``"count"`` or ``"signed"`` (its absolute value).
+        anchor: where window 0 starts: ``"first"`` (the first event, default), ``"zero"``
+            (sensor time 0) or an int sensor time in microseconds; frame ``k`` covers
+            ``[origin + k * window, origin + (k + 1) * window)``. Events before the anchor
+            are dropped (see :func:`torchseq.events.accumulate`).
         **options: reader options (see :func:`torchseq.events.iter_events`).
 
     Returns:
@@ -39,7 +43,8 @@ def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: in
         raise ValueError(f"window_ms must be > 0, got {window_ms}")
     stream = read_events(path, sensor_size=sensor_size, sort=True, **options)
     window_us = None if event_count is not None else max(1, int(round(window_ms * 1000)))
-    frames = accumulate(stream, window_us=window_us, event_count=event_count, mode=mode)
+    frames = accumulate(stream, window_us=window_us, event_count=event_count, mode=mode,
+                        anchor=anchor)
     frames = frames.abs().clamp_(0, 255)
     if frame_size is not None:
         frames = accumulate_pool(frames, frame_size)
