@@ -7,9 +7,17 @@ sensor size ``(W, H)``: an :class:`EventStream`. See ``docs/events.md``.
 from torchseq.events.aedat2 import iter_aedat2, write_aedat2
 from torchseq.events.aedat4 import iter_aedat4
 from torchseq.events.filters import hot_pixel_mask, refractory_mask
-from torchseq.events.frames import accumulate
+from torchseq.events.frames import accumulate, window_origin
+from torchseq.events.hdf5 import iter_hdf5, read_hdf5_positions, write_hdf5
 from torchseq.events.io import detect_format, iter_events, read_events
+from torchseq.events.parquet import iter_parquet, write_parquet
 from torchseq.events.plain import read_csv, read_npz, write_npz
+from torchseq.events.positions import (
+    geodetic_to_ecef,
+    ground_truth_within,
+    positions_at,
+    window_times,
+)
 from torchseq.events.prophesee import iter_raw
 from torchseq.events.runs import EventRun, simulate_run
 from torchseq.events.simulator import frames_to_events
@@ -45,4 +53,14 @@ __all__ = [
     "refractory_mask",
     "write_aedat2",
     "write_npz",
+    "iter_hdf5",
+    "read_hdf5_positions",
+    "write_hdf5",
+    "iter_parquet",
+    "write_parquet",
+    "window_origin",
+    "window_times",
+    "positions_at",
+    "geodetic_to_ecef",
+    "ground_truth_within",
 ]

@@ -10,6 +10,8 @@ The format is found from the file's first bytes (magic), then its suffix:
 | NumPy ``.npy`` structured array | NumPy magic | yes (memory map) |
 | NumPy ``.npz`` | zip magic | no |
 | CSV / text ``t,x,y,p`` | ``.csv`` / ``.txt`` suffix | no |
+| HDF5 ``events/{t,x,y,p}`` (NSAVP, DSEC, ...; needs h5py) | HDF5 magic | yes |
+| Parquet ``t,x,y,p`` table (needs pyarrow) | ``PAR1`` magic | yes |
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ DEFAULT_CHUNK = 1 << 20
 
 
 def detect_format(path: str | Path) -> str:
-    """Name the event format of ``path``: aedat2, aedat4, raw, npy, npz or csv."""
+    """Name the event format of ``path``: aedat2, aedat4, raw, npy, npz, csv, hdf5, parquet."""
     path = Path(path)
     if not path.is_file():
         raise EventFormatError(f"no such event file: {path}")
@@ -49,6 +51,10 @@ def detect_format(path: str | Path) -> str:
         return "npy"
     if head.startswith(b"PK"):
         return "npz"
+    if head.startswith(b"\x89HDF\r\n\x1a\n"):
+        return "hdf5"
+    if head.startswith(b"PAR1"):
+        return "parquet"
     if path.suffix.lower() in (".csv", ".txt"):
         return "csv"
     raise EventFormatError(f"{path}: unknown event file format (starts {head[:12]!r})")
@@ -61,6 +67,14 @@ def _chunks(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict)
         return iter_aedat4(path, chunk_events, sensor_size, **options)
     if fmt == "raw":
         return iter_raw(path, chunk_events, sensor_size, **options)
+    if fmt == "hdf5":
+        from torchseq.events.hdf5 import iter_hdf5
+
+        return iter_hdf5(path, chunk_events, sensor_size, **options)
+    if fmt == "parquet":
+        from torchseq.events.parquet import iter_parquet
+
+        return iter_parquet(path, chunk_events, sensor_size, **options)
     if options:
         raise TypeError(f"options {sorted(options)} do not apply to {fmt} files")
     if fmt == "npy":
