@@ -1,4 +1,4 @@
-"""Event benchmarks: accumulation throughput and reader throughput, one thread, one run.
+"""Event benchmarks: accumulation, readers and the speed experiment end to end; one thread.
 
     .venv/bin/python benchmarks/bench_events.py            # prints Markdown tables
     .venv/bin/python benchmarks/bench_events.py --write-docs   # also updates docs/events.md
@@ -9,6 +9,13 @@ a slice, extrapolated per event) and tonic's ``to_frame_numpy`` when tonic is in
 (benchmark only; loaded without its dataset dependencies). Readers: events per second on
 the real files (best of 3 passes, each a whole file read) and on a 4M-event AEDAT 2.0 file
 written to a temporary folder.
+
+Accumulation rows also time the previous implementation (int64 flat index, one weighted
+bincount; kept here as ``previous_accumulate``) in the same run, a 20M-event stream, CUDA
+when available, and a three-member temporal-window ensemble (one pass) against three
+separate accumulations. The experiment row times the seed's speed experiment end to end on
+files: runs A and B (demo route) written as AEDAT 2.0, then read, accumulated into 10 ms
+windows, pooled to 16x16 and matched with SeqSLAM (ds = 100).
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import numpy as np
 import torch
 
 from torchseq.events import EventStream, accumulate, make_events, read_events, write_aedat2
+from torchseq.events.ensemble import accumulate_ensemble
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "events"
@@ -121,6 +129,112 @@ def bench_accumulate(n_events: int) -> list[tuple[str, float, str]]:
     return rows
 
 
+def previous_accumulate(ev, w, h, window_us):
+    """The accumulate of the previous commit: int64 flat index, signed weights, bincount."""
+    t0 = int(ev["t"].min())
+    win = (ev["t"].astype(np.int64) - t0) // window_us
+    n = int(win.max()) + 1
+    flat = win * (h * w)
+    flat += ev["y"].astype(np.int64) * w
+    flat += ev["x"]
+    weights = torch.from_numpy(ev["p"]).to(torch.float32).mul_(2).sub_(1)
+    return torch.bincount(torch.from_numpy(flat), weights=weights,
+                          minlength=n * h * w).reshape(n, h, w)
+
+
+def random_stream(n_events, w=128, h=128, span_us=2_000_000, seed=0):
+    rng = np.random.default_rng(seed)
+    return EventStream(make_events(np.sort(rng.integers(0, span_us, n_events)),
+                                   rng.integers(0, w, n_events), rng.integers(0, h, n_events),
+                                   rng.integers(0, 2, n_events)), (w, h))
+
+
+def bench_accumulate_kernels(sizes=(2_000_000, 20_000_000)) -> list[tuple[str, float, str]]:
+    """This accumulate against the previous one, per size; CUDA and ensemble rows."""
+    rows = []
+    for n in sizes:
+        s = random_stream(n)
+        t_new, new = timed(lambda: accumulate(s, window_us=10_000, mode="signed"), 3)
+        t_old, old = timed(lambda: previous_accumulate(s.events, 128, 128, 10_000), 3)
+        assert torch.equal(new, old)
+        rows.append((f"accumulate, {n / 1e6:g}M events (signed, CPU)", n / t_new,
+                     f"{t_old / t_new:.1f}x the previous implementation"))
+        rows.append((f"previous accumulate, {n / 1e6:g}M events", n / t_old, "same frames"))
+        if torch.cuda.is_available():
+            accumulate(s, window_us=10_000, device="cuda")
+            torch.cuda.synchronize()
+
+            def on_gpu():
+                f = accumulate(s, window_us=10_000, device="cuda")
+                torch.cuda.synchronize()
+                return f
+
+            t_gpu, f = timed(on_gpu, 3)
+            assert torch.equal(f.cpu(), new)
+            rows.append((f"accumulate, {n / 1e6:g}M events (CUDA, incl. host->device copy)",
+                         n / t_gpu, f"{t_new / t_gpu:.1f}x the CPU"))
+    s = random_stream(sizes[0])
+    windows = (10_000, 20_000, 40_000)
+    t_ens, _ = timed(lambda: accumulate_ensemble(s, windows, step_us=10_000, mode="count",
+                                                 downsample=(16, 16)), 3)
+    t_sep, _ = timed(lambda: [accumulate(s, window_us=L, mode="count", downsample=(16, 16))
+                              for L in windows], 3)
+    rows.append((f"ensemble 10+20+40 ms, {sizes[0] / 1e6:g}M events, one pass (16x16)",
+                 sizes[0] / t_ens, f"{t_sep / t_ens:.1f}x of three accumulations' time"
+                 " (those give uncentred windows)"))
+    return rows
+
+
+def bench_experiment() -> list[tuple[str, float, str]]:
+    """The seed's speed experiment (demo route, runs A and B) end to end from files."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import speed_experiment as se
+
+    from torchseq.events.runs import simulate_run
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+
+    cfg = se.Config()
+    frames, positions, units_per_s = se.route_frames(cfg)
+    sim = dict(contrast_threshold=cfg.contrast_threshold, threshold_noise=cfg.threshold_noise,
+               noise_rate_hz=cfg.noise_rate_hz)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = {}
+        for name, speed, seed in (("A", 1.0, 1), ("B", 0.66, 2)):
+            run = simulate_run(frames, positions, speed, units_per_s, seed=seed, **sim)
+            paths[name] = Path(tmp) / f"{name}.aedat"
+            write_aedat2(paths[name], run.stream)
+        sc = SeqSLAMConfig(image_size=cfg.pooled, patch_size=cfg.patch_size, ds=cfg.ds,
+                           enhance_window=cfg.enhance_window, speed_ratio=0.66)
+        n_events = 0
+        seconds = {"read": 0.0, "accumulate": 0.0, "match": 0.0}
+
+        def pipeline():
+            nonlocal n_events
+            pooled = {}
+            n_events = 0
+            for name, path in paths.items():
+                t = time.perf_counter()
+                s = read_events(path)
+                seconds["read"] += time.perf_counter() - t
+                t = time.perf_counter()
+                pooled[name] = accumulate(s, window_us=10_000, mode="count", anchor="zero",
+                                          downsample=cfg.pooled)
+                seconds["accumulate"] += time.perf_counter() - t
+                n_events += len(s)
+            t = time.perf_counter()
+            res = SeqSLAM(sc).match(pooled["A"][:cfg.n_reference],
+                                    pooled["B"][:int(cfg.n_reference / 0.66)])
+            seconds["match"] += time.perf_counter() - t
+            return res
+
+        total, _ = timed(pipeline, 1)
+        parts = ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in seconds.items())
+        rows.append((f"speed experiment B->A end to end ({n_events:,} events in 2 AEDAT files)",
+                     n_events / total, f"{total:.2f} s: {parts}"))
+    return rows
+
+
 def bench_readers() -> list[tuple[str, float, str]]:
     rows = []
     files = [("IMU_translBoxes.aedat", "AEDAT 2.0 DAVIS", {}),
@@ -162,8 +276,12 @@ def main() -> None:
     torch.set_num_threads(1)
     text = (f"Accumulation of {args.events:,} random events (128x128, 10 ms windows over 2 s, "
             f"signed frames), one thread:\n\n"
-            + table("accumulation", bench_accumulate(args.events)) + "\n\nReaders (whole-file "
-            "read, best of 3):\n\n" + table("reader", bench_readers()))
+            + table("accumulation", bench_accumulate(args.events)) + "\n\nAccumulation "
+            "against the previous implementation (same frames, one run, best of 3):\n\n"
+            + table("accumulation", bench_accumulate_kernels()) + "\n\nReaders (whole-file "
+            "read, best of 3):\n\n" + table("reader", bench_readers())
+            + "\n\nThe seed's speed experiment end to end (read, accumulate, match; one "
+            "run):\n\n" + table("pipeline", bench_experiment()))
     print(text)
     if args.write_docs and DOC.exists():
         doc = DOC.read_text()

@@ -7,6 +7,11 @@ whose velocity search is narrowed around the known speed ratio (reference window
 window). Ground truth comes exactly from the route positions. Also evaluates SeqSLAM on the
 real event frames of lens-davis128.
 
+Temporal-window ensembles (``--ensemble-ms``, default 10 20 40): frames at each window
+length centred on the same 10 ms steps (one pass over the events), matched alone and as an
+ensemble (averaged enhanced difference matrices), for B, C and a query whose appearance
+changed (``Bdark``: B's speed, frames relit darker with a lighting ramp and sensor noise).
+
     python experiments/speed_experiment.py --out runs/events_speed
     python experiments/speed_experiment.py --small --out /tmp/x   # the fast test setting
 """
@@ -27,8 +32,9 @@ import torch
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from torchseq.demo import make_world, render  # noqa: E402
+from torchseq.demo import make_world, relight, render  # noqa: E402
 from torchseq.events import accumulate  # noqa: E402
+from torchseq.events.ensemble import accumulate_ensemble, match_ensemble  # noqa: E402
 from torchseq.events.runs import ground_truth, simulate_run  # noqa: E402
 from torchseq.metrics import evaluate  # noqa: E402
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig  # noqa: E402
@@ -58,6 +64,11 @@ class Config:
     refractory_us: int = 0
     seed: int = 0
     lens_ds: int = 10
+    ensemble_ms: tuple = (10.0, 20.0, 40.0)  # member windows; () skips the ensembles
+    # the appearance-changed query: B's speed, relit (gain, gamma, ramp, noise as demo.relight)
+    changed: dict = field(default_factory=lambda: {"name": "Bdark", "speed": 0.66, "gain": 0.5,
+                                                   "gamma": 1.6, "gradient": 0.3,
+                                                   "noise": 6.0})
 
 
 def route_frames(cfg: Config) -> tuple[np.ndarray, np.ndarray, float]:
@@ -82,7 +93,7 @@ def route_frames(cfg: Config) -> tuple[np.ndarray, np.ndarray, float]:
 
 def event_frames(run, cfg: Config, n_windows: int | None = None):
     window_us = int(round(cfg.window_ms * 1000))
-    full = accumulate(run.stream, window_us=window_us, mode=cfg.mode, t_start=0)
+    full = accumulate(run.stream, window_us=window_us, mode=cfg.mode, anchor="zero")
     if n_windows is not None:
         full = full[:n_windows]
     pooled = torch.nn.functional.adaptive_avg_pool2d(full[:, None], cfg.pooled)[:, 0]
@@ -126,6 +137,28 @@ def plot_pairs(path: Path, ref_full, query_full, result, title: str, n: int = 6)
     plt.close(fig)
 
 
+def ensemble_frames(run, cfg: Config, n_windows: int) -> torch.Tensor:
+    """``(M, T, 16, 16)`` member frames centred on the 10 ms steps (anchor: time zero)."""
+    step = int(round(cfg.window_ms * 1000))
+    members = accumulate_ensemble(run.stream, [int(round(ms * 1000)) for ms in cfg.ensemble_ms],
+                                  step_us=step, mode=cfg.mode, downsample=cfg.pooled,
+                                  anchor="zero")
+    return members[:, :n_windows]
+
+
+def ensemble_rows(ref_members, q_members, gt, sc: SeqSLAMConfig, cfg: Config) -> dict:
+    """Single members and the ensemble on one pair: recall@1 and correct coverage."""
+    rows = {}
+    for i, ms in enumerate(cfg.ensemble_ms):
+        m = evaluate(SeqSLAM(sc).match(ref_members[i], q_members[i]).matches, gt)
+        rows[f"single {ms:g} ms"] = {k: m[k] for k in ("recall_at_1", "correct_coverage",
+                                                        "coverage", "auc")}
+    m = evaluate(match_ensemble(list(ref_members), list(q_members), sc).matches, gt)
+    rows["ensemble " + "+".join(f"{ms:g}" for ms in cfg.ensemble_ms) + " ms"] = {
+        k: m[k] for k in ("recall_at_1", "correct_coverage", "coverage", "auc")}
+    return rows
+
+
 def run_speed_pairs(cfg: Config, out: Path) -> dict:
     t0 = time.perf_counter()
     frames, positions, units_per_s = route_frames(cfg)
@@ -137,8 +170,17 @@ def run_speed_pairs(cfg: Config, out: Path) -> dict:
     a_pos = a.window_positions(len(a_small), window_us) / (units_per_s * cfg.window_ms * 1e-3)
     results = {"route": cfg.route, "n_events": {"A": len(a.stream)},
                "windows": {"A": len(a_small)}}
-    for k, (name, speed) in enumerate(cfg.speeds.items()):
-        run = simulate_run(frames, positions, speed, units_per_s, seed=cfg.seed + 2 + k, **sim)
+    a_members = ensemble_frames(a, cfg, cfg.n_reference) if cfg.ensemble_ms else None
+    queries = list(cfg.speeds.items())
+    if cfg.ensemble_ms and cfg.changed:
+        queries.append((cfg.changed["name"], cfg.changed["speed"]))
+    for k, (name, speed) in enumerate(queries):
+        views = frames
+        if cfg.changed and name == cfg.changed["name"]:
+            c = cfg.changed
+            views = relight(frames, c["gain"], c["gamma"], c["gradient"], c["noise"],
+                            np.random.default_rng(cfg.seed + 99))
+        run = simulate_run(views, positions, speed, units_per_s, seed=cfg.seed + 2 + k, **sim)
         n_q = int(np.floor(cfg.n_reference / speed))
         q_full, q_small = event_frames(run, cfg, n_q)
         q_pos = run.window_positions(len(q_small), window_us) / (
@@ -160,6 +202,9 @@ def run_speed_pairs(cfg: Config, out: Path) -> dict:
         metrics.update(speed_ratio=speed, n_events=len(run.stream), windows=len(q_small),
                        events_per_window=len(run.stream) / max(len(q_small), 1),
                        seconds=res.seconds["total"])
+        if a_members is not None:
+            metrics["ensembles"] = ensemble_rows(a_members, ensemble_frames(run, cfg, n_q), gt,
+                                                 sc, cfg)
         results[f"{name}->A"] = metrics
         plot_matrix(out / f"{cfg.route}_{name}_to_A_matrix.png", res, gt,
                     f"{cfg.route}: {name} ({speed:.0%} of A) -> A, enhanced differences")
@@ -199,6 +244,8 @@ def parse(argv=None) -> tuple[Config, Path]:
     p.add_argument("--speed-tolerance", type=float, default=None)
     p.add_argument("--ds", type=int, default=None)
     p.add_argument("--no-lens", action="store_true")
+    p.add_argument("--ensemble-ms", type=float, nargs="*", default=None,
+                   help="member window lengths in ms (none: skip the ensembles)")
     args = p.parse_args(argv)
     cfg = Config(route=args.route)
     if args.small:
@@ -207,6 +254,8 @@ def parse(argv=None) -> tuple[Config, Path]:
         if getattr(args, name) is not None:
             setattr(cfg, name, getattr(args, name))
     cfg.no_lens = args.no_lens
+    if args.ensemble_ms is not None:
+        cfg.ensemble_ms = tuple(args.ensemble_ms)
     return cfg, args.out
 
 
@@ -226,6 +275,9 @@ def main(argv=None) -> dict:
         print(f"{cfg.route} {key}: recall@1 {m['recall_at_1']:.3f}  correct coverage "
               f"{m['correct_coverage']:.3f}  coverage {m['coverage']:.3f}  "
               f"R@100P {m['recall_at_100_precision']:.3f}  AUC {m['auc']:.3f}")
+        for row, e in m.get("ensembles", {}).items():
+            print(f"    {row:24s} recall@1 {e['recall_at_1']:.3f}  correct coverage "
+                  f"{e['correct_coverage']:.3f}  AUC {e['auc']:.3f}")
     if results.get("lens_davis128"):
         m = results["lens_davis128"]
         print(f"lens-davis128: recall@1 {m['recall_at_1']:.3f}  AUC {m['auc']:.3f}")
