@@ -7,7 +7,7 @@ whose velocity search is narrowed around the known speed ratio (reference window
 window). Ground truth comes exactly from the route positions. Also evaluates SeqSLAM on the
 real event frames of lens-davis128.
 
-Temporal-window ensembles (``--ensemble-ms``, default 10 20 40): frames at each window
+Temporal-window ensembles (``--ensemble-ms``, default 5 10 20): frames at each window
 length centred on the same 10 ms steps (one pass over the events), matched alone and as an
 ensemble (averaged enhanced difference matrices), for B, C and a query whose appearance
 changed (``Bdark``: B's speed, frames relit darker with a lighting ramp and sensor noise).
@@ -64,7 +64,7 @@ class Config:
     refractory_us: int = 0
     seed: int = 0
     lens_ds: int = 10
-    ensemble_ms: tuple = (10.0, 20.0, 40.0)  # member windows; () skips the ensembles
+    ensemble_ms: tuple = (5.0, 10.0, 20.0)  # member windows; () skips the ensembles
     # the appearance-changed query: B's speed, relit (gain, gamma, ramp, noise as demo.relight)
     changed: dict = field(default_factory=lambda: {"name": "Bdark", "speed": 0.66, "gain": 0.5,
                                                    "gamma": 1.6, "gradient": 0.3,

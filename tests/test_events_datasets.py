@@ -283,3 +283,23 @@ def test_nsavp_poses_to_event_frame_ground_truth(tmp_path):
     np.testing.assert_allclose(pos[:, 0], centres * 1.5e-5)  # 1.5 m per 0.1 s
     gt = ground_truth_within(pos, pos, 0.31)
     assert gt.sum(0).tolist()[1:-1] == [3] * (len(frames) - 2)  # itself and one each side
+
+
+def test_load_traverse_reads_field_layouts(tmp_path):
+    from torchseq import EventFrameOptions, load_traverse
+    from torchseq.events import accumulate
+    from torchseq.events.hdf5 import write_hdf5
+    from torchseq.events.parquet import write_parquet
+
+    ev = sample(2000, seed=7)
+    s = EventStream(ev, (40, 30))
+    write_hdf5(tmp_path / "e.hdf5", s)
+    write_parquet(tmp_path / "e.parquet", s)
+    want = accumulate(s, window_us=10_000, mode="count").clamp(0, 255)
+    for name in ("e.hdf5", "e.parquet"):
+        got = load_traverse(tmp_path / name, EventFrameOptions(window_ms=10.0), progress=False)
+        assert torch_equal(got, want)
+
+
+def torch_equal(a, b):
+    return a.shape == b.shape and bool((a == b).all())

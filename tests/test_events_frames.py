@@ -171,6 +171,9 @@ def test_anchor_against_loop(monkeypatch, kernel, anchor, mode):
     ref = loop_frames(ev, 12, 8, 7_000, None, mode, origin=origin)
     assert tuple(got.shape) == ref.shape
     np.testing.assert_array_equal(got.numpy(), ref)
+    shuffled = ev[np.random.default_rng(3).permutation(len(ev))]  # unordered: masks, division
+    np.testing.assert_array_equal(accumulate(shuffled, (12, 8), window_us=7_000, mode=mode,
+                                             anchor=anchor).numpy(), ref)
     if anchor == "zero":  # frame k covers [k * window, (k + 1) * window) in sensor time
         assert got.shape[0] == int(ev["t"].max()) // 7_000 + 1
         assert got[:12_345 // 7_000].abs().sum() == 0

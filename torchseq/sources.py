@@ -18,7 +18,8 @@ from tqdm import tqdm
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v"}
-EVENT_SUFFIXES = {".aedat", ".aedat4", ".raw", ".dat", ".csv", ".txt", ".npz", ".npy", ".h5"}
+EVENT_SUFFIXES = {".aedat", ".aedat4", ".raw", ".dat", ".csv", ".txt", ".npz", ".npy", ".h5",
+                  ".hdf5", ".parquet"}
 
 Source = Union[str, Path, np.ndarray, torch.Tensor]
 
