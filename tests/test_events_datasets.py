@@ -18,7 +18,18 @@ from torchseq.events.positions import (
 )
 from torchseq.ground_truth import GroundTruthError
 
-h5py = pytest.importorskip("h5py", reason="h5py not installed (pip install torchseq[hdf5])")
+try:
+    import h5py
+except ImportError:  # the hdf5 extra is absent: its tests skip with the reason
+    h5py = None
+try:
+    import pyarrow as pa
+except ImportError:
+    pa = None
+needs_h5py = pytest.mark.skipif(h5py is None,
+                                reason="h5py not installed (pip install 'torchseq[hdf5]')")
+needs_pyarrow = pytest.mark.skipif(pa is None,
+                                   reason="pyarrow not installed (pip install 'torchseq[parquet]')")
 
 
 def sample(n=500, w=40, h=30, seed=0):
@@ -39,6 +50,7 @@ def write_nsavp(path, ev, w=40, h=30):
         g.create_dataset("polarities", data=ev["p"].astype(np.uint8), chunks=(64,))
 
 
+@needs_h5py
 def test_nsavp_layout_whole_and_chunked(tmp_path):
     ev = sample()
     write_nsavp(tmp_path / "R0_FA0_dvxplorer_left.h5", ev)
@@ -50,6 +62,7 @@ def test_nsavp_layout_whole_and_chunked(tmp_path):
     np.testing.assert_array_equal(np.concatenate([c.events for c in chunks]), ev)
 
 
+@needs_h5py
 def test_dsec_layout_offset_and_inferred_size(tmp_path):
     ev = sample(seed=1)
     with h5py.File(tmp_path / "events.h5", "w") as f:
@@ -67,6 +80,7 @@ def test_dsec_layout_offset_and_inferred_size(tmp_path):
         assert read_events(tmp_path / "events.h5", sensor_size=(64, 48)).sensor_size == (64, 48)
 
 
+@needs_h5py
 def test_float_seconds_matrix_and_compound_layouts(tmp_path):
     ev = sample(seed=2)
     with h5py.File(tmp_path / "xs.h5", "w") as f:
@@ -96,6 +110,7 @@ def test_float_seconds_matrix_and_compound_layouts(tmp_path):
     np.testing.assert_array_equal(got.events, ev)
 
 
+@needs_h5py
 def test_write_hdf5_round_trip(tmp_path):
     from torchseq.events.hdf5 import write_hdf5
 
@@ -113,6 +128,7 @@ def bad_file(tmp_path, name, build):
     return path
 
 
+@needs_h5py
 def test_hdf5_bad_files_raise_event_format_error(tmp_path):
     ev = sample(50)
 
@@ -171,9 +187,7 @@ def test_hdf5_bad_files_raise_event_format_error(tmp_path):
         read_events(good, time_unit="hours")
 
 
-pa = pytest.importorskip("pyarrow", reason="pyarrow not installed (pip install torchseq[parquet])")
-
-
+@needs_pyarrow
 def test_parquet_round_trip_and_brisbane_style_tables(tmp_path):
     import pyarrow.parquet as pq
 
@@ -202,6 +216,7 @@ def test_parquet_round_trip_and_brisbane_style_tables(tmp_path):
                                   .events, ev)
 
 
+@needs_pyarrow
 def test_parquet_bad_files(tmp_path, monkeypatch):
     import pyarrow.parquet as pq
 
@@ -260,6 +275,7 @@ def test_positions_and_ground_truth_against_loops():
         ground_truth_within(ref, got[:, :1], 1.0)
 
 
+@needs_h5py
 def test_nsavp_poses_to_event_frame_ground_truth(tmp_path):
     from torchseq.events import load_event_frames
     from torchseq.events.frames import window_origin
@@ -285,6 +301,8 @@ def test_nsavp_poses_to_event_frame_ground_truth(tmp_path):
     assert gt.sum(0).tolist()[1:-1] == [3] * (len(frames) - 2)  # itself and one each side
 
 
+@needs_h5py
+@needs_pyarrow
 def test_load_traverse_reads_field_layouts(tmp_path):
     from torchseq import EventFrameOptions, load_traverse
     from torchseq.events import accumulate
@@ -303,3 +321,41 @@ def test_load_traverse_reads_field_layouts(tmp_path):
 
 def torch_equal(a, b):
     return a.shape == b.shape and bool((a == b).all())
+
+
+@needs_h5py
+@needs_pyarrow
+@pytest.mark.parametrize("suffix", [".h5", ".parquet"])
+def test_mutated_files_give_valid_events_or_event_format_error(tmp_path, suffix):
+    """Truncations, byte flips, insertions and hostile 8-byte values in real-layout files."""
+    from torchseq.events.hdf5 import write_hdf5
+    from torchseq.events.parquet import write_parquet
+    from torchseq.events.stream import validate_events
+
+    rng = np.random.default_rng(11)
+    good = tmp_path / f"good{suffix}"
+    (write_hdf5 if suffix == ".h5" else write_parquet)(good, EventStream(sample(300), (40, 30)))
+    data = good.read_bytes()
+    for i in range(80):
+        m = bytearray(data)
+        kind = i % 4
+        if kind == 0:
+            m = m[:rng.integers(0, len(m))]
+        elif kind == 1:
+            for _ in range(rng.integers(1, 8)):
+                m[rng.integers(0, len(m))] = rng.integers(0, 256)
+        elif kind == 2:
+            at = rng.integers(0, len(m))
+            m[at:at] = rng.integers(0, 256, rng.integers(1, 16)).astype(np.uint8).tobytes()
+        else:
+            at = rng.integers(0, len(m) - 8)
+            m[at:at + 8] = np.array([rng.integers(-2**62, 2**62)], "<i8").tobytes()
+        path = tmp_path / f"m{i}{suffix}"
+        path.write_bytes(bytes(m))
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                s = read_events(path)
+        except EventFormatError:
+            continue
+        validate_events(s.events, s.sensor_size)  # data that holds the invariants

@@ -176,6 +176,21 @@ def iter_hdf5(path: str | Path, chunk_events: int = 1 << 20,
             raise EventFormatError(f"{path}: cannot read the event datasets ({err})") from None
 
 
+def _reader(kind: str, data, names):
+    """``read(a, b) -> (t, x, y, p)`` arrays of events ``a..b`` for one layout."""
+    if kind == "columns":
+        def read(a, b):
+            return tuple(data[k][a:b] for k in "txyp")
+    elif kind == "compound":
+        def read(a, b):
+            block = data[a:b]
+            return tuple(block[names[k]] for k in "txyp")
+    else:  # (N, 4) matrix, columns t, x, y, p
+        def read(a, b):
+            return tuple(data[a:b].T)
+    return read
+
+
 def _iter_open(f, path, chunk_events, sensor_size, group, columns, time_unit, h5py):
     g, found = _locate(f, group, h5py, columns)
     where = f"{path}:{g.name}"
@@ -189,16 +204,14 @@ def _iter_open(f, path, chunk_events, sensor_size, group, columns, time_unit, h5
             raise EventFormatError(f"{where}: dataset lengths differ: {lengths}")
         n = lengths["t"]
         t_attrs = ds["t"].attrs
-        read = lambda a, b: tuple(ds[k][a:b] for k in "txyp")  # noqa: E731
+        read = _reader("columns", ds, names)
     else:
         d = g["events"]
         n = _event_length(d, where)
         t_attrs = d.attrs
-        if found["kind"] == "compound":
-            names = find_columns(found["names"], columns, where)
-            read = lambda a, b: (lambda c: tuple(c[names[k]] for k in "txyp"))(d[a:b])  # noqa
-        else:
-            read = lambda a, b: tuple(d[a:b].T)  # noqa: E731
+        names = find_columns(found["names"], columns, where) if found["kind"] == "compound" \
+            else None
+        read = _reader(found["kind"], d, names)
     unit = time_unit or unit_from_text(t_attrs.get("units", t_attrs.get("unit")))
     offset = _t_offset(f)
     if sensor_size is None:
