@@ -119,7 +119,7 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     p["ring_width"] = width
     a["unit_centre"] = model.unit_centre.detach().cpu().numpy().astype("<i4")
     a["unit_to_ref"] = model.unit_to_reference.detach().cpu().numpy().astype("<i4")
-    return IntegerModel({k: int(v) for k, v in p.items()}, a).check()
+    return IntegerModel.from_params({k: int(v) for k, v in p.items()}, a)
 
 
 def choose_pool(frame_size: tuple[int, int], input_size: tuple[int, int]) -> tuple[int, int]:
