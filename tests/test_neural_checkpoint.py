@@ -164,7 +164,7 @@ def test_foreign_tensors_are_refused(saved, tmp_path_factory, name, shape, dtype
         t = torch.zeros(shape, dtype=dtype)
     sd = dict(blob["state_dict"], **{name: t})
     mutant = dict(blob, state_dict=sd)
-    if t.is_contiguous():  # (hashing a stride-0 giant would allocate it here, in the test)
+    if math.prod(shape) <= 2**16:  # (hashing a stride-0 giant would allocate it, in the test)
         mutant["checksum"] = checksum(FORMAT, mutant["config"], sd, mutant["extra"])
     bad = tmp_path_factory.mktemp("sd") / "mutant.pt"
     torch.save(mutant, bad)
