@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from torchseq.quantise import fixed_point  # the writer's own rounding (HALF_AWAY)
+
 INPUT_RAW, INPUT_ZSCORE = 0, 1
 X_MAX = 2047  # L1 activity and L1 weights are 12-bit: |x|, |w| <= 2047 (int32 sums)
 MAX_FAN_IN = (2**31 - 1) // (X_MAX * X_MAX)  # 512: an L1 sum cannot overflow int32
@@ -118,8 +120,6 @@ class InputStage:
         n = s * s
         if n * ph * pw >= 65536:
             _fail(f"patch {s} with pool {ph}x{pw} overflows the integer z-score")
-        from torchseq.export.quantise import fixed_point  # the writer's own rounding
-
         frac = self.x_frac + self.sqrt_frac
         if frac > 62 or self.norm_const != fixed_point(math.sqrt((n - 1) / n), frac, 64):
             _fail(f"norm_const {self.norm_const} is not round(sqrt((n-1)/n) * 2**{frac}) for "
