@@ -119,7 +119,7 @@ def test_inconsistent_shapes(model):
     d = model.to_dict()
     d["params"]["hidden"] += 1  # header disagrees with every hidden-sized section
     with pytest.raises(IntegerFormatError, match="inconsistent"):
-        encode(IntegerModel(d["params"], d["arrays"]))
+        IntegerModel.from_params(d["params"], d["arrays"])
     d = model.to_dict()
     d["arrays"]["l1.values"] = d["arrays"]["l1.values"].astype(np.int32)
     with pytest.raises(IntegerFormatError, match="dtype"):

@@ -75,3 +75,47 @@ def test_bad_input():
         quantise(np.ones(3), bits=1)
     with pytest.raises(ValueError, match="finite"):
         fixed_point(float("inf"), 3)
+
+
+def test_one_quantiser_module_for_training_and_export():
+    import importlib
+
+    export_grids = importlib.import_module("torchseq.export.quantise")  # (the package's
+    training_grids = importlib.import_module("torchseq.neural.fixed_point")  # names shadow
+    one = importlib.import_module("torchseq.quantise")  # the modules as attributes)
+
+    for name in ("integer_weights", "round_rows", "factor_power_of_two", "factor_rows",
+                 "power_of_two_scale"):
+        assert getattr(training_grids, name) is getattr(one, name), name
+    for name in ("quantise", "integer_grid", "fixed_point", "fixed_point_array", "dequantise"):
+        assert getattr(export_grids, name) is getattr(one, name), name
+
+
+@pytest.mark.parametrize("as_tensor", [False, True])
+def test_rounding_rules_are_named_and_differ_on_halves(as_tensor):
+    from torchseq.quantise import HALF_AWAY, HALF_EVEN, round_to_integer
+
+    x = np.array([0.5, 1.5, 2.5, -0.5, -2.5, 0.49, -1.51])
+    arg = torch.from_numpy(x) if as_tensor else x
+    even = np.asarray(round_to_integer(arg, HALF_EVEN))
+    away = np.asarray(round_to_integer(arg, HALF_AWAY))
+    assert even.tolist() == [0, 2, 2, 0, -2, 0, -2]
+    assert away.tolist() == [1, 2, 3, -1, -3, 0, -2]
+    with pytest.raises(ValueError, match="unknown rounding rule"):
+        round_to_integer(arg, "nearest")
+
+
+def test_training_grids_export_without_rounding():
+    """What is evaluated is what is deployed: the integer file holds the training integers."""
+    from export_helpers import small_setup
+
+    from torchseq.quantise import factor_power_of_two, factor_rows
+
+    model, *_, im = small_setup()
+    n1, _ = factor_power_of_two(model.l1.folded_weight(), 64)  # the training grid's integers
+    rows = np.arange(n1.shape[0])[:, None]
+    assert np.array_equal(n1.numpy()[rows, im.l1.cols], im.l1.values)
+    n3, scale3 = factor_rows(model.l3.folded_weight(), 127)
+    assert np.array_equal(n3.numpy()[np.arange(n3.shape[0])[:, None], im.l3.cols], im.l3.values)
+    ratio = scale3.double().numpy() / scale3.double().max().item()
+    assert np.abs(im.l3.row_scale - ratio * 2**15).max() <= 0.5 + 1e-6

@@ -1,21 +1,44 @@
 """The integer weight file (``.tsq``): versioned, little-endian, sectioned, CRC32-checked.
 
 The layout and the arithmetic are specified in ``docs/integer_format.md``; this module is
-the writer and the reader. :class:`IntegerModel` is the in-memory form (a dict of integer
-parameters and a dict of integer arrays); :func:`encode` / :func:`decode` turn it into bytes
-and back; :func:`write_integer_model` / :func:`read_integer_model` add the (atomic) file.
+the writer and the reader. :class:`IntegerModel` is the in-memory form: the typed stages of
+:mod:`torchseq.export.int_stages`, each checked against the spec when built;
+:func:`encode` / :func:`decode` turn it into bytes and back; :func:`write_integer_model` /
+:func:`read_integer_model` add the (atomic) file.
 """
 
 from __future__ import annotations
 
 import struct
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from torchseq.atomic import atomic_path
+from torchseq.export.int_stages import (
+    INPUT_RAW,
+    INPUT_ZSCORE,
+    MAX_FAN_IN,
+    X_MAX,
+    CohortStage,
+    InputStage,
+    IntegerFormatError,
+    L1Product,
+    L3Product,
+    ReadoutStage,
+    RingStage,
+    integer,
+    section,
+)
+
+__all__ = [
+    "FORMAT_VERSION", "INPUT_RAW", "INPUT_ZSCORE", "MAGIC", "MAX_FAN_IN", "PARAM_NAMES",
+    "SECTIONS", "SUPPORTED_VERSIONS", "X_MAX", "CohortStage", "InputStage", "IntegerFormatError",
+    "IntegerModel", "L1Product", "L3Product", "ReadoutStage", "RingStage", "decode", "encode",
+    "read_integer_model", "write_integer_model",
+]
 
 MAGIC = b"TSQI\r\n\x1a\n"
 FORMAT_VERSION = 1
@@ -35,10 +58,6 @@ PARAM_NAMES = (
     "n_cohorts", "rectify", "gain_const", "gain_shift", "state_frac", "ring_frac",
     "ring_width", "window",
 )
-INPUT_RAW, INPUT_ZSCORE = 0, 1
-X_MAX = 2047  # L1 activity and L1 weights are 12-bit: |x|, |w| <= 2047 (int32 sums)
-MAX_FAN_IN = (2**31 - 1) // (X_MAX * X_MAX)  # 512: an L1 sum cannot overflow int32
-
 # section name -> (dtype, shape as param names or ints)
 SECTIONS = {
     "params": (np.dtype("<i8"), (len(PARAM_NAMES),)),
@@ -53,109 +72,145 @@ SECTIONS = {
     "unit_centre": (np.dtype("<i4"), ("n_units",)),
     "unit_to_ref": (np.dtype("<i4"), ("n_units", 2)),
 }
+# the sizes among the params: each must be the matching section dimension
+_SIZES = {"hidden": 2**15 - 1, "l1_fan_in": MAX_FAN_IN, "n_units": 2**15 - 1,
+          "l3_fan_in": 2**15 - 1, "ring_width": 2**15 - 1, "n_input": 2**15 - 1}
 
 
-class IntegerFormatError(ValueError):
-    """A bad integer model file or dict: wrong magic, version, section, checksum or shape."""
-
-
-@dataclass
+@dataclass(frozen=True, eq=False)
 class IntegerModel:
-    """An integer Neural SeqSLAM model: scalar parameters and integer arrays.
+    """An integer Neural SeqSLAM model: the typed stages of one step.
+
+    Each stage checks its own fields on construction (:mod:`torchseq.export.int_stages`);
+    the model checks that they fit together. :attr:`params` and :attr:`arrays` give the
+    file's view (the ``params`` section by name, the other sections by name).
 
     Attributes:
-        params: every name of :data:`PARAM_NAMES` -> int.
-        arrays: every section of :data:`SECTIONS` except ``params`` -> NumPy integer array.
+        input: :class:`InputStage`.
+        l1: :class:`L1Product` (L1 -> L2).
+        l3: :class:`L3Product` (k-WTA code -> evidence).
+        cohort: :class:`CohortStage`.
+        ring: :class:`RingStage`.
+        readout: :class:`ReadoutStage`.
     """
 
-    params: dict = field(default_factory=dict)
-    arrays: dict = field(default_factory=dict)
+    input: InputStage
+    l1: L1Product
+    l3: L3Product
+    cohort: CohortStage
+    ring: RingStage
+    readout: ReadoutStage
+
+    def __post_init__(self) -> None:
+        types = {"input": InputStage, "l1": L1Product, "l3": L3Product, "cohort": CohortStage,
+                 "ring": RingStage, "readout": ReadoutStage}
+        for name, kind in types.items():
+            if not isinstance(getattr(self, name), kind):
+                raise IntegerFormatError(f"stage {name} must be a {kind.__name__}")
+        if self.l1.n_input != self.input.n_input:
+            raise IntegerFormatError(f"l1 reads {self.l1.n_input} inputs, the input stage "
+                                     f"gives {self.input.n_input}")
+        if self.l3.hidden != self.l1.hidden:
+            raise IntegerFormatError(f"l3 reads {self.l3.hidden} L2 units, l1 has "
+                                     f"{self.l1.hidden}")
+        n = self.l3.n_units
+        for name, got in (("cohort", self.cohort.cohort.shape[0]),
+                          ("ring.cols", self.ring.cols.shape[0]),
+                          ("unit_centre", self.readout.unit_centre.shape[0])):
+            if got != n:
+                raise IntegerFormatError(f"section {name}: {got} units inconsistent with "
+                                         f"l3's {n}")
+
+    @property
+    def params(self) -> dict:
+        """Every name of :data:`PARAM_NAMES` -> int (a new dict: the file's ``params``)."""
+        i, l1, l3, c, r = self.input, self.l1, self.l3, self.cohort, self.ring
+        return {"height": i.height, "width": i.width, "pool_h": i.pool_h, "pool_w": i.pool_w,
+                "patch": i.patch, "input_mode": i.input_mode, "x_frac": i.x_frac,
+                "sqrt_frac": i.sqrt_frac, "norm_const": i.norm_const, "n_input": i.n_input,
+                "hidden": l1.hidden, "k": l3.k, "l1_fan_in": l1.cols.shape[1],
+                "n_units": l3.n_units, "l3_fan_in": l3.cols.shape[1], "e_shift": l3.e_shift,
+                "n_cohorts": c.n_cohorts, "rectify": c.rectify, "gain_const": c.gain_const,
+                "gain_shift": c.gain_shift, "state_frac": c.state_frac,
+                "ring_frac": r.ring_frac, "ring_width": r.cols.shape[1],
+                "window": self.readout.window}
+
+    @property
+    def arrays(self) -> dict:
+        """Every section of :data:`SECTIONS` except ``params`` -> its read-only array."""
+        return {"l1.cols": self.l1.cols, "l1.values": self.l1.values,
+                "l3.cols": self.l3.cols, "l3.values": self.l3.values,
+                "l3.row_scale": self.l3.row_scale, "cohort": self.cohort.cohort,
+                "ring.cols": self.ring.cols, "ring.values": self.ring.values,
+                "unit_centre": self.readout.unit_centre,
+                "unit_to_ref": self.readout.unit_to_ref}
+
+    @classmethod
+    def from_params(cls, params: dict, arrays: dict) -> IntegerModel:
+        """Build and check a model from the file's view (``params`` and section arrays).
+
+        Raises:
+            IntegerFormatError: a missing or unknown name, a non-integer parameter, a shape
+                inconsistent with the parameters, or any stage's own check.
+        """
+        if not isinstance(params, dict) or not isinstance(arrays, dict):
+            raise IntegerFormatError("params and arrays must be dicts")
+        missing = [n for n in PARAM_NAMES if n not in params]
+        unknown = sorted(map(str, set(params) - set(PARAM_NAMES)))
+        if missing or unknown:
+            raise IntegerFormatError(f"params: missing {missing}, unknown {unknown}")
+        names = set(SECTIONS) - {"params"}
+        if set(arrays) != names:
+            raise IntegerFormatError(
+                f"arrays: missing {sorted(names - set(arrays))}, unknown section types "
+                f"{sorted(map(str, set(arrays) - names))}")
+        p = {n: integer(n, params[n], -2**63, 2**63 - 1) for n in PARAM_NAMES}
+        for name, top in _SIZES.items():
+            integer(name, p[name], 1, top)
+        a = {}
+        for name in sorted(names):
+            dtype, dims = SECTIONS[name]
+            want = tuple(p[x] if isinstance(x, str) else x for x in dims)
+            a[name] = section(name, arrays[name], dtype.str, want)
+        stage = InputStage(p["height"], p["width"], p["pool_h"], p["pool_w"], p["patch"],
+                           p["input_mode"], p["x_frac"], p["sqrt_frac"], p["norm_const"])
+        if p["n_input"] != stage.n_input:
+            raise IntegerFormatError(f"n_input {p['n_input']} is not height*width = "
+                                     f"{p['height']}*{p['width']}")
+        return cls(
+            stage, L1Product(a["l1.cols"], a["l1.values"], p["n_input"]),
+            L3Product(a["l3.cols"], a["l3.values"], a["l3.row_scale"], p["e_shift"],
+                      p["hidden"], p["k"]),
+            CohortStage(a["cohort"], p["n_cohorts"], p["gain_const"], p["gain_shift"],
+                        p["state_frac"], p["rectify"]),
+            RingStage(a["ring.cols"], a["ring.values"], p["ring_frac"]),
+            ReadoutStage(a["unit_centre"], a["unit_to_ref"], p["window"]))
 
     def to_dict(self) -> dict:
-        """``{"format_version", "params", "arrays"}`` (arrays copied)."""
-        return {"format_version": FORMAT_VERSION, "params": dict(self.params),
+        """``{"format_version", "params", "arrays"}`` (arrays copied, writable)."""
+        return {"format_version": FORMAT_VERSION, "params": self.params,
                 "arrays": {k: np.array(v) for k, v in self.arrays.items()}}
 
     @classmethod
     def from_dict(cls, d: dict) -> IntegerModel:
         """Build and check a model from :meth:`to_dict` output."""
+        if not isinstance(d, dict):
+            raise IntegerFormatError(f"an integer model dict is a dict, got {type(d).__name__}")
         version = d.get("format_version")
-        if version not in SUPPORTED_VERSIONS:
+        if isinstance(version, bool) or version not in SUPPORTED_VERSIONS:
             raise IntegerFormatError(f"unsupported integer format_version {version!r} "
                                      f"(this reader knows {SUPPORTED_VERSIONS})")
-        return cls(dict(d["params"]), {k: np.asarray(v) for k, v in d["arrays"].items()}).check()
+        return cls.from_params(d.get("params"), d.get("arrays"))
 
     def check(self) -> IntegerModel:
-        """Raise :class:`IntegerFormatError` for missing/unknown entries or bad shapes."""
-        p = self.params
-        missing = [n for n in PARAM_NAMES if n not in p]
-        unknown = sorted(set(p) - set(PARAM_NAMES))
-        if missing or unknown:
-            raise IntegerFormatError(f"params: missing {missing}, unknown {unknown}")
-        names = set(SECTIONS) - {"params"}
-        if set(self.arrays) != names:
-            raise IntegerFormatError(
-                f"arrays: missing {sorted(names - set(self.arrays))}, unknown section types "
-                f"{sorted(set(self.arrays) - names)}")
-        for name in sorted(names):
-            dtype, dims = SECTIONS[name]
-            a = self.arrays[name]
-            want = tuple(int(p[x]) if isinstance(x, str) else x for x in dims)
-            if a.shape != want:
-                raise IntegerFormatError(f"section {name}: shape {a.shape} is inconsistent with "
-                                         f"the header (expected {want})")
-            if a.dtype.newbyteorder("<") != dtype:
-                raise IntegerFormatError(f"section {name}: dtype {a.dtype} is not {dtype}")
-        _check_values(p, self.arrays)
+        """Return self: a model is checked when built and cannot change afterwards."""
         return self
-
-
-def _check_values(p: dict, a: dict) -> None:
-    def bad(msg: str) -> None:
-        raise IntegerFormatError(msg)
-
-    if p["rectify"] not in (0, 1):
-        bad(f"rectify must be 0 or 1, got {p['rectify']}")
-    if p["input_mode"] not in (INPUT_RAW, INPUT_ZSCORE):
-        bad(f"unknown input_mode {p['input_mode']}")
-    h, w, patch = p["height"], p["width"], p["patch"]
-    if h < 1 or w < 1 or p["n_input"] != h * w:
-        bad(f"n_input {p['n_input']} is not height*width = {h}*{w}")
-    ph, pw = p["pool_h"], p["pool_w"]
-    if ph < 1 or pw < 1:
-        bad(f"pool {ph}x{pw} must be positive")
-    if p["input_mode"] == INPUT_ZSCORE and (patch < 2 or h % patch or w % patch):
-        bad(f"patch {patch} does not tile {h}x{w}")
-    if p["input_mode"] == INPUT_ZSCORE and patch * patch * ph * pw >= 65536:
-        bad(f"patch {patch} with pool {ph}x{pw} overflows the integer z-score")
-    if p["input_mode"] == INPUT_RAW and 255 * ph * pw > X_MAX:
-        bad(f"raw input pooled {ph}x{pw} exceeds {X_MAX}")
-    if p["k"] * 127 * 2**15 > 32767 * 2 ** min(p["e_shift"], 62):
-        bad(f"e_shift {p['e_shift']} lets the rescaled evidence exceed 32767 (k = {p['k']})")
-    if not 1 <= p["l1_fan_in"] <= MAX_FAN_IN:
-        bad(f"l1_fan_in {p['l1_fan_in']} not in 1..{MAX_FAN_IN} (int32 sums)")
-    if not 1 <= p["k"] <= p["hidden"]:
-        bad(f"k {p['k']} not in 1..hidden {p['hidden']}")
-    if p["n_units"] < 1 or not 1 <= p["n_cohorts"] <= p["n_units"]:
-        bad("need n_units >= 1 and 1 <= n_cohorts <= n_units")
-    for name in ("x_frac", "sqrt_frac", "e_shift", "gain_shift", "state_frac", "ring_frac",
-                 "window"):
-        if not 0 <= p[name] <= 62:
-            bad(f"{name} {p[name]} not in 0..62")
-    for name, bound in (("l1.cols", p["n_input"]), ("l3.cols", p["hidden"]),
-                        ("ring.cols", p["n_units"]), ("cohort", p["n_cohorts"])):
-        if a[name].size and int(a[name].max()) >= bound:
-            bad(f"section {name}: index {int(a[name].max())} out of range 0..{bound - 1}")
-    if a["l3.row_scale"].size and not 0 <= int(a["l3.row_scale"].min()) <= int(
-            a["l3.row_scale"].max()) <= 2 ** 15:
-        bad("section l3.row_scale: scales must lie in 0..32768")
-    if a["l1.values"].size and int(np.abs(a["l1.values"].astype(np.int64)).max()) > X_MAX:
-        bad(f"section l1.values: values exceed +-{X_MAX}")
 
 
 def encode(model: IntegerModel) -> bytes:
     """Serialise a model to the bytes of a format-version-1 file."""
-    model.check()
+    if not isinstance(model, IntegerModel):
+        raise IntegerFormatError(f"encode takes an IntegerModel, got {type(model).__name__}")
     parts = [_section("params", np.array([model.params[n] for n in PARAM_NAMES], "<i8"))]
     parts += [_section(n, model.arrays[n]) for n in SECTIONS if n != "params"]
     body = b"".join(parts)
@@ -236,7 +291,7 @@ def decode(data: bytes, source: str = "<bytes>") -> IntegerModel:
         raise bad("missing or malformed params section")
     params = {n: int(v) for n, v in zip(PARAM_NAMES, found.pop("params"))}
     try:
-        return IntegerModel(params, found).check()
+        return IntegerModel.from_params(params, found)
     except IntegerFormatError as err:
         raise bad(str(err)) from None
 

@@ -1,7 +1,8 @@
 """Convert a fitted float :class:`~torchseq.neural.NeuralSeqSLAM` into an :class:`IntegerModel`.
 
 The fixed-point design (bit widths, shifts, constants) is specified in
-``docs/integer_format.md``; every integer comes from :mod:`torchseq.export.quantise`.
+``docs/integer_format.md``; every integer comes from the export grids of the one
+quantiser, :mod:`torchseq.quantise`.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from torchseq.export.int_format import (
     IntegerFormatError,
     IntegerModel,
 )
-from torchseq.export.quantise import fixed_point, fixed_point_array, integer_grid, quantise
+from torchseq.quantise import fixed_point, fixed_point_array, integer_grid, quantise
 
 SQRT_FRAC = 8  # fractional bits of the patch standard deviation
 STATE_FRAC = 16  # fractional bits of the ring activity (int32)
@@ -119,7 +120,7 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     p["ring_width"] = width
     a["unit_centre"] = model.unit_centre.detach().cpu().numpy().astype("<i4")
     a["unit_to_ref"] = model.unit_to_reference.detach().cpu().numpy().astype("<i4")
-    return IntegerModel({k: int(v) for k, v in p.items()}, a).check()
+    return IntegerModel.from_params({k: int(v) for k, v in p.items()}, a)
 
 
 def choose_pool(frame_size: tuple[int, int], input_size: tuple[int, int]) -> tuple[int, int]:

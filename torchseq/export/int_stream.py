@@ -79,10 +79,10 @@ class StreamRuntime(IntegerRuntime):
 
         ``a_t = clip(round_half_away(sum_j R[i, j] a_{t-1}[j] / 2**ring_frac) + g_t)``, the
         runtime's step; the division by a power of two rounds with one shift:
-        ``(m + 2**(f-1) - [m < 0]) >> f``.
+        ``(m + 2**(f-1) - [m < 0]) >> f`` (``f = 0``: ``m`` itself).
         """
         f = self.params["ring_frac"]
-        half = np.int64(1) << (f - 1)
+        half = (np.int64(1) << f) >> 1  # f = 0: no rounding at all (m itself)
         # one 1-D gather per column of the row lists: much faster in NumPy than a 2-D gather
         # and a sum over the short last axis
         cols = [np.ascontiguousarray(c) for c in self.ring_cols.T]
@@ -99,7 +99,7 @@ class StreamRuntime(IntegerRuntime):
             m = a[cols[0]] * vals[0]
             for c, v in zip(cols[1:], vals[1:]):
                 m += a[c] * v
-            a = ((m + half - (m < 0)) >> f) + g[t]
+            a = (((m + half - (m < 0)) >> f) if f else m) + g[t]
             if saturate:
                 np.clip(a, -INT32_MAX, INT32_MAX, out=a)
             out[t] = a

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
+from numbers import Integral, Real
 
 
 class NeuralError(ValueError):
@@ -11,6 +13,37 @@ class NeuralError(ValueError):
 
 # fields added after the first checkpoints were written, with the behaviour those had
 FORMER_DEFAULTS = {"input_steps": 0, "l1_levels": 0, "l3_levels": 0}
+MAX_COUNT = 2**24  # hidden, n_output, chunk, ... (a size past this is a corrupt setting)
+MAX_ELEMENTS = 2**31  # the largest weight matrix a config may ask for (8 GiB of float32)
+MAX_FACTOR = 1e6  # ring gain and weights: larger ones overflow float32 activity into inf/NaN
+SEED_RANGE = (-(2**63), 2**64 - 2)  # torch.Generator.manual_seed's range (seed + 1 is used)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, Integral) and not isinstance(v, bool)
+
+
+def _check_int(name: str, v, lo: int, hi: int) -> None:
+    if not _is_int(v):
+        raise NeuralError(f"{name} must be an integer, got {type(v).__name__} {v!r}")
+    if not lo <= v <= hi:
+        raise NeuralError(f"{name} must be in {lo}..{hi}, got {v}")
+
+
+def _check_real(name: str, v, lo: float, hi: float, lo_open: bool = False,
+                hi_open: bool = False) -> None:
+    if isinstance(v, bool) or not isinstance(v, Real):
+        raise NeuralError(f"{name} must be a number, got {type(v).__name__} {v!r}")
+    v = float(v)
+    ok = math.isfinite(v) and (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
+    if not ok:
+        interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+        raise NeuralError(f"{name} must be a finite number in {interval}, got {v}")
+
+
+def _check_choice(name: str, v, choices: tuple) -> None:
+    if not isinstance(v, (str, bool)) or v not in choices:
+        raise NeuralError(f"{name} must be one of {', '.join(map(repr, choices))}, got {v!r}")
 
 
 @dataclass
@@ -84,7 +117,9 @@ class NeuralConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        self.input_size = (int(self.input_size[0]), int(self.input_size[1]))
+        size = self.input_size
+        if isinstance(size, (tuple, list)) and len(size) == 2 and all(map(_is_int, size)):
+            self.input_size = (int(size[0]), int(size[1]))  # else left for validate to refuse
 
     @property
     def n_input(self) -> int:
@@ -102,38 +137,51 @@ class NeuralConfig:
         return 1.0 - self.ring_decay if self.ring_gain is None else float(self.ring_gain)
 
     def validate(self) -> NeuralConfig:
-        """Raise :class:`NeuralError` with a one-line reason for any bad setting; return self."""
-        h, w = self.input_size
-        if h < 1 or w < 1:
-            raise NeuralError(f"input_size must be positive, got {self.input_size}")
+        """Raise :class:`NeuralError` with a one-line reason for any bad setting; return self.
+
+        Every field is checked by type (integers are not bools, numbers are finite) and by
+        range, before anything is allocated: sizes up to ``2**24`` and weight matrices up to
+        ``2**31`` elements; ring weights small enough that float32 activity stays finite.
+        """
+        size = self.input_size
+        if not (isinstance(size, (tuple, list)) and len(size) == 2 and all(map(_is_int, size))):
+            raise NeuralError(f"input_size must be two integers (H, W), got {size!r}")
+        h, w = size
+        _check_int("input_size[0]", h, 1, 2**15)
+        _check_int("input_size[1]", w, 1, 2**15)
+        _check_int("patch_size", self.patch_size, 0, min(h, w))
         p = self.patch_size
-        if p < 0 or (p and (h % p or w % p)):
-            raise NeuralError(f"input_size {self.input_size} is not a multiple of patch_size "
-                              f"{self.patch_size}")
-        if self.patch_mode not in ("zscore", "seqslam"):
-            raise NeuralError(f"patch_mode must be 'zscore' or 'seqslam', got {self.patch_mode!r}")
-        if self.input_steps < 0:
-            raise NeuralError(f"input_steps must be >= 0, got {self.input_steps}")
-        if not 0 <= self.l1_levels <= 64 or not 0 <= self.l3_levels <= 127:
-            raise NeuralError(f"need 0 <= l1_levels <= 64 and 0 <= l3_levels <= 127, got "
-                              f"{self.l1_levels} and {self.l3_levels}")
-        if self.hidden < 1 or self.n_output < 1:
-            raise NeuralError("hidden and n_output must be >= 1")
+        if p and (h % p or w % p):
+            raise NeuralError(f"input_size {tuple(size)} is not a multiple of patch_size {p}")
+        _check_choice("patch_mode", self.patch_mode, ("zscore", "seqslam"))
+        _check_int("input_steps", self.input_steps, 0, MAX_COUNT)
+        _check_int("l1_levels", self.l1_levels, 0, 64)
+        _check_int("l3_levels", self.l3_levels, 0, 127)
+        for name in ("hidden", "n_output", "ring_spread", "n_cohorts", "chunk"):
+            _check_int(name, getattr(self, name), 1, MAX_COUNT)
         for name in ("density", "density_out", "k_fraction"):
-            if not 0.0 < getattr(self, name) <= 1.0:
-                raise NeuralError(f"{name} must be in (0, 1], got {getattr(self, name)}")
-        if not 0.0 <= self.ring_decay < 1.0:
-            raise NeuralError(f"ring_decay must be in [0, 1), got {self.ring_decay}")
-        if self.gain <= 0:
-            raise NeuralError(f"ring_gain must be > 0, got {self.ring_gain}")
-        if self.ring_spread < 1 or self.ring_spread_decay < 0 or self.ring_stay < 0:
-            raise NeuralError("need ring_spread >= 1, ring_spread_decay >= 0, ring_stay >= 0")
-        if self.n_cohorts < 1:
-            raise NeuralError(f"n_cohorts must be >= 1, got {self.n_cohorts}")
-        if self.hebbian not in ("mean", "centred"):
-            raise NeuralError(f"hebbian must be 'mean' or 'centred', got {self.hebbian!r}")
-        if self.uniqueness_window < 0 or self.eps <= 0 or self.chunk < 1:
-            raise NeuralError("need uniqueness_window >= 0, eps > 0 and chunk >= 1")
+            _check_real(name, getattr(self, name), 0.0, 1.0, lo_open=True)
+        _check_real("ring_decay", self.ring_decay, 0.0, 1.0, hi_open=True)
+        if self.ring_gain is not None:
+            _check_real("ring_gain", self.ring_gain, 0.0, MAX_FACTOR, lo_open=True)
+        _check_real("ring_stay", self.ring_stay, 0.0, MAX_FACTOR)
+        _check_real("ring_spread_decay", self.ring_spread_decay, 0.0, MAX_FACTOR)
+        top_lag = self.ring_spread_decay ** min(self.ring_spread - 1, 64) if \
+            self.ring_spread_decay > 1 else 1.0
+        if top_lag > MAX_FACTOR:
+            raise NeuralError(f"ring_spread_decay {self.ring_spread_decay} ** (ring_spread - 1) "
+                              f"exceeds {MAX_FACTOR:g}: the shift weights would overflow")
+        _check_choice("ring_wrap", self.ring_wrap, (False, True))
+        _check_choice("rectify", self.rectify, (False, True))
+        _check_choice("hebbian", self.hebbian, ("mean", "centred"))
+        _check_int("uniqueness_window", self.uniqueness_window, 0, 2**31 - 1)
+        _check_real("eps", self.eps, 0.0, 1.0, lo_open=True)
+        _check_int("seed", self.seed, *SEED_RANGE)
+        for name, n in (("hidden x n_input", self.hidden * h * w),
+                        ("n_output x hidden", self.n_output * self.hidden),
+                        ("n_output x n_output", self.n_output ** 2)):
+            if n > MAX_ELEMENTS:
+                raise NeuralError(f"{name} = {n} weights exceed {MAX_ELEMENTS} (2**31)")
         return self
 
     @classmethod
@@ -164,9 +212,11 @@ class NeuralConfig:
 
         Keys missing from older checkpoints take the value those models were made with.
         """
+        if not isinstance(d, dict):
+            raise NeuralError(f"a NeuralConfig dict is a dict, got {type(d).__name__}")
         d = {**FORMER_DEFAULTS, **d}
         names = {f.name for f in fields(cls)}
         unknown = set(d) - names
         if unknown:
-            raise NeuralError(f"unknown NeuralConfig keys: {sorted(unknown)}")
+            raise NeuralError(f"unknown NeuralConfig keys: {sorted(map(str, unknown))}")
         return cls(**d).validate()

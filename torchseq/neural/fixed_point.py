@@ -16,9 +16,16 @@ int8 GEMMs (:mod:`torchseq.neural.fast`) and the integer export all give the sam
 
 from __future__ import annotations
 
-import math
-
 import torch
+
+# the training-time grids live in the one quantiser, beside the export grids
+from torchseq.quantise import (  # noqa: F401
+    factor_power_of_two,
+    factor_rows,
+    integer_weights,
+    power_of_two_scale,
+    round_rows,
+)
 
 
 def quantise_input(x: torch.Tensor, steps: int) -> torch.Tensor:
@@ -94,88 +101,3 @@ def in_order_sum(x: torch.Tensor) -> torch.Tensor:
     for i in range(1, x.shape[0]):
         s = s + x[i]
     return s
-
-
-def power_of_two_scale(bound: float, levels: int) -> float:
-    """The power of two nearest (in log) to ``bound / levels``: the step of an integer grid."""
-    return 2.0 ** round(math.log2(bound / levels))
-
-
-def integer_weights(w: torch.Tensor, bound: float, levels: int) -> torch.Tensor:
-    """Map weights drawn uniformly in ``+-bound`` onto an integer grid.
-
-    The grid is integers ``-levels..levels`` times a power of two
-    (:func:`power_of_two_scale`).
-
-    Args:
-        w: ``(out, in)`` float weights in ``[-bound, bound]``.
-        bound: the half-width they were drawn from.
-        levels: largest integer magnitude.
-
-    Returns:
-        Float tensor of the same shape whose values are ``n * 2**e`` with ``|n| <= levels``.
-    """
-    n = torch.round(w / bound * levels).clamp(-levels, levels)
-    return n * power_of_two_scale(bound, levels)
-
-
-def round_rows(w: torch.Tensor, levels: int) -> torch.Tensor:
-    """Round each row to integers ``-levels..levels`` times the row's own scale.
-
-    ``scale_u = max|w_u| / levels``; an all-zero row stays zero.
-
-    Args:
-        w: ``(rows, cols)`` float.
-        levels: largest integer magnitude (127: int8).
-
-    Returns:
-        ``(rows, cols)`` float ``n * scale_u``.
-    """
-    scale = w.abs().amax(dim=1, keepdim=True) / levels  # (rows, 1)
-    safe = torch.where(scale > 0, scale, torch.ones_like(scale))
-    return torch.round(w / safe).clamp(-levels, levels) * scale
-
-
-def factor_power_of_two(w: torch.Tensor, levels: int) -> tuple[torch.Tensor, float] | None:
-    """Recover ``(n int8, 2**e)`` with ``w == n * 2**e`` exactly and ``|n| <= levels``.
-
-    The inverse of :func:`integer_weights`; None when ``w`` is not on such a grid (a model
-    made with float weights), so callers fall back to float products.
-
-    Args:
-        w: float tensor.
-        levels: largest integer magnitude accepted (at most 127).
-    """
-    if levels > 127 or w.numel() == 0 or not bool(torch.isfinite(w).all()):
-        return None
-    peak = float(w.abs().max())
-    if peak == 0.0:
-        return None
-    step = 2.0 ** math.ceil(math.log2(peak / levels))
-    n = w / step
-    if bool((n.abs() <= levels).all()) and torch.equal(torch.round(n), n):
-        return n.to(torch.int8), step
-    return None
-
-
-def factor_rows(w: torch.Tensor, levels: int,
-                rtol: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Recover ``(n (rows, cols) int8, scale (rows,) float32)`` with ``w ~= n * scale``.
-
-    The inverse of :func:`round_rows` up to float rounding (``|n * scale - w| <= rtol *
-    max|w_u|`` in every row); None when some row is not on such a grid (a model made
-    without integer weights), so callers fall back to float products.
-
-    Args:
-        w: ``(rows, cols)`` float.
-        levels: largest integer magnitude accepted (at most 127).
-        rtol: accepted error relative to each row's peak.
-    """
-    if w.dim() != 2 or levels > 127 or not bool(torch.isfinite(w).all()):
-        return None
-    peak = w.abs().amax(dim=1, keepdim=True)  # (rows, 1)
-    scale = peak / levels
-    n = torch.round(w / torch.where(scale > 0, scale, torch.ones_like(scale)))
-    if not bool(((n * scale - w).abs() <= rtol * peak).all()):
-        return None
-    return n.to(torch.int8), scale[:, 0].to(torch.float32)

@@ -18,7 +18,7 @@ from torch import nn
 from torchseq.layers import KWinnersTakeAll, MaskedLinear, OutputRing, RingState
 from torchseq.layers.functional import cohort_normalise
 from torchseq.matches import Matches
-from torchseq.neural.checkpoint import load_checkpoint, save_checkpoint
+from torchseq.neural.checkpoint import load_model, save_checkpoint
 from torchseq.neural.config import NeuralConfig, NeuralError
 from torchseq.neural.fast import (
     Int8Linear,
@@ -366,16 +366,7 @@ class NeuralSeqSLAM(nn.Module):
             NeuralError: missing, truncated or foreign file, an unknown format, or a
                 state_dict that does not fit its config.
         """
-        blob = load_checkpoint(path, map_location)
-        sd = blob["state_dict"]
-        device = sd["l1.weight"].device if map_location is not None else None
-        model = cls(NeuralConfig.from_dict(blob["config"]), device=device)
-        try:
-            model.load_state_dict(sd)
-        except (RuntimeError, KeyError) as err:  # missing, unexpected or mis-sized tensors
-            raise NeuralError(f"{path}: state_dict does not fit the config ({err})") from err
-        model.extra = blob.get("extra", {})
-        return model
+        return load_model(cls, path, map_location)
 
     # ------------------------------------------------------------------ memory
     def model_bytes(self, masked_only: bool = False) -> int:
