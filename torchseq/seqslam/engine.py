@@ -10,9 +10,10 @@ from torch import nn
 
 from torchseq._checks import check_not_empty
 from torchseq.matches import Matches
-from torchseq.preprocess import preprocess
+from torchseq.preprocess import preprocess, preprocess_openseqslam
+from torchseq.seqslam._parallel import resolve_threads
 from torchseq.seqslam.config import SeqSLAMConfig
-from torchseq.seqslam.difference import check_descriptors, difference_matrix
+from torchseq.seqslam.difference import check_descriptors, difference_with_kernel
 from torchseq.seqslam.enhance import enhance_contrast
 from torchseq.seqslam.search import search, velocities
 
@@ -23,13 +24,15 @@ class SeqSLAMResult:
 
     Attributes:
         matches: per query, the matched reference (``-1`` for the first and last ``ds/2``
-            queries and where no trajectory is finite) and its uniqueness ratio
-            (``lower_is_better=True``; NaN without a match).
+            queries unless ``config.edges``, and where no trajectory is finite) and its
+            uniqueness ratio (``lower_is_better=True``; NaN without a match).
         difference: ``(R, Q)`` difference matrix on CPU.
         enhanced: ``(R, Q)`` contrast-enhanced difference matrix on CPU.
         ranked: ``(Q, top_k)`` int64 candidate references, best first, ``-1`` for none.
         best_score: ``(Q,)`` best trajectory cost (NaN where unscored).
         seconds: wall time of ``"difference"``, ``"enhance"``, ``"search"`` and ``"total"``.
+        kernels: which kernel ran per stage, e.g. ``{"difference": "thermometer"}``, and
+            ``"threads"``: the worker threads used.
     """
 
     matches: Matches
@@ -38,6 +41,7 @@ class SeqSLAMResult:
     ranked: torch.Tensor
     best_score: torch.Tensor
     seconds: dict = field(default_factory=dict)
+    kernels: dict = field(default_factory=dict)
 
 
 def _sync(device: torch.device) -> None:
@@ -84,7 +88,10 @@ class SeqSLAM(nn.Module):
         """
         c = self.config
         frames = torch.as_tensor(frames)
-        desc = preprocess(frames.to(self.device), c.image_size, c.patch_size, mode="seqslam")
+        if c.preprocessing == "openseqslam":
+            desc = preprocess_openseqslam(frames.to(self.device), c.image_size, c.patch_size)
+        else:
+            desc = preprocess(frames.to(self.device), c.image_size, c.patch_size, mode="seqslam")
         return desc.to(self._working_dtype(frames))
 
     def match(self, reference: torch.Tensor, query: torch.Tensor,
@@ -118,24 +125,28 @@ class SeqSLAM(nn.Module):
         reference = reference.to(self.device, dtype)
         query = query.to(self.device, dtype)
         seconds = {}
+        threads = resolve_threads(c.threads)
         t0 = t = time.perf_counter()
-        diff = difference_matrix(reference, query, c.metric, c.max_chunk_elements)
+        diff, kernel = difference_with_kernel(reference, query, c.metric, c.max_chunk_elements,
+                                              threads)
         _sync(self.device)
         seconds["difference"] = time.perf_counter() - t
         t = time.perf_counter()
-        enhanced = enhance_contrast(diff, c.enhance_window, True, c.max_chunk_elements)
+        enhanced = enhance_contrast(diff, c.enhance_window, True, c.max_chunk_elements, threads)
         _sync(self.device)
         seconds["enhance"] = time.perf_counter() - t
         t = time.perf_counter()
         match, best, ratio, ranked = search(enhanced, ds, self.speeds, c.rwindow, c.top_k,
-                                            c.max_chunk_elements, progress, c.match_rule)
+                                            c.max_chunk_elements, progress, c.match_rule,
+                                            threads, c.edges)
         _sync(self.device)
         seconds["search"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
         return SeqSLAMResult(
             matches=Matches(match.cpu(), ratio.cpu(), lower_is_better=True),
             difference=diff.cpu(), enhanced=enhanced.cpu(), ranked=ranked.cpu(),
-            best_score=best.cpu(), seconds=seconds)
+            best_score=best.cpu(), seconds=seconds,
+            kernels={"difference": kernel, "threads": threads})
 
     def forward(self, reference: torch.Tensor, query: torch.Tensor) -> SeqSLAMResult:
         """Same as :meth:`match`."""

@@ -18,6 +18,7 @@ import torch
 from tqdm import tqdm
 
 from torchseq._checks import check_not_empty, check_shape
+from torchseq.seqslam._parallel import run_blocks
 
 _EPS = 1e-9
 # Score blocks on CPU are kept about this size (elements) so they stay in the L2 cache.
@@ -141,6 +142,8 @@ def search(
     max_chunk_elements: int = 2**26,
     progress: bool = False,
     match_at: str = "start",
+    threads: int = 1,
+    edges: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Match every query by its best trajectory (OpenSeqSLAM's ``findMatches``).
 
@@ -155,6 +158,12 @@ def search(
         match_at: ``"start"``: a start ``s`` reports ``s + ds/2`` (OpenSeqSLAM);
             ``"trajectory"``: ``s + floor(v ds/2)`` with ``v`` its best velocity (ties ->
             slowest), the row its trajectory crosses at the query centre.
+        threads: CPU worker threads, each taking whole blocks of queries.
+        edges: also match the first and last ``ds/2`` queries (no centred window covers
+            them): query ``N < ds/2`` from its leading window (columns ``N .. N + ds``),
+            reporting the start row ``s``; query ``N > Q - 1 - ds/2`` from its trailing
+            window (``N - ds .. N``), reporting the end row ``s + floor(ds v_best)``; both
+            clamped to ``R - 1``.
 
     Returns:
         ``match (Q,)`` int64 reference (``-1`` when unscored or no finite trajectory),
@@ -185,8 +194,10 @@ def search(
         budget = min(budget, CPU_BLOCK_ELEMENTS)
     rows = max(1, budget // (n_ref + 1))
     first, stop = ds // 2, n_query - ds // 2
-    for c0 in tqdm(range(first, stop, rows), desc="sequence search", disable=not progress,
-                   leave=False):
+    bar = tqdm(total=max(0, stop - first), desc="sequence search", disable=not progress,
+               leave=False)
+
+    def block(c0: int) -> None:
         c1 = min(c0 + rows, stop)
         scores, best_v = trajectory_scores(d_t, c0, c1, ds, offsets, with_velocity=by_velocity)
         centre = half[best_v] if by_velocity else None  # (C, R + 1) offset to report
@@ -197,4 +208,23 @@ def search(
         best_score[c0:c1] = best
         uniqueness[c0:c1] = ratio
         ranked[c0:c1] = rank
+        bar.update(c1 - c0)
+
+    run_blocks(block, range(first, stop, rows), threads, dev)
+    bar.close()
+    if edges:
+        ends = torch.tensor([off[-1] for off in offsets], device=dev)
+        # leading windows of queries 0 .. ds/2 - 1 are the centred windows of ds/2 .. ds - 1;
+        # trailing windows of Q - ds/2 .. Q - 1 those of Q - 1 - ds .. Q - 2 - ds/2
+        for queries, centres, end in ((range(0, first), range(first, first + first), False),
+                                      (range(stop, n_query), range(stop - first - 1,
+                                                                   n_query - first - 1), True)):
+            scores, best_v = trajectory_scores(d_t, centres[0], centres[-1] + 1, ds, offsets,
+                                               with_velocity=True)
+            centre = ends[best_v] if end else torch.zeros_like(best_v)
+            start, best, ratio, rank = rank_scores(scores, ds, n_ref, rwindow, top_k, centre)
+            q = torch.arange(queries[0], queries[-1] + 1, device=dev)
+            shift = centre.gather(1, start[:, None])[:, 0]
+            match[q] = torch.where(torch.isfinite(best), (start + shift).clamp_max(n_ref - 1), -1)
+            best_score[q], uniqueness[q], ranked[q] = best, ratio, rank
     return match, best_score, uniqueness, ranked
