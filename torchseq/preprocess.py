@@ -194,7 +194,7 @@ def patch_normalise_openseqslam(frames: torch.Tensor, patch: int = 8) -> torch.T
     dev = x - mean
     std = ((dev * dev).sum(-1, keepdim=True) / (n - 1)).sqrt()
     z = torch.where(std > 0, dev / torch.where(std > 0, std, 1.0), math.nan)
-    out = _to_uint8_values(127.0 + z)  # NaN -> 0, as MATLAB's uint8 assignment
+    out = _to_uint8_values(127.0 + round_half_away(z))  # NaN -> 0, as MATLAB's uint8 store
     out = out.reshape(t, h // patch, w // patch, patch, patch).permute(0, 1, 3, 2, 4)
     return out.reshape(t, h, w)
 

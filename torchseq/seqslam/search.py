@@ -214,11 +214,14 @@ def search(
     bar.close()
     if edges:
         ends = torch.tensor([off[-1] for off in offsets], device=dev)
-        # leading windows of queries 0 .. ds/2 - 1 are the centred windows of ds/2 .. ds - 1;
-        # trailing windows of Q - ds/2 .. Q - 1 those of Q - 1 - ds .. Q - 2 - ds/2
-        for queries, centres, end in ((range(0, first), range(first, first + first), False),
-                                      (range(stop, n_query), range(stop - first - 1,
-                                                                   n_query - first - 1), True)):
+        # the leading window of query N (N < ds/2, N + ds < Q) is the centred window of
+        # N + ds/2; the trailing window of N (N >= Q - ds/2, N >= ds) that of N - ds/2
+        lead = range(0, min(first, n_query - ds))
+        trail = range(max(stop, ds), n_query)
+        for queries, shift_c, end in ((lead, first, False), (trail, -first, True)):
+            if len(queries) == 0:
+                continue
+            centres = range(queries[0] + shift_c, queries[-1] + 1 + shift_c)
             scores, best_v = trajectory_scores(d_t, centres[0], centres[-1] + 1, ds, offsets,
                                                with_velocity=True)
             centre = ends[best_v] if end else torch.zeros_like(best_v)
