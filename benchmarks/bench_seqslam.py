@@ -4,6 +4,7 @@
     .venv/bin/python benchmarks/bench_seqslam.py --quick    # N = 300, 1000
     .venv/bin/python benchmarks/bench_seqslam.py --sizes 2000 --impls engine,numpy
     .venv/bin/python benchmarks/bench_seqslam.py --enhance --sizes 5000 20000  # stage only
+    .venv/bin/python benchmarks/bench_seqslam.py --quality   # presets and edges on real data
 
 One thread (torch.set_num_threads(1)); every (size, implementation) runs in its own
 subprocess so the peak RSS is clean. Descriptors: random 32x64 noise frames and noisy copies,
@@ -196,6 +197,74 @@ def run_one(impl: str, n: int) -> dict:
                 match_hash=int(np.sum(match * (np.arange(len(match)) % 97 + 1))))
 
 
+def quality_data():
+    """(name, reference frames, query frames, (R, Q) ground truth, base config) per route.
+
+    corridor: colour frames as RGB (so the OpenSeqSLAM preset applies MATLAB's rgb2gray);
+    lens-davis128: 80x80 event-count frames at the speed experiment's LENS setting.
+    """
+    import cv2
+    import torch
+
+    from torchseq.ground_truth import load_ground_truth
+    from torchseq.seqslam import SeqSLAMConfig
+    from torchseq.sources import load_traverse
+
+    data = ROOT.parent / "shared" / "data"
+    out = []
+    root = data / "corridor"
+    if root.exists():
+        def rgb(folder):
+            files = sorted(folder.glob("*.jpg"))
+            return torch.from_numpy(np.stack([cv2.imread(str(f))[:, :, ::-1] for f in files]))
+
+        ref, query = rgb(root / "ref"), rgb(root / "query")
+        gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
+        out.append(("corridor", ref, query, gt, {}))
+    root = data / "lens-davis128"
+    if root.exists():
+        ref = load_traverse(root / "example-reference", progress=False)
+        query = load_traverse(root / "example-query", progress=False)
+        gt = np.load(root / "example-reference_example-query_GT.npy").astype(bool)
+        near = np.abs(np.arange(len(ref))[:, None] - np.arange(len(query))[None]) <= 2
+        base = dict(image_size=(16, 16), speed_ratio=1.0)
+        out.append(("lens-davis128 (exact GT)", ref, query, gt, base))
+        out.append(("lens-davis128 (+-2 frames)", ref, query, near, base))
+    assert SeqSLAMConfig  # imported for the caller's presets
+    return out
+
+
+def run_quality() -> str:
+    """Default vs OpenSeqSLAM preset vs default + edge matching on the real routes."""
+    from torchseq.metrics import correct, evaluate
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+
+    lines = ["| data | configuration | recall@1 | recall@5 | PR AUC | coverage "
+             "| edge queries matched / correct | same matches as default |",
+             "|---|---|---:|---:|---:|---:|---|---:|"]
+    for name, ref, query, gt, base in quality_data():
+        configs = {"default": SeqSLAMConfig(**base),
+                   "openseqslam preset": SeqSLAMConfig.openseqslam(**base),
+                   "default + edges": SeqSLAMConfig(edges=True, **base)}
+        default_match = None
+        for label, cfg in configs.items():
+            r = SeqSLAM(cfg).match(ref, query)
+            m = evaluate(r.matches, gt, r.ranked.numpy())
+            half = cfg.sequence_length // 2
+            edge = np.r_[0:half, len(query) - half:len(query)]
+            ok = correct(r.matches, gt)
+            matched = int((r.matches.reference.numpy()[edge] >= 0).sum())
+            match = r.matches.reference.numpy()
+            if default_match is None:
+                default_match = match
+            same = float((match == default_match).mean())
+            lines.append(f"| {name} | {label} | {m['recall_at_1']:.3f} | "
+                         f"{m.get('recall_at_5', float('nan')):.3f} | {m['auc']:.3f} | "
+                         f"{m['coverage']:.3f} | {matched}/{len(edge)} / {int(ok[edge].sum())} | "
+                         f"{same:.1%} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000, 20000])
@@ -204,12 +273,18 @@ def main() -> None:
     parser.add_argument("--enhance", action="store_true",
                         help="time only contrast enhancement, old (shifted slices) vs new")
     parser.add_argument("--repeats", type=int, default=2, help="with --enhance: best of")
+    parser.add_argument("--quality", action="store_true",
+                        help="recall of the default, the OpenSeqSLAM preset and edge matching "
+                             "on the real routes in ../shared/data")
     parser.add_argument("--one", nargs=2, metavar=("IMPL", "N"), help=argparse.SUPPRESS)
     parser.add_argument("--doc", type=Path, default=None,
                         help="also replace the benchmark table in this Markdown file")
     args = parser.parse_args()
     if args.one:
         print(json.dumps(run_one(args.one[0], int(args.one[1]))))
+        return
+    if args.quality:
+        print(run_quality())
         return
     sizes = [300, 1000] if args.quick else args.sizes
     if args.enhance:
