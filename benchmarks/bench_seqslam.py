@@ -5,6 +5,9 @@
     .venv/bin/python benchmarks/bench_seqslam.py --sizes 2000 --impls engine,numpy
     .venv/bin/python benchmarks/bench_seqslam.py --enhance --sizes 5000 20000  # stage only
     .venv/bin/python benchmarks/bench_seqslam.py --quality   # presets and edges on real data
+    .venv/bin/python benchmarks/bench_seqslam.py --threads --sizes 3576 --baseline ../main
+        # 1 thread vs the default, idle and beside a busy co-tenant process
+    .venv/bin/python benchmarks/bench_seqslam.py --kernels --sizes 3576  # L1 kernels, 1 thread
 
 One thread (torch.set_num_threads(1)); every (size, implementation) runs in its own
 subprocess so the peak RSS is clean. Descriptors: random 32x64 noise frames and noisy copies,
@@ -265,6 +268,124 @@ def run_quality() -> str:
     return "\n".join(lines)
 
 
+def run_engine_threads(n: int, threads: int | None, repeats: int = 2) -> dict:
+    """One engine run (best of ``repeats``) with ``threads`` intra-op threads (None: torch's
+    default) and the engine's default thread use; stage seconds."""
+    import torch
+
+    if threads is not None:
+        torch.set_num_threads(threads)
+    from torchseq.seqslam import SeqSLAM
+
+    ref, query = make_descriptors(n)
+    ref, query = torch.from_numpy(ref), torch.from_numpy(query)
+    best = None
+    for _ in range(repeats):
+        r = SeqSLAM().match_descriptors(ref, query)
+        if best is None or r.seconds["total"] < best["total"]:
+            best = dict(r.seconds)
+    return dict(n=n, torch_threads=torch.get_num_threads(), **best)
+
+
+def run_threads(sizes, baseline: Path | None) -> str:
+    """Engine at one thread vs at PyTorch's default, idle and with a busy co-tenant (a
+    process spinning on one core), each in its own subprocess; optionally the same for the
+    code at ``baseline`` (another checkout, e.g. the previous version)."""
+    roots = [("this", ROOT)] + ([("baseline", baseline.resolve())] if baseline else [])
+    lines = ["| N = M | code | co-tenant | threads | difference s | enhance s | search s "
+             "| total s | vs 1 thread |", "|---:|---|---|---|---:|---:|---:|---:|---:|"]
+    for n in sizes:
+        for busy in (False, True):
+            hog = None
+            if busy:
+                hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                time.sleep(0.5)
+            try:
+                for label, root in roots:
+                    one = None
+                    for threads in ("1", "default"):
+                        env = dict(os.environ, PYTHONPATH=str(root))
+                        out = subprocess.run(
+                            [sys.executable, __file__, "--one-threads", str(n), threads],
+                            capture_output=True, text=True, cwd=ROOT, env=env)
+                        if out.returncode:
+                            raise SystemExit(out.stderr[-2000:])
+                        r = json.loads(out.stdout.strip().splitlines()[-1])
+                        one = one or r["total"]
+                        lines.append(
+                            f"| {n} | {label} | {'busy' if busy else 'idle'} | {threads} "
+                            f"({r['torch_threads']}) | {r['difference']:.2f} | "
+                            f"{r['enhance']:.2f} | {r['search']:.2f} | {r['total']:.2f} | "
+                            f"{r['total'] / one:.2f}x |")
+                        print(lines[-1], file=sys.stderr, flush=True)
+            finally:
+                if hog is not None:
+                    hog.kill()
+                    hog.wait()
+    return "\n".join(lines)
+
+
+def sad_numba(ref, query):
+    """A direct sum of absolute differences on uint8 descriptors, compiled by Numba (LLVM)
+    with the reference loop outermost; None when Numba is not installed."""
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(cache=False)
+    def kernel(a, b, out, tile):
+        for i0 in range(0, a.shape[0], tile):
+            for j0 in range(0, b.shape[0], tile):
+                for i in range(i0, min(i0 + tile, a.shape[0])):
+                    for j in range(j0, min(j0 + tile, b.shape[0])):
+                        s = np.uint32(0)
+                        for k in range(a.shape[1]):
+                            x, y = a[i, k], b[j, k]
+                            s += np.uint32(x - y if x > y else y - x)
+                        out[j, i] = s
+
+    a, b = ref.astype(np.uint8), query.astype(np.uint8)
+    out = np.empty((len(b), len(a)), np.int32)
+    kernel(a[:4], b[:4], out[:4, :4], 64)  # compile outside the timing
+    t = time.perf_counter()
+    kernel(a, b, out, 64)
+    return out, time.perf_counter() - t
+
+
+def run_kernels(n: int, repeats: int = 2) -> dict:
+    """Exact L1 difference matrix, one thread: the thermometer int8 product (the engine's
+    kernel), a direct sum of absolute differences (Numba) and torch.cdist, best of repeats."""
+    import torch
+
+    from torchseq.seqslam.difference import difference_with_kernel
+
+    torch.set_num_threads(1)
+    ref, query = make_descriptors(n)
+    rt, qt = torch.from_numpy(ref), torch.from_numpy(query)
+    out = {"n": n}
+    best = math.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        d, kernel = difference_with_kernel(rt, qt)
+        best = min(best, time.perf_counter() - t)
+    out["thermometer"] = best
+    assert kernel == "thermometer"
+    sad = None
+    for _ in range(repeats):
+        r = sad_numba(ref, query)
+        if r is None:
+            break
+        sad = r[1] if sad is None else min(sad, r[1])
+        out["sad_exact"] = bool(np.array_equal(r[0], d.T.numpy()))
+    out["sad_numba"] = sad
+    m = min(n, 1000)
+    t = time.perf_counter()
+    torch.cdist(qt[:m], rt[:m], p=1)
+    out["cdist_per_pair_us"] = (time.perf_counter() - t) / (m * m) * 1e6
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000, 20000])
@@ -276,6 +397,13 @@ def main() -> None:
     parser.add_argument("--quality", action="store_true",
                         help="recall of the default, the OpenSeqSLAM preset and edge matching "
                              "on the real routes in ../shared/data")
+    parser.add_argument("--threads", action="store_true",
+                        help="one thread vs the default, idle and with a busy co-tenant")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="with --threads: also run the checkout at this path")
+    parser.add_argument("--kernels", action="store_true",
+                        help="exact L1 kernels side by side at one thread")
+    parser.add_argument("--one-threads", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--one", nargs=2, metavar=("IMPL", "N"), help=argparse.SUPPRESS)
     parser.add_argument("--doc", type=Path, default=None,
                         help="also replace the benchmark table in this Markdown file")
@@ -285,6 +413,17 @@ def main() -> None:
         return
     if args.quality:
         print(run_quality())
+        return
+    if args.one_threads:
+        threads = None if args.one_threads[1] == "default" else int(args.one_threads[1])
+        print(json.dumps(run_engine_threads(int(args.one_threads[0]), threads)))
+        return
+    if args.threads:
+        print(run_threads(args.sizes, args.baseline))
+        return
+    if args.kernels:
+        for n in args.sizes:
+            print(json.dumps(run_kernels(n)), flush=True)
         return
     sizes = [300, 1000] if args.quick else args.sizes
     if args.enhance:

@@ -81,10 +81,14 @@ def _l1_thermometer(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor,
     query_norm = (query - lo).sum(1)
     thr = thresholds.to(ref.dtype)
 
+    # the query codes once when they fit the budget, else per block
+    codes = _thermometer(query, thr) if query.shape[0] * width <= 4 * budget else None
+
     def fill(r0: int) -> None:
         a = _thermometer(ref[r0:r0 + block], thr, weights)
         for q0 in range(0, query.shape[0], block):
-            b = _thermometer(query[q0:q0 + block], thr)
+            b = codes[q0:q0 + block] if codes is not None else \
+                _thermometer(query[q0:q0 + block], thr)
             out = out_t[q0:q0 + block, r0:r0 + block]  # (q, r), filled in place
             out.copy_(_int_matmul(b, a)).mul_(-2)
             out.add_(query_norm[q0:q0 + block, None]).add_(ref_norm[None, r0:r0 + block])
