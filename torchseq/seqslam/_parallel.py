@@ -6,20 +6,66 @@ for its slowest thread, and the stages ran up to 10x slower than on one thread. 
 stage runs its ops single-threaded and hands whole blocks (a band of reference rows, a band
 of query columns) to a pool of Python threads (PyTorch releases the GIL inside ops), taken
 from a shared queue: a worker on a busy core simply takes fewer blocks.
+
+With the default thread use (``threads=None``) each stage also counts the cores other
+processes keep busy right now (the kernel's count of runnable tasks in ``/proc/loadavg``,
+sampled a few times, minimum taken) and uses only the idle ones, at least one: on a 2-core
+machine beside a busy co-tenant the stages run on one worker instead of fighting for the
+busy core (measured: two workers there were slower than one, see docs/seqslam.md).
 """
 
 from __future__ import annotations
 
+import os
+import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Callable, Iterable, Iterator
 
 import torch
 
+LOADAVG = "/proc/loadavg"
+
+
+def _busy_elsewhere(samples: int = 3, pause_s: float = 0.001) -> int | None:
+    """Tasks running or runnable now besides this one (min over a few samples).
+
+    None where ``/proc/loadavg`` is not available.
+    """
+    seen = []
+    for i in range(samples):
+        try:
+            with open(LOADAVG) as f:
+                running = int(f.read().split()[3].split("/")[0])
+        except (OSError, ValueError, IndexError):
+            return None
+        seen.append(running - 1)  # the reader itself is running
+        if i + 1 < samples:
+            time.sleep(pause_s)
+    return max(0, min(seen))
+
+
+def cpu_count() -> int:
+    """Cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
 
 def resolve_threads(threads: int | None) -> int:
-    """``threads``, or PyTorch's intra-op thread count when None (at least 1)."""
-    return max(1, int(threads) if threads is not None else torch.get_num_threads())
+    """Worker threads for a stage.
+
+    An explicit ``threads`` is used as given. None: PyTorch's intra-op thread count, capped
+    by the cores not busy with other tasks right now (at least 1).
+    """
+    if threads is not None:
+        return max(1, int(threads))
+    want = max(1, torch.get_num_threads())
+    busy = _busy_elsewhere()
+    if busy is None:
+        return want
+    return max(1, min(want, cpu_count() - busy))
 
 
 @contextmanager

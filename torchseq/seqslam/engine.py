@@ -32,7 +32,7 @@ class SeqSLAMResult:
         best_score: ``(Q,)`` best trajectory cost (NaN where unscored).
         seconds: wall time of ``"difference"``, ``"enhance"``, ``"search"`` and ``"total"``.
         kernels: which kernel ran per stage, e.g. ``{"difference": "thermometer"}``, and
-            ``"threads"``: the worker threads used.
+            ``"threads"``: the worker threads each stage used.
     """
 
     matches: Matches
@@ -125,20 +125,24 @@ class SeqSLAM(nn.Module):
         reference = reference.to(self.device, dtype)
         query = query.to(self.device, dtype)
         seconds = {}
-        threads = resolve_threads(c.threads)
+        threads = {}
         t0 = t = time.perf_counter()
+        threads["difference"] = resolve_threads(c.threads)  # per stage: the load changes
         diff, kernel = difference_with_kernel(reference, query, c.metric, c.max_chunk_elements,
-                                              threads)
+                                              threads["difference"])
         _sync(self.device)
         seconds["difference"] = time.perf_counter() - t
         t = time.perf_counter()
-        enhanced = enhance_contrast(diff, c.enhance_window, True, c.max_chunk_elements, threads)
+        threads["enhance"] = resolve_threads(c.threads)
+        enhanced = enhance_contrast(diff, c.enhance_window, True, c.max_chunk_elements,
+                                    threads["enhance"])
         _sync(self.device)
         seconds["enhance"] = time.perf_counter() - t
         t = time.perf_counter()
+        threads["search"] = resolve_threads(c.threads)
         match, best, ratio, ranked = search(enhanced, ds, self.speeds, c.rwindow, c.top_k,
                                             c.max_chunk_elements, progress, c.match_rule,
-                                            threads, c.edges)
+                                            threads["search"], c.edges)
         _sync(self.device)
         seconds["search"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
