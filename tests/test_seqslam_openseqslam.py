@@ -235,3 +235,29 @@ def test_default_threads_leave_busy_cores_alone(monkeypatch, tmp_path):
     assert _parallel.resolve_threads(3) == 3  # explicit: as given
     monkeypatch.setattr(_parallel, "LOADAVG", str(tmp_path / "absent"))
     assert _parallel.resolve_threads(None) == 2
+
+
+def test_eval_preset_flag(tmp_path, capsys):
+    import importlib.util
+    import json
+    import sys
+    from pathlib import Path
+
+    from torchseq.frontend import run_main
+
+    path = Path(__file__).resolve().parents[1] / "eval.py"
+    spec = importlib.util.spec_from_file_location("eval_preset_script", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    out = tmp_path / "out"
+    args = ["--engine", "seqslam", "--demo-frames", "60", "--preset", "openseqslam", "--ds",
+            "12", "--no-tensorboard", "--no-progress", "--out", str(out)]
+    assert run_main(module.main, "eval.py", args) == 0
+    params = json.loads((out / "metrics.json").read_text())["seqslam"]["parameters"]
+    assert params["preprocessing"] == "openseqslam" and params["ds"] == 12  # flag overrides
+    assert params["match_at"] == "start" and params["edges"] is False
+    code = run_main(module.main, "eval.py", ["--preset", "matlab", "--engine", "seqslam",
+                                             "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "preset must be one of" in err[0]
