@@ -284,7 +284,7 @@ def run_engine_threads(n: int, threads: int | None, repeats: int = 2) -> dict:
         r = SeqSLAM().match_descriptors(ref, query)
         if best is None or r.seconds["total"] < best["total"]:
             best = dict(r.seconds)
-            workers = r.kernels.get("threads")  # absent in older checkouts
+            workers = getattr(r, "kernels", {}).get("threads")  # absent in older checkouts
     return dict(n=n, torch_threads=torch.get_num_threads(), workers=workers, **best)
 
 
