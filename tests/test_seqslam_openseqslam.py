@@ -261,3 +261,37 @@ def test_eval_preset_flag(tmp_path, capsys):
                                              "--out", str(out), "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "preset must be one of" in err[0]
+
+
+@pytest.mark.parametrize("over", [
+    {},
+    dict(edges=True, ds=6, speed_ratio=1.0),
+    dict(metric="l2", edges=True),
+    dict(preprocessing="openseqslam", top_k=3),
+])
+def test_banded_path_matches_oracle_and_full_path(over):
+    # bands of a few query columns (tiny budget): no full matrix is ever built
+    rng = np.random.default_rng(30)
+    ref = 127 + np.clip(np.round(rng.normal(0, 2.5, (45, 48))), -8, 8)
+    pos = np.minimum(np.arange(38), 44)
+    query = np.clip(ref[pos] + np.round(rng.normal(0, 1.5, (38, 48))), 119, 135)
+    ref[:3, :8] = query[:2, :8] = 0  # flat blocks under OpenSeqSLAM's rule
+    cfg = SeqSLAMConfig(**{"keep_matrices": False, "max_chunk_elements": 2**11, **over})
+    banded = SeqSLAM(cfg).match_descriptors(torch.tensor(ref), torch.tensor(query))
+    assert banded.kernels["matrices"] == "banded" and banded.difference is None
+    assert banded.kernels["difference"] == ("thermometer" if cfg.metric == "l1" else "l2")
+    full = SeqSLAM(SeqSLAMConfig(**{**over, "keep_matrices": True})).match_descriptors(
+        torch.tensor(ref), torch.tensor(query))
+    assert full.kernels["matrices"] == "full"
+    e = oracle_enhance(oracle_difference(ref, query, cfg.metric))
+    vmin, vmax = cfg.velocity_range
+    want = oracle_seqslam(e, cfg.ds, vmin, vmax, cfg.rwindow, cfg.top_k, cfg.match_rule,
+                          edges=cfg.edges)
+    for got in (banded, full):
+        np.testing.assert_array_equal(got.matches.reference.numpy(), want[0])
+        np.testing.assert_array_equal(got.ranked.numpy(), want[3])
+        np.testing.assert_allclose(got.best_score.numpy(), want[1], rtol=1e-9)
+        np.testing.assert_allclose(got.matches.score.numpy(), want[2], rtol=1e-9)
+    torch.testing.assert_close(banded.preview, full.preview)
+    assert full.preview.shape == (45, 38)  # below 1024 a side: the matrix itself
+    torch.testing.assert_close(full.preview, full.enhanced.float())

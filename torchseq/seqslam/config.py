@@ -9,6 +9,7 @@ METRICS = ("l1", "l2", "cosine")
 MATCH_AT = ("start", "trajectory")
 PREPROCESSING = ("torchseq", "openseqslam")
 PRESETS = ("default", "openseqslam", "events")
+KEEP_MATRICES_MAX = 2**27  # R * Q above which the full matrices are not kept by default
 
 
 @dataclass
@@ -45,7 +46,12 @@ class SeqSLAMConfig:
             trajectory's start) and the trailing window (the ``ds`` before it; its end).
             OpenSeqSLAM leaves them unmatched (False).
         threads: CPU worker threads per stage, each taking whole blocks; every op runs on one
-            intra-op thread (see ``seqslam/_parallel.py``). None: ``torch.get_num_threads()``.
+            intra-op thread (see ``seqslam/_parallel.py``). None: ``torch.get_num_threads()``
+            capped by the cores no other process keeps busy.
+        keep_matrices: return the full ``(R, Q)`` difference and enhanced matrices. False:
+            work in bands of query columns in O(R (B + ds)) memory (``seqslam/banded.py``)
+            and return only a reduced copy (``SeqSLAMResult.preview``). None (default): keep
+            them while ``R * Q <= KEEP_MATRICES_MAX`` (2**27, two 512 MiB float32 matrices).
     """
 
     image_size: tuple[int, int] = (32, 64)
@@ -64,6 +70,7 @@ class SeqSLAMConfig:
     preprocessing: str = "torchseq"
     edges: bool = False
     threads: int | None = None
+    keep_matrices: bool | None = None
 
     @classmethod
     def openseqslam(cls, **overrides) -> SeqSLAMConfig:
@@ -146,6 +153,12 @@ class SeqSLAMConfig:
     def sequence_length(self) -> int:
         """``ds`` rounded up to even, as OpenSeqSLAM uses it."""
         return int(self.ds) + int(self.ds) % 2
+
+    def keeps_matrices(self, n_ref: int, n_query: int) -> bool:
+        """Whether a run of ``n_ref`` x ``n_query`` keeps the full matrices."""
+        if self.keep_matrices is not None:
+            return bool(self.keep_matrices)
+        return n_ref * n_query <= KEEP_MATRICES_MAX
 
     @property
     def match_rule(self) -> str:

@@ -68,10 +68,27 @@ def _int_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a.float() @ b.float().T).round().to(torch.int32)
 
 
+def thermometer_codes(x: torch.Tensor, thresholds: torch.Tensor, weights: torch.Tensor,
+                      rows: int = 1024) -> torch.Tensor:
+    """The weighted reference codes ``(N, D * k)`` int8 of :func:`_l1_thermometer`.
+
+    Built ``rows`` rows at a time (the only full-size tensor is the result), to be reused.
+    """
+    thr = thresholds.to(x.dtype)
+    out = torch.empty(x.shape[0], x.shape[1] * thresholds.numel(), dtype=torch.int8,
+                      device=x.device)
+    for r0 in range(0, x.shape[0], rows):
+        out[r0:r0 + rows] = _thermometer(x[r0:r0 + rows], thr, weights)
+    return out
+
+
 def _l1_thermometer(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor,
                     thresholds: torch.Tensor, weights: torch.Tensor, budget: int,
-                    workers: int) -> None:
-    """Fill ``out_t (Q, R)`` with exact L1 distances through weighted thermometer codes."""
+                    workers: int, ref_codes: torch.Tensor | None = None) -> None:
+    """Fill ``out_t (Q, R)`` with exact L1 distances through weighted thermometer codes.
+
+    ``ref_codes``: the reference's :func:`thermometer_codes`, when already built.
+    """
     lo = thresholds[0]
     width = ref.shape[1] * thresholds.numel()
     # int8 codes: a block of rows holds budget * 4 bytes (the bytes of budget float32s);
@@ -85,7 +102,8 @@ def _l1_thermometer(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor,
     codes = _thermometer(query, thr) if query.shape[0] * width <= 4 * budget else None
 
     def fill(r0: int) -> None:
-        a = _thermometer(ref[r0:r0 + block], thr, weights)
+        a = ref_codes[r0:r0 + block] if ref_codes is not None else \
+            _thermometer(ref[r0:r0 + block], thr, weights)
         for q0 in range(0, query.shape[0], block):
             b = codes[q0:q0 + block] if codes is not None else \
                 _thermometer(query[q0:q0 + block], thr)

@@ -12,6 +12,7 @@ from torchseq._checks import check_not_empty
 from torchseq.matches import Matches
 from torchseq.preprocess import preprocess, preprocess_openseqslam
 from torchseq.seqslam._parallel import resolve_threads
+from torchseq.seqslam.banded import match_banded, preview_columns, preview_rows
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.difference import check_descriptors, difference_with_kernel
 from torchseq.seqslam.enhance import enhance_contrast
@@ -26,22 +27,27 @@ class SeqSLAMResult:
         matches: per query, the matched reference (``-1`` for the first and last ``ds/2``
             queries unless ``config.edges``, and where no trajectory is finite) and its
             uniqueness ratio (``lower_is_better=True``; NaN without a match).
-        difference: ``(R, Q)`` difference matrix on CPU.
-        enhanced: ``(R, Q)`` contrast-enhanced difference matrix on CPU.
+        difference: ``(R, Q)`` difference matrix on CPU (None when the config does not keep
+            the full matrices, see ``SeqSLAMConfig.keep_matrices``).
+        enhanced: ``(R, Q)`` contrast-enhanced difference matrix on CPU (or None, as above).
         ranked: ``(Q, top_k)`` int64 candidate references, best first, ``-1`` for none.
         best_score: ``(Q,)`` best trajectory cost (NaN where unscored).
         seconds: wall time of ``"difference"``, ``"enhance"``, ``"search"`` and ``"total"``.
-        kernels: which kernel ran per stage, e.g. ``{"difference": "thermometer"}``, and
-            ``"threads"``: the worker threads each stage used.
+        kernels: which kernel ran per stage, e.g. ``{"difference": "thermometer"}``,
+            ``"threads"``: the worker threads each stage used, ``"matrices"``: ``"full"`` or
+            ``"banded"``.
+        preview: ``(R', Q')`` reduced copy of the enhanced matrix on CPU (area averages,
+            at most 1024 on a side) for plots, or None.
     """
 
     matches: Matches
-    difference: torch.Tensor
-    enhanced: torch.Tensor
+    difference: torch.Tensor | None
+    enhanced: torch.Tensor | None
     ranked: torch.Tensor
     best_score: torch.Tensor
     seconds: dict = field(default_factory=dict)
     kernels: dict = field(default_factory=dict)
+    preview: torch.Tensor | None = None
 
 
 def _sync(device: torch.device) -> None:
@@ -124,6 +130,19 @@ class SeqSLAM(nn.Module):
         dtype = self._working_dtype(reference)
         reference = reference.to(self.device, dtype)
         query = query.to(self.device, dtype)
+        if not c.keeps_matrices(reference.shape[0], query.shape[0]):
+            t0 = time.perf_counter()
+            out = match_banded(reference, query, c, self.speeds, progress)
+            _sync(self.device)
+            seconds = {**out["seconds"], "total": time.perf_counter() - t0}
+            return SeqSLAMResult(
+                matches=Matches(out["match"].cpu(), out["ratio"].to(dtype).cpu(),
+                                lower_is_better=True),
+                difference=None, enhanced=None, ranked=out["ranked"].cpu(),
+                best_score=out["best"].to(dtype).cpu(), seconds=seconds,
+                kernels={"difference": out["kernel"], "threads": out["threads"],
+                         "matrices": "banded"},
+                preview=out["preview"].cpu())
         seconds = {}
         threads = {}
         t0 = t = time.perf_counter()
@@ -150,7 +169,8 @@ class SeqSLAM(nn.Module):
             matches=Matches(match.cpu(), ratio.cpu(), lower_is_better=True),
             difference=diff.cpu(), enhanced=enhanced.cpu(), ranked=ranked.cpu(),
             best_score=best.cpu(), seconds=seconds,
-            kernels={"difference": kernel, "threads": threads})
+            kernels={"difference": kernel, "threads": threads, "matrices": "full"},
+            preview=preview_columns(preview_rows(enhanced.T)).cpu())
 
     def forward(self, reference: torch.Tensor, query: torch.Tensor) -> SeqSLAMResult:
         """Same as :meth:`match`."""
