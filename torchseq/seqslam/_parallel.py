@@ -61,22 +61,30 @@ def resolve_threads(threads: int | None) -> int:
     """
     if threads is not None:
         return max(1, int(threads))
-    want = max(1, torch.get_num_threads())
+    want = max(1, _intra_op_threads[-1] if _intra_op_threads else torch.get_num_threads())
     busy = _busy_elsewhere()
     if busy is None:
         return want
     return max(1, min(want, cpu_count() - busy))
 
 
+_intra_op_threads: list[int] = []  # the counts single_threaded_ops replaced, innermost last
+
+
 @contextmanager
 def single_threaded_ops() -> Iterator[None]:
-    """Run PyTorch ops on one intra-op thread inside the block; restore the count after."""
+    """Run PyTorch ops on one intra-op thread inside the block; restore the count after.
+
+    Nested blocks keep the outermost count, which :func:`resolve_threads` reads.
+    """
     old = torch.get_num_threads()
+    _intra_op_threads.append(_intra_op_threads[-1] if _intra_op_threads else old)
     if old != 1:
         torch.set_num_threads(1)
     try:
         yield
     finally:
+        _intra_op_threads.pop()
         if old != 1:
             torch.set_num_threads(old)
 

@@ -11,7 +11,7 @@ from torch import nn
 from torchseq._checks import check_not_empty
 from torchseq.matches import Matches
 from torchseq.preprocess import preprocess, preprocess_openseqslam
-from torchseq.seqslam._parallel import resolve_threads
+from torchseq.seqslam._parallel import resolve_threads, single_threaded_ops
 from torchseq.seqslam.banded import match_banded, preview_columns, preview_rows
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.difference import check_descriptors, difference_with_kernel
@@ -116,7 +116,18 @@ class SeqSLAM(nn.Module):
 
     def match_descriptors(self, reference: torch.Tensor, query: torch.Tensor,
                           progress: bool = False) -> SeqSLAMResult:
-        """Match ``(Q, D)`` query descriptors against ``(R, D)`` reference descriptors."""
+        """Match ``(Q, D)`` query descriptors against ``(R, D)`` reference descriptors.
+
+        On CPU every op runs on one intra-op thread; the stages spread whole blocks over
+        worker threads instead (``config.threads``, see ``seqslam/_parallel.py``).
+        """
+        if self.device.type == "cuda":
+            return self._match_descriptors(reference, query, progress)
+        with single_threaded_ops():
+            return self._match_descriptors(reference, query, progress)
+
+    def _match_descriptors(self, reference: torch.Tensor, query: torch.Tensor,
+                           progress: bool) -> SeqSLAMResult:
         c = self.config
         reference, query = torch.as_tensor(reference), torch.as_tensor(query)
         check_descriptors(reference, query)
