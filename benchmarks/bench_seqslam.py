@@ -8,6 +8,8 @@
     .venv/bin/python benchmarks/bench_seqslam.py --threads --sizes 3576 --baseline ../main
         # 1 thread vs the default, idle and beside a busy co-tenant process
     .venv/bin/python benchmarks/bench_seqslam.py --kernels --sizes 3576  # L1 kernels, 1 thread
+    .venv/bin/python benchmarks/bench_seqslam.py --scale --sizes 1000 3576 10000 20000 35768
+        # default engine (threads and matrices as configured by default): time, peak RSS
 
 One thread (torch.set_num_threads(1)); every (size, implementation) runs in its own
 subprocess so the peak RSS is clean. Descriptors: random 32x64 noise frames and noisy copies,
@@ -335,6 +337,63 @@ def run_threads(sizes, baseline: Path | None, rounds: int = 3) -> str:
     return "\n".join(lines)
 
 
+def run_scale_one(n: int) -> dict:
+    """The default engine on N x N synthetic descriptors: seconds, peak RSS of the process
+    (VmHWM, descriptors included) and the extra peak over the RSS before the match."""
+    import torch
+
+    from torchseq.seqslam import SeqSLAM
+
+    ref, query = make_descriptors_chunked(n)
+    engine = SeqSLAM()
+    reset_peak()
+    base = rss_mb()
+    r = engine.match_descriptors(ref, query)
+    valid = r.matches.reference.numpy() >= 0
+    idx = np.nonzero(valid)[0]
+    recall = float((np.abs(r.matches.reference.numpy()[valid] - idx) <= 2).mean())
+    return dict(n=n, **r.seconds, peak_mb=peak_mb(), extra_mb=peak_mb() - base,
+                descriptors_mb=(ref.numel() + query.numel()) * 4 / 2**20,
+                matrices=r.kernels.get("matrices"), workers=str(r.kernels.get("threads")),
+                recall=recall, torch_threads=torch.get_num_threads())
+
+
+def make_descriptors_chunked(n: int, seed: int = 0, chunk: int = 4096):
+    """``make_descriptors`` built ``chunk`` frames at a time (bounded temporaries)."""
+    import torch
+
+    from torchseq.preprocess import preprocess
+
+    g = torch.Generator().manual_seed(seed)
+    ref = torch.empty(n, 2048)
+    query = torch.empty(n, 2048)
+    for i in range(0, n, chunk):
+        f = torch.rand(min(chunk, n - i), 32, 64, generator=g) * 255
+        q = (f + torch.randn(f.shape, generator=g) * 40).clamp(0, 255)
+        ref[i:i + len(f)] = preprocess(f, (32, 64))
+        query[i:i + len(f)] = preprocess(q, (32, 64))
+    return ref, query
+
+
+def run_scale(sizes) -> str:
+    lines = ["| N = M | matrices | workers per stage | difference s | enhance s | search s "
+             "| total s | peak RSS MB (process) | extra peak MB | descriptors MB "
+             "| matched within 2 |", "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for n in sizes:
+        out = subprocess.run([sys.executable, __file__, "--one-scale", str(n)],
+                             capture_output=True, text=True, cwd=ROOT)
+        if out.returncode:
+            lines.append(f"| {n} | failed: {out.stderr[-300:]!r} |")
+            continue
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        lines.append(f"| {n} | {r['matrices']} | {r['workers']} | {r['difference']:.1f} | "
+                     f"{r['enhance']:.1f} | {r['search']:.1f} | {r['total']:.1f} | "
+                     f"{r['peak_mb']:.0f} | {r['extra_mb']:.0f} | {r['descriptors_mb']:.0f} | "
+                     f"{r['recall']:.3f} |")
+        print(lines[-1], file=sys.stderr, flush=True)
+    return "\n".join(lines)
+
+
 def sad_numba(ref, query):
     """A direct sum of absolute differences on uint8 descriptors, compiled by Numba (LLVM)
     with the reference loop outermost; None when Numba is not installed."""
@@ -413,6 +472,9 @@ def main() -> None:
                         help="with --threads: also run the checkout at this path")
     parser.add_argument("--kernels", action="store_true",
                         help="exact L1 kernels side by side at one thread")
+    parser.add_argument("--scale", action="store_true",
+                        help="default engine: time and peak RSS per size")
+    parser.add_argument("--one-scale", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--one-threads", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--one", nargs=2, metavar=("IMPL", "N"), help=argparse.SUPPRESS)
     parser.add_argument("--doc", type=Path, default=None,
@@ -430,6 +492,12 @@ def main() -> None:
         return
     if args.threads:
         print(run_threads(args.sizes, args.baseline))
+        return
+    if args.one_scale:
+        print(json.dumps(run_scale_one(args.one_scale)))
+        return
+    if args.scale:
+        print(run_scale(args.sizes))
         return
     if args.kernels:
         for n in args.sizes:
