@@ -170,7 +170,9 @@ def run_seqslam(cfg: EvalConfig, ref, query, device):
     """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
     scfg = seqslam_config(cfg)
     result = SeqSLAM(scfg, device=device).match(ref, query, progress=cfg.progress)
-    return {"matches": result.matches, "ranked": result.ranked, "matrix": result.enhanced,
+    reduced = result.enhanced is None  # long routes: only the engine's reduced copy
+    return {"matches": result.matches, "ranked": result.ranked,
+            "matrix": result.preview if reduced else result.enhanced, "matrix_reduced": reduced,
             "seconds": result.seconds["total"], "parameters": to_jsonable(scfg)}
 
 
@@ -223,9 +225,11 @@ def report(cfg: EvalConfig, ref, query, gt, source, results, out: Path) -> dict:
     write_text(out / "config.json", config_text(cfg) + "\n")
     figures = {}
     if "seqslam" in results:
+        r = results["seqslam"]
+        full = not r.get("matrix_reduced")  # overlays need the full matrix's coordinates
         figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
-            results["seqslam"]["matrix"], results["seqslam"]["matches"], gt,
-            "SeqSLAM contrast-enhanced difference matrix")
+            r["matrix"], r["matches"] if full else None, gt if full else None,
+            "SeqSLAM contrast-enhanced difference matrix" + ("" if full else " (reduced)"))
     if "neural" in results:
         figures["neural_activity"] = plots.plot_activity_raster(
             results["neural"]["activity"], title="neural output activity over the query")
