@@ -348,11 +348,14 @@ def run_scale_one(n: int) -> dict:
     engine = SeqSLAM()
     reset_peak()
     base = rss_mb()
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     r = engine.match_descriptors(ref, query)
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     valid = r.matches.reference.numpy() >= 0
     idx = np.nonzero(valid)[0]
     recall = float((np.abs(r.matches.reference.numpy()[valid] - idx) <= 2).mean())
-    return dict(n=n, **r.seconds, peak_mb=peak_mb(), extra_mb=peak_mb() - base,
+    return dict(n=n, **r.seconds, cpu_s=cpu, peak_mb=peak_mb(), extra_mb=peak_mb() - base,
                 descriptors_mb=(ref.numel() + query.numel()) * 4 / 2**20,
                 matrices=r.kernels.get("matrices"), workers=str(r.kernels.get("threads")),
                 recall=recall, torch_threads=torch.get_num_threads())
@@ -377,8 +380,8 @@ def make_descriptors_chunked(n: int, seed: int = 0, chunk: int = 4096):
 
 def run_scale(sizes) -> str:
     lines = ["| N = M | matrices | workers per stage | difference s | enhance s | search s "
-             "| total s | peak RSS MB (process) | extra peak MB | descriptors MB "
-             "| matched within 2 |", "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| total s (wall) | CPU s | peak RSS MB (process) | extra peak MB | descriptors MB "
+             "| matched within 2 |", "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for n in sizes:
         out = subprocess.run([sys.executable, __file__, "--one-scale", str(n)],
                              capture_output=True, text=True, cwd=ROOT)
@@ -386,9 +389,11 @@ def run_scale(sizes) -> str:
             lines.append(f"| {n} | failed: {out.stderr[-300:]!r} |")
             continue
         r = json.loads(out.stdout.strip().splitlines()[-1])
-        lines.append(f"| {n} | {r['matrices']} | {r['workers']} | {r['difference']:.1f} | "
+        workers = r["workers"].replace("'", "").replace("{", "").replace("}", "")
+        lines.append(f"| {n} | {r['matrices']} | {workers} | {r['difference']:.1f} | "
                      f"{r['enhance']:.1f} | {r['search']:.1f} | {r['total']:.1f} | "
-                     f"{r['peak_mb']:.0f} | {r['extra_mb']:.0f} | {r['descriptors_mb']:.0f} | "
+                     f"{r['cpu_s']:.1f} | {r['peak_mb']:.0f} | {r['extra_mb']:.0f} | "
+                     f"{r['descriptors_mb']:.0f} | "
                      f"{r['recall']:.3f} |")
         print(lines[-1], file=sys.stderr, flush=True)
     return "\n".join(lines)
