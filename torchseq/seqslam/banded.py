@@ -78,9 +78,10 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
     levels = thermometer_levels(reference, query, budget) if c.metric == "l1" else None
     if levels is not None and levels[0].numel() == 0:
         levels = None  # every value equal: the general path gives the zero matrix
-    codes = None
+    codes = weights = None
     if levels is not None:
-        codes = thermometer_codes(reference, levels[0], levels[1].to(reference.device))
+        weights = levels[1].to(reference.device) if levels[1] is not None else None
+        codes = thermometer_codes(reference, levels[0], weights)
     seconds["difference"] += time.perf_counter() - t
     kernel = "thermometer" if levels is not None else None
 
@@ -90,8 +91,8 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
         t = time.perf_counter()
         if levels is not None:
             d_t = torch.empty(q1 - q0, n_ref, dtype=reference.dtype, device=reference.device)
-            _l1_thermometer(reference, query[q0:q1], d_t, levels[0],
-                            levels[1].to(reference.device), budget, workers, codes)
+            _l1_thermometer(reference, query[q0:q1], d_t, levels[0], weights, budget, workers,
+                            codes)
             d = d_t.T
         else:
             d, kernel = difference_with_kernel(reference, query[q0:q1], c.metric, budget,

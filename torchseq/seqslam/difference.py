@@ -68,8 +68,8 @@ def _int_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a.float() @ b.float().T).round().to(torch.int32)
 
 
-def thermometer_codes(x: torch.Tensor, thresholds: torch.Tensor, weights: torch.Tensor,
-                      rows: int = 1024) -> torch.Tensor:
+def thermometer_codes(x: torch.Tensor, thresholds: torch.Tensor,
+                      weights: torch.Tensor | None, rows: int = 1024) -> torch.Tensor:
     """The weighted reference codes ``(N, D * k)`` int8 of :func:`_l1_thermometer`.
 
     Built ``rows`` rows at a time (the only full-size tensor is the result), to be reused.
@@ -83,7 +83,7 @@ def thermometer_codes(x: torch.Tensor, thresholds: torch.Tensor, weights: torch.
 
 
 def _l1_thermometer(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor,
-                    thresholds: torch.Tensor, weights: torch.Tensor, budget: int,
+                    thresholds: torch.Tensor, weights: torch.Tensor | None, budget: int,
                     workers: int, ref_codes: torch.Tensor | None = None) -> None:
     """Fill ``out_t (Q, R)`` with exact L1 distances through weighted thermometer codes.
 
@@ -114,32 +114,41 @@ def _l1_thermometer(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor,
     run_blocks(fill, range(0, ref.shape[0], block), workers, ref.device)
 
 
-def _present_values(x: torch.Tensor, lo: float, span: int, rows: int) -> torch.Tensor | None:
-    """``(span + 1,)`` bool: which integers ``lo .. lo + span`` occur in ``x``.
+def _is_integer(x: torch.Tensor, rows: int) -> bool:
+    """Whether every value of ``x`` is an integer, checked ``rows`` rows at a time."""
+    for r0 in range(0, x.shape[0], rows):
+        v = x[r0:r0 + rows]
+        if not torch.equal(v, v.round()):
+            return False
+    return True
 
-    None when a value is not an integer. Works in blocks of ``rows`` rows (bounded memory).
+
+def _present_values(x: torch.Tensor, lo: float, span: int, rows: int) -> torch.Tensor:
+    """``(span + 1,)`` bool: which integers ``lo .. lo + span`` occur in integer-valued ``x``.
+
+    Works in blocks of ``rows`` rows (bounded memory).
     """
     seen = torch.zeros(span + 1, dtype=torch.bool, device=x.device)
     for r0 in range(0, x.shape[0], rows):
-        v = x[r0:r0 + rows] - lo
-        idx = v.round()
-        if not torch.equal(v, idx):
-            return None
-        seen |= torch.bincount(idx.to(torch.int64).flatten(), minlength=span + 1) > 0
+        idx = (x[r0:r0 + rows] - lo).to(torch.int64).flatten()
+        seen |= torch.bincount(idx, minlength=span + 1) > 0
     return seen
 
 
 def thermometer_levels(reference: torch.Tensor, query: torch.Tensor,
                        max_chunk_elements: int = 2**26
-                       ) -> tuple[torch.Tensor, torch.Tensor] | None:
+                       ) -> tuple[torch.Tensor, torch.Tensor | None] | None:
     """Thresholds and int8 gap weights of the thermometer kernel, or None when it cannot run.
 
-    It runs when both inputs are integer-valued, take at most ``THERMOMETER_MAX_LEVELS + 1``
-    distinct values with every gap <= 127, and ``D * (max - min) < 2**24`` (exact int32 and
-    float32 sums).
+    It runs when both inputs are integer-valued, ``D * (max - min) < 2**24`` (exact int32 and
+    float32 sums) and either the range ``max - min`` is at most ``THERMOMETER_MAX_LEVELS``
+    (then every integer of the range is a threshold, all weights 1: no scan for the values
+    present) or the values present are at most ``THERMOMETER_MAX_LEVELS + 1`` with every gap
+    <= 127 (OpenSeqSLAM's flat blocks: 0 beside 119..135).
 
     Returns:
-        ``(k,)`` float64 thresholds ``v_0 .. v_{k-1}`` and ``(k,)`` int8 gaps, ``k >= 0``.
+        ``(k,)`` float64 thresholds ``v_0 .. v_{k-1}`` and ``(k,)`` int8 gaps (None: all 1),
+        ``k >= 0``.
     """
     lo = float(torch.minimum(reference.min(), query.min()))
     hi = float(torch.maximum(reference.max(), query.max()))
@@ -147,12 +156,12 @@ def thermometer_levels(reference: torch.Tensor, query: torch.Tensor,
     if span > THERMOMETER_MAX_RANGE or reference.shape[1] * span >= 2**24:
         return None
     rows = max(1, max_chunk_elements // (8 * reference.shape[1]))
-    seen = None
-    for x in (reference, query):
-        s = _present_values(x, lo, int(span), rows)
-        if s is None:
-            return None
-        seen = s if seen is None else seen | s
+    if not (_is_integer(reference, rows) and _is_integer(query, rows)):
+        return None
+    if span <= THERMOMETER_MAX_LEVELS:
+        return lo + torch.arange(int(span), dtype=torch.float64), None
+    seen = _present_values(reference, lo, int(span), rows)
+    seen |= _present_values(query, lo, int(span), rows)
     values = torch.nonzero(seen)[:, 0].to(torch.float64) + lo
     gaps = values[1:] - values[:-1]
     if values.numel() - 1 > THERMOMETER_MAX_LEVELS or bool((gaps > 127).any()):
@@ -222,8 +231,9 @@ def difference_with_kernel(
         if levels is not None and levels[0].numel() == 0:
             return out_t.zero_().T, "constant"
         if levels is not None:
-            _l1_thermometer(reference, query, out_t, levels[0], levels[1].to(reference.device),
-                            max_chunk_elements, threads)
+            weights = levels[1].to(reference.device) if levels[1] is not None else None
+            _l1_thermometer(reference, query, out_t, levels[0], weights, max_chunk_elements,
+                            threads)
             return out_t.T, "thermometer"
 
         def cdist(q0: int) -> None:
