@@ -26,6 +26,7 @@ from torchseq.frontend import (
     config_text,
     event_options,
     load_frames,
+    parse_size,
     resolve_device,
     run_main,
     to_jsonable,
@@ -46,6 +47,7 @@ class EvalConfig:
     tolerance: float | None = None
     engine: str = "both"
     checkpoint: str | None = None
+    preset: str | None = None
     out: str = "runs/eval"
     ds: int = 10
     vmin: float = 0.8
@@ -78,6 +80,9 @@ HELP = {
     "engine": f"engine to run: one of {', '.join(ENGINES)}",
     "checkpoint": "neural model checkpoint (model.pt from train.py); without it the neural "
                   "engine is trained on the reference first",
+    "preset": "SeqSLAM preset: openseqslam (OpenSeqSLAM 2013 exactly: uint8 preprocessing, "
+              "flat blocks -> 0, start + ds/2) or events (ds 100, 16x16, --speed-ratio); "
+              "SeqSLAM flags given with a non-default value override it",
     "out": "output folder",
     "ds": "SeqSLAM sequence length in frames (rounded up to even)",
     "vmin": "SeqSLAM slowest trajectory slope, reference frames per query frame",
@@ -136,15 +141,38 @@ def load_data(cfg: EvalConfig):
     return ref, query, gt, source
 
 
+SEQSLAM_FLAGS = ("image_size", "patch_size", "metric", "enhance_window", "ds", "vmin", "vmax",
+                 "speed_ratio", "speed_tolerance", "rwindow", "match_at")
+
+
+def seqslam_config(cfg: EvalConfig) -> SeqSLAMConfig:
+    """The SeqSLAM flags, on top of ``--preset`` when given.
+
+    With a preset, only flags whose value differs from the flag's default override it.
+    """
+    flags = {name: getattr(cfg, name) for name in SEQSLAM_FLAGS}
+    if cfg.preset is None:
+        return SeqSLAMConfig(**flags)
+    defaults = EvalConfig()
+
+    def default(name):
+        d = getattr(defaults, name)
+        return parse_size(d) if name.endswith("_size") and isinstance(d, str) else d
+
+    changed = {k: v for k, v in flags.items() if v != default(k)}
+    try:
+        return SeqSLAMConfig.preset(cfg.preset, **changed)
+    except ValueError as err:
+        raise UsageError(f"--preset: {err}") from err
+
+
 def run_seqslam(cfg: EvalConfig, ref, query, device):
     """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
-    scfg = SeqSLAMConfig(
-        image_size=cfg.image_size, patch_size=cfg.patch_size, metric=cfg.metric,
-        enhance_window=cfg.enhance_window, ds=cfg.ds, vmin=cfg.vmin, vmax=cfg.vmax,
-        speed_ratio=cfg.speed_ratio, speed_tolerance=cfg.speed_tolerance, rwindow=cfg.rwindow,
-        match_at=cfg.match_at)
+    scfg = seqslam_config(cfg)
     result = SeqSLAM(scfg, device=device).match(ref, query, progress=cfg.progress)
-    return {"matches": result.matches, "ranked": result.ranked, "matrix": result.enhanced,
+    reduced = result.enhanced is None  # long routes: only the engine's reduced copy
+    return {"matches": result.matches, "ranked": result.ranked,
+            "matrix": result.preview if reduced else result.enhanced, "matrix_reduced": reduced,
             "seconds": result.seconds["total"], "parameters": to_jsonable(scfg)}
 
 
@@ -197,9 +225,11 @@ def report(cfg: EvalConfig, ref, query, gt, source, results, out: Path) -> dict:
     write_text(out / "config.json", config_text(cfg) + "\n")
     figures = {}
     if "seqslam" in results:
+        r = results["seqslam"]
+        full = not r.get("matrix_reduced")  # overlays need the full matrix's coordinates
         figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
-            results["seqslam"]["matrix"], results["seqslam"]["matches"], gt,
-            "SeqSLAM contrast-enhanced difference matrix")
+            r["matrix"], r["matches"] if full else None, gt if full else None,
+            "SeqSLAM contrast-enhanced difference matrix" + ("" if full else " (reduced)"))
     if "neural" in results:
         figures["neural_activity"] = plots.plot_activity_raster(
             results["neural"]["activity"], title="neural output activity over the query")

@@ -4,6 +4,12 @@
     .venv/bin/python benchmarks/bench_seqslam.py --quick    # N = 300, 1000
     .venv/bin/python benchmarks/bench_seqslam.py --sizes 2000 --impls engine,numpy
     .venv/bin/python benchmarks/bench_seqslam.py --enhance --sizes 5000 20000  # stage only
+    .venv/bin/python benchmarks/bench_seqslam.py --quality   # presets and edges on real data
+    .venv/bin/python benchmarks/bench_seqslam.py --threads --sizes 3576 --baseline ../main
+        # 1 thread vs the default, idle and beside a busy co-tenant process
+    .venv/bin/python benchmarks/bench_seqslam.py --kernels --sizes 3576  # L1 kernels, 1 thread
+    .venv/bin/python benchmarks/bench_seqslam.py --scale --sizes 1000 3576 10000 20000 35768
+        # default engine (threads and matrices as configured by default): time, peak RSS
 
 One thread (torch.set_num_threads(1)); every (size, implementation) runs in its own
 subprocess so the peak RSS is clean. Descriptors: random 32x64 noise frames and noisy copies,
@@ -196,6 +202,264 @@ def run_one(impl: str, n: int) -> dict:
                 match_hash=int(np.sum(match * (np.arange(len(match)) % 97 + 1))))
 
 
+def quality_data():
+    """(name, reference frames, query frames, (R, Q) ground truth, base config) per route.
+
+    corridor: colour frames as RGB (so the OpenSeqSLAM preset applies MATLAB's rgb2gray);
+    lens-davis128: 80x80 event-count frames at the speed experiment's LENS setting.
+    """
+    import cv2
+    import torch
+
+    from torchseq.ground_truth import load_ground_truth
+    from torchseq.seqslam import SeqSLAMConfig
+    from torchseq.sources import load_traverse
+
+    data = ROOT.parent / "shared" / "data"
+    out = []
+    root = data / "corridor"
+    if root.exists():
+        def rgb(folder):
+            files = sorted(folder.glob("*.jpg"))
+            return torch.from_numpy(np.stack([cv2.imread(str(f))[:, :, ::-1] for f in files]))
+
+        ref, query = rgb(root / "ref"), rgb(root / "query")
+        gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
+        out.append(("corridor", ref, query, gt, {}))
+    root = data / "lens-davis128"
+    if root.exists():
+        ref = load_traverse(root / "example-reference", progress=False)
+        query = load_traverse(root / "example-query", progress=False)
+        gt = np.load(root / "example-reference_example-query_GT.npy").astype(bool)
+        near = np.abs(np.arange(len(ref))[:, None] - np.arange(len(query))[None]) <= 2
+        base = dict(image_size=(16, 16), speed_ratio=1.0)
+        out.append(("lens-davis128 (exact GT)", ref, query, gt, base))
+        out.append(("lens-davis128 (+-2 frames)", ref, query, near, base))
+    assert SeqSLAMConfig  # imported for the caller's presets
+    return out
+
+
+def run_quality() -> str:
+    """Default vs OpenSeqSLAM preset vs default + edge matching on the real routes."""
+    from torchseq.metrics import correct, evaluate
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+
+    lines = ["| data | configuration | recall@1 | recall@5 | PR AUC | coverage "
+             "| edge queries matched / correct | same matches as default |",
+             "|---|---|---:|---:|---:|---:|---|---:|"]
+    for name, ref, query, gt, base in quality_data():
+        configs = {"default": SeqSLAMConfig(**base),
+                   "openseqslam preset": SeqSLAMConfig.openseqslam(**base),
+                   "default + edges": SeqSLAMConfig(edges=True, **base)}
+        default_match = None
+        for label, cfg in configs.items():
+            r = SeqSLAM(cfg).match(ref, query)
+            m = evaluate(r.matches, gt, r.ranked.numpy())
+            half = cfg.sequence_length // 2
+            edge = np.r_[0:half, len(query) - half:len(query)]
+            ok = correct(r.matches, gt)
+            matched = int((r.matches.reference.numpy()[edge] >= 0).sum())
+            match = r.matches.reference.numpy()
+            if default_match is None:
+                default_match = match
+            same = float((match == default_match).mean())
+            lines.append(f"| {name} | {label} | {m['recall_at_1']:.3f} | "
+                         f"{m.get('recall_at_5', float('nan')):.3f} | {m['auc']:.3f} | "
+                         f"{m['coverage']:.3f} | {matched}/{len(edge)} / {int(ok[edge].sum())} | "
+                         f"{same:.1%} |")
+    return "\n".join(lines)
+
+
+def run_engine_threads(n: int, threads: int | None, repeats: int = 2) -> dict:
+    """One engine run (best of ``repeats``) with ``threads`` intra-op threads (None: torch's
+    default) and the engine's default thread use; stage seconds."""
+    import torch
+
+    if threads is not None:
+        torch.set_num_threads(threads)
+    from torchseq.seqslam import SeqSLAM
+
+    ref, query = make_descriptors(n)
+    ref, query = torch.from_numpy(ref), torch.from_numpy(query)
+    best = None
+    for _ in range(repeats):
+        r = SeqSLAM().match_descriptors(ref, query)
+        if best is None or r.seconds["total"] < best["total"]:
+            best = dict(r.seconds)
+            workers = getattr(r, "kernels", {}).get("threads")  # absent in older checkouts
+    return dict(n=n, torch_threads=torch.get_num_threads(), workers=workers, **best)
+
+
+def run_threads(sizes, baseline: Path | None, rounds: int = 3) -> str:
+    """Engine at one thread vs at PyTorch's default, idle and with a busy co-tenant (a
+    process spinning on one core); optionally the same for the code at ``baseline`` (another
+    checkout, e.g. the previous version). Every configuration runs ``rounds`` times in its
+    own subprocess, the configurations interleaved round by round; the best total counts."""
+    roots = [("this", ROOT)] + ([("baseline", baseline.resolve())] if baseline else [])
+    lines = ["| N = M | code | co-tenant | threads (intra-op) | workers per stage "
+             "| difference s | enhance s | search s | total s | vs 1 thread |",
+             "|---:|---|---|---|---|---:|---:|---:|---:|---:|"]
+    for n in sizes:
+        for busy in (False, True):
+            hog = None
+            if busy:
+                hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                time.sleep(0.5)
+            best = {}
+            try:
+                for _ in range(rounds):
+                    for label, root in roots:
+                        for threads in ("1", "default"):
+                            env = dict(os.environ, PYTHONPATH=str(root))
+                            out = subprocess.run(
+                                [sys.executable, __file__, "--one-threads", str(n), threads],
+                                capture_output=True, text=True, cwd=ROOT, env=env)
+                            if out.returncode:
+                                raise SystemExit(out.stderr[-2000:])
+                            r = json.loads(out.stdout.strip().splitlines()[-1])
+                            key = (label, threads)
+                            if key not in best or r["total"] < best[key]["total"]:
+                                best[key] = r
+            finally:
+                if hog is not None:
+                    hog.kill()
+                    hog.wait()
+            for (label, threads), r in best.items():
+                one = best[(label, "1")]["total"]
+                workers = r.get("workers")
+                workers = "/".join(str(v) for v in workers.values()) if workers else "-"
+                lines.append(
+                    f"| {n} | {label} | {'busy' if busy else 'idle'} | {threads} "
+                    f"({r['torch_threads']}) | {workers} | {r['difference']:.2f} | "
+                    f"{r['enhance']:.2f} | {r['search']:.2f} | {r['total']:.2f} | "
+                    f"{r['total'] / one:.2f}x |")
+                print(lines[-1], file=sys.stderr, flush=True)
+    return "\n".join(lines)
+
+
+def run_scale_one(n: int) -> dict:
+    """The default engine on N x N synthetic descriptors: seconds, peak RSS of the process
+    (VmHWM, descriptors included) and the extra peak over the RSS before the match."""
+    import torch
+
+    from torchseq.seqslam import SeqSLAM
+
+    ref, query = make_descriptors_chunked(n)
+    engine = SeqSLAM()
+    reset_peak()
+    base = rss_mb()
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+    r = engine.match_descriptors(ref, query)
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+    valid = r.matches.reference.numpy() >= 0
+    idx = np.nonzero(valid)[0]
+    recall = float((np.abs(r.matches.reference.numpy()[valid] - idx) <= 2).mean())
+    return dict(n=n, **r.seconds, cpu_s=cpu, peak_mb=peak_mb(), extra_mb=peak_mb() - base,
+                descriptors_mb=(ref.numel() + query.numel()) * 4 / 2**20,
+                matrices=r.kernels.get("matrices"), workers=str(r.kernels.get("threads")),
+                recall=recall, torch_threads=torch.get_num_threads())
+
+
+def make_descriptors_chunked(n: int, seed: int = 0, chunk: int = 4096):
+    """``make_descriptors`` built ``chunk`` frames at a time (bounded temporaries)."""
+    import torch
+
+    from torchseq.preprocess import preprocess
+
+    g = torch.Generator().manual_seed(seed)
+    ref = torch.empty(n, 2048)
+    query = torch.empty(n, 2048)
+    for i in range(0, n, chunk):
+        f = torch.rand(min(chunk, n - i), 32, 64, generator=g) * 255
+        q = (f + torch.randn(f.shape, generator=g) * 40).clamp(0, 255)
+        ref[i:i + len(f)] = preprocess(f, (32, 64))
+        query[i:i + len(f)] = preprocess(q, (32, 64))
+    return ref, query
+
+
+def run_scale(sizes) -> str:
+    lines = ["| N = M | matrices | workers per stage | difference s | enhance s | search s "
+             "| total s (wall) | CPU s | peak RSS MB (process) | extra peak MB | descriptors MB "
+             "| matched within 2 |", "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for n in sizes:
+        out = subprocess.run([sys.executable, __file__, "--one-scale", str(n)],
+                             capture_output=True, text=True, cwd=ROOT)
+        if out.returncode:
+            lines.append(f"| {n} | failed: {out.stderr[-300:]!r} |")
+            continue
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        workers = r["workers"].replace("'", "").replace("{", "").replace("}", "")
+        lines.append(f"| {n} | {r['matrices']} | {workers} | {r['difference']:.1f} | "
+                     f"{r['enhance']:.1f} | {r['search']:.1f} | {r['total']:.1f} | "
+                     f"{r['cpu_s']:.1f} | {r['peak_mb']:.0f} | {r['extra_mb']:.0f} | "
+                     f"{r['descriptors_mb']:.0f} | "
+                     f"{r['recall']:.3f} |")
+        print(lines[-1], file=sys.stderr, flush=True)
+    return "\n".join(lines)
+
+
+def sad_numba(ref, query):
+    """A direct sum of absolute differences on uint8 descriptors, compiled by Numba (LLVM)
+    with the reference loop outermost; None when Numba is not installed."""
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(cache=False)
+    def kernel(a, b, out, tile):
+        for i0 in range(0, a.shape[0], tile):
+            for j0 in range(0, b.shape[0], tile):
+                for i in range(i0, min(i0 + tile, a.shape[0])):
+                    for j in range(j0, min(j0 + tile, b.shape[0])):
+                        s = np.uint32(0)
+                        for k in range(a.shape[1]):
+                            x, y = a[i, k], b[j, k]
+                            s += np.uint32(x - y if x > y else y - x)
+                        out[j, i] = s
+
+    a, b = ref.astype(np.uint8), query.astype(np.uint8)
+    out = np.empty((len(b), len(a)), np.int32)
+    kernel(a[:4], b[:4], out[:4, :4], 64)  # compile outside the timing
+    t = time.perf_counter()
+    kernel(a, b, out, 64)
+    return out, time.perf_counter() - t
+
+
+def run_kernels(n: int, repeats: int = 2) -> dict:
+    """Exact L1 difference matrix, one thread: the thermometer int8 product (the engine's
+    kernel), a direct sum of absolute differences (Numba) and torch.cdist, best of repeats."""
+    import torch
+
+    from torchseq.seqslam.difference import difference_with_kernel
+
+    torch.set_num_threads(1)
+    ref, query = make_descriptors(n)
+    rt, qt = torch.from_numpy(ref), torch.from_numpy(query)
+    out = {"n": n}
+    best = math.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        d, kernel = difference_with_kernel(rt, qt)
+        best = min(best, time.perf_counter() - t)
+    out["thermometer"] = best
+    assert kernel == "thermometer"
+    sad = None
+    for _ in range(repeats):
+        r = sad_numba(ref, query)
+        if r is None:
+            break
+        sad = r[1] if sad is None else min(sad, r[1])
+        out["sad_exact"] = bool(np.array_equal(r[0], d.T.numpy()))
+    out["sad_numba"] = sad
+    m = min(n, 1000)
+    t = time.perf_counter()
+    torch.cdist(qt[:m], rt[:m], p=1)
+    out["cdist_per_pair_us"] = (time.perf_counter() - t) / (m * m) * 1e6
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 5000, 20000])
@@ -204,12 +468,45 @@ def main() -> None:
     parser.add_argument("--enhance", action="store_true",
                         help="time only contrast enhancement, old (shifted slices) vs new")
     parser.add_argument("--repeats", type=int, default=2, help="with --enhance: best of")
+    parser.add_argument("--quality", action="store_true",
+                        help="recall of the default, the OpenSeqSLAM preset and edge matching "
+                             "on the real routes in ../shared/data")
+    parser.add_argument("--threads", action="store_true",
+                        help="one thread vs the default, idle and with a busy co-tenant")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="with --threads: also run the checkout at this path")
+    parser.add_argument("--kernels", action="store_true",
+                        help="exact L1 kernels side by side at one thread")
+    parser.add_argument("--scale", action="store_true",
+                        help="default engine: time and peak RSS per size")
+    parser.add_argument("--one-scale", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--one-threads", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--one", nargs=2, metavar=("IMPL", "N"), help=argparse.SUPPRESS)
     parser.add_argument("--doc", type=Path, default=None,
                         help="also replace the benchmark table in this Markdown file")
     args = parser.parse_args()
     if args.one:
         print(json.dumps(run_one(args.one[0], int(args.one[1]))))
+        return
+    if args.quality:
+        print(run_quality())
+        return
+    if args.one_threads:
+        threads = None if args.one_threads[1] == "default" else int(args.one_threads[1])
+        print(json.dumps(run_engine_threads(int(args.one_threads[0]), threads)))
+        return
+    if args.threads:
+        print(run_threads(args.sizes, args.baseline))
+        return
+    if args.one_scale:
+        print(json.dumps(run_scale_one(args.one_scale)))
+        return
+    if args.scale:
+        print(run_scale(args.sizes))
+        return
+    if args.kernels:
+        for n in args.sizes:
+            print(json.dumps(run_kernels(n)), flush=True)
         return
     sizes = [300, 1000] if args.quick else args.sizes
     if args.enhance:

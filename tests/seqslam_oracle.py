@@ -83,11 +83,14 @@ def _uniqueness(score: np.ndarray, s: int, rwindow: int) -> float:
 
 
 def oracle_seqslam(enhanced: np.ndarray, ds: int = 10, vmin: float = 0.8, vmax: float = 1.2,
-                   rwindow: int = 10, top_k: int = 10, match_at: str = "start"):
+                   rwindow: int = 10, top_k: int = 10, match_at: str = "start",
+                   edges: bool = False):
     """OpenSeqSLAM's findMatches with loops. Returns match, best score, uniqueness, ranked.
 
     ``match_at="trajectory"`` reports, for a start ``s`` with best velocity ``m/ds``, the row
-    its trajectory crosses at the centre column, ``s + (ds/2 * m) // ds``.
+    its trajectory crosses at the centre column, ``s + (ds/2 * m) // ds``. ``edges=True``
+    also scores the first ds/2 queries from the window that starts at them (reporting ``s``)
+    and the last ds/2 from the window that ends at them (reporting ``s + (ds m) // ds``).
     """
     ds = ds + ds % 2
     n_ref, n_query = enhanced.shape
@@ -97,14 +100,25 @@ def oracle_seqslam(enhanced: np.ndarray, ds: int = 10, vmin: float = 0.8, vmax: 
     best = np.full(n_query, np.nan)
     uniq = np.full(n_query, np.nan)
     ranked = np.full((n_query, top_k), -1)
-    for n in range(ds // 2, n_query - ds // 2):
-        score, best_v = _scores_for_window(dext, n - ds // 2, ds, vels)
+    for n in range(n_query):
+        if ds // 2 <= n < n_query - ds // 2:
+            col0, at = n - ds // 2, match_at  # the centred window
+        elif not edges:
+            continue
+        elif n < ds // 2 and n + ds <= n_query - 1:
+            col0, at = n, "first"  # leading window: the query is its first column
+        elif n >= n_query - ds // 2 and n - ds >= 0:
+            col0, at = n - ds, "last"  # trailing window: the query is its last column
+        else:
+            continue  # too few query frames for a whole window on that side
+        score, best_v = _scores_for_window(dext, col0, ds, vels)
 
         def report(x):
-            if match_at == "start":
+            if at == "start":
                 return min(x + ds // 2, n_ref - 1)
+            step = {"trajectory": ds // 2, "first": 0, "last": ds}[at]
             m, den = vels[best_v[x]]
-            return min(x + (ds // 2 * m) // den, n_ref - 1)
+            return min(x + (step * m) // den, n_ref - 1)
 
         s = int(np.argmin(score))
         best[n] = score[s]
@@ -117,6 +131,56 @@ def oracle_seqslam(enhanced: np.ndarray, ds: int = 10, vmin: float = 0.8, vmax: 
         match[n] = report(s)
         uniq[n] = _uniqueness(score, s, rwindow)
     return match, best, uniq, ranked
+
+
+# MATLAB's rgb2gray weights, written out again here (the oracle imports nothing from torchseq)
+_RGB2GRAY = (0.298936021293775, 0.587043074451121, 0.114020904255103)
+
+
+def _round(v: float) -> float:
+    """MATLAB's round: halves away from zero (NaN stays NaN)."""
+    if math.isnan(v):
+        return v
+    return math.floor(abs(v) + 0.5) * (1 if v >= 0 else -1)
+
+
+def _uint8(v: float) -> int:
+    """MATLAB's assignment of a double to uint8: NaN -> 0, round halves away, saturate."""
+    if math.isnan(v):
+        return 0
+    return int(min(255, max(0, _round(v))))
+
+
+def oracle_openseqslam_descriptors(frames: np.ndarray, patch: int = 8) -> np.ndarray:
+    """OpenSeqSLAM's preprocessing of frames already at the working size, pixel by pixel.
+
+    ``frames`` (T, H, W) grey or (T, H, W, 3) RGB with uint8 values. Grey: rgb2gray on
+    uint8 (weights above, stored as uint8); then per ``patch`` block
+    ``127 + round((p - mean) / std)`` with the sample std, stored as uint8 (std 0 gives
+    0/0 = NaN, stored as 0). Returns (T, H * W) float64.
+    """
+    frames = np.asarray(frames, np.float64)
+    t, h, w = frames.shape[:3]
+    out = np.zeros((t, h, w))
+    for f in range(t):
+        grey = np.zeros((h, w))
+        for y in range(h):
+            for x in range(w):
+                if frames.ndim == 4:
+                    r, g, b = frames[f, y, x]
+                    grey[y, x] = _uint8(_RGB2GRAY[0] * r + _RGB2GRAY[1] * g + _RGB2GRAY[2] * b)
+                else:
+                    grey[y, x] = _uint8(frames[f, y, x])
+        for by in range(0, h, patch):
+            for bx in range(0, w, patch):
+                pp = [grey[y, x] for y in range(by, by + patch) for x in range(bx, bx + patch)]
+                mean = sum(pp) / len(pp)
+                std = math.sqrt(sum((p - mean) ** 2 for p in pp) / (len(pp) - 1))
+                for y in range(by, by + patch):
+                    for x in range(bx, bx + patch):
+                        z = (grey[y, x] - mean) / std if std > 0 else math.nan
+                        out[f, y, x] = _uint8(127 + _round(z))
+    return out.reshape(t, -1)
 
 
 def oracle_streaming(difference: np.ndarray, ds: int = 10, vmin: float = 0.8,

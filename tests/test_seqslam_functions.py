@@ -9,7 +9,7 @@ from conftest import DEVICES
 from seqslam_oracle import oracle_difference, oracle_enhance, oracle_velocities
 
 from torchseq.seqslam import SeqSLAMConfig, difference_matrix, enhance_contrast, velocities
-from torchseq.seqslam.difference import _small_integer_range
+from torchseq.seqslam.difference import thermometer_levels
 
 DTYPES = [torch.float32, torch.float64]
 
@@ -36,7 +36,7 @@ def test_difference_matrix_matches_loop(metric, kind, dtype, device):
     tol = 1e-5 if dtype == torch.float32 else 1e-10
     np.testing.assert_allclose(got.cpu().double().numpy(), want, rtol=tol, atol=tol)
     if kind == "integer" and metric == "l1":  # the thermometer path is exact
-        assert _small_integer_range(torch.tensor(ref), torch.tensor(query)) is not None
+        assert thermometer_levels(torch.tensor(ref), torch.tensor(query)) is not None
         np.testing.assert_array_equal(got.cpu().double().numpy(), want)
 
 

@@ -6,6 +6,8 @@ All functions are time-first: frames are ``(T, H, W)`` float tensors with grey l
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -13,6 +15,9 @@ from torchseq._checks import check_finite, check_not_empty, check_shape
 
 # ITU-R BT.601 luma weights, as MATLAB's rgb2gray and OpenCV's RGB2GRAY use them.
 BT601 = (0.299, 0.587, 0.114)
+# The exact weights of MATLAB's and Octave's rgb2gray (the first row of the inverse of the
+# NTSC YIQ matrix), which OpenSeqSLAM applies to uint8 frames.
+MATLAB_RGB2GRAY = (0.298936021293775, 0.587043074451121, 0.114020904255103)
 
 
 def to_grey(frames: torch.Tensor) -> torch.Tensor:
@@ -128,3 +133,99 @@ def preprocess(
     if patch:
         small = patch_normalise(small, patch, mode)
     return small.reshape(small.shape[0], -1)
+
+
+def _to_uint8_values(x: torch.Tensor) -> torch.Tensor:
+    """What storing ``x`` in a MATLAB uint8 array keeps.
+
+    Halves rounded away from zero, saturated to 0..255, NaN -> 0.
+    """
+    return round_half_away(x).nan_to_num(0.0).clamp(0.0, 255.0)
+
+
+def grey_openseqslam(frames: torch.Tensor) -> torch.Tensor:
+    """OpenSeqSLAM's grey levels: ``rgb2gray`` on uint8 frames, i.e. integers 0..255.
+
+    RGB frames get MATLAB's ``rgb2gray`` weights (:data:`MATLAB_RGB2GRAY`) in float64, then
+    uint8 storage (round halves away, saturate); grey frames are stored in uint8 the same way
+    (``imread`` gives uint8).
+
+    Args:
+        frames: ``(T, H, W)`` grey or ``(T, H, W, 3)`` RGB, levels 0..255, any real dtype.
+
+    Returns:
+        ``(T, H, W)`` float64 holding integers 0..255.
+    """
+    if frames.dim() == 4 and frames.shape[-1] == 3:
+        w = torch.tensor(MATLAB_RGB2GRAY, dtype=torch.float64, device=frames.device)
+        grey = (frames.to(torch.float64) * w).sum(-1)
+    elif frames.dim() == 3:
+        grey = frames.to(torch.float64)
+    else:
+        raise ValueError(f"frames must be (T, H, W) or (T, H, W, 3), got {tuple(frames.shape)}")
+    return _to_uint8_values(grey)
+
+
+def patch_normalise_openseqslam(frames: torch.Tensor, patch: int = 8) -> torch.Tensor:
+    """OpenSeqSLAM's ``patchNormalize`` on uint8 images, value for value.
+
+    Each ``patch x patch`` block becomes ``127 + round((p - mean) / std)`` (sample std,
+    float64) stored in uint8: rounded halves away from zero, saturated to 0..255, and a flat
+    block (std 0, so z = 0/0 = NaN) becomes **0** (torchseq's own rule,
+    :func:`patch_normalise`, writes 127 there).
+
+    Args:
+        frames: ``(T, H, W)`` integer grey levels (see :func:`grey_openseqslam`), ``H`` and
+            ``W`` multiples of ``patch``.
+        patch: block side in pixels.
+
+    Returns:
+        ``(T, H, W)`` float64 holding integers 0..255.
+    """
+    check_shape(frames, ("T", "H", "W"), "frames")
+    t, h, w = frames.shape
+    if patch < 2 or h % patch or w % patch:
+        raise ValueError(f"frame size {h}x{w} is not a multiple of the patch side {patch} "
+                         "(>= 2)")
+    n = patch * patch
+    x = frames.to(torch.float64).reshape(t, h // patch, patch, w // patch, patch)
+    x = x.permute(0, 1, 3, 2, 4).reshape(t, h // patch, w // patch, n)
+    mean = x.sum(-1, keepdim=True) / n
+    dev = x - mean
+    std = ((dev * dev).sum(-1, keepdim=True) / (n - 1)).sqrt()
+    z = torch.where(std > 0, dev / torch.where(std > 0, std, 1.0), math.nan)
+    out = _to_uint8_values(127.0 + round_half_away(z))  # NaN -> 0, as MATLAB's uint8 store
+    out = out.reshape(t, h // patch, w // patch, patch, patch).permute(0, 1, 3, 2, 4)
+    return out.reshape(t, h, w)
+
+
+def preprocess_openseqslam(frames: torch.Tensor, size: tuple[int, int],
+                           patch: int = 8) -> torch.Tensor:
+    """OpenSeqSLAM's preprocessing: integer grey, resize, uint8 patch normalisation.
+
+    Frames that already have ``size`` are not resized (OpenSeqSLAM's demo reads 64x32
+    images with ``DO_RESIZE = 0``); others are area-averaged and stored as uint8 (OpenSeqSLAM
+    resizes with MATLAB's ``imresize(..., 'lanczos3')``, whose kernel this does not
+    reproduce).
+
+    Args:
+        frames: ``(T, H, W)`` or ``(T, H, W, 3)`` with levels 0..255.
+        size: ``(height, width)``, e.g. ``(32, 64)``.
+        patch: patch normalisation side (0 disables it).
+
+    Returns:
+        ``(T, size[0] * size[1])`` float32 descriptors holding integers 0..255 (float64 input
+        gives float64).
+    """
+    check_not_empty(frames, "frames")
+    frames = torch.as_tensor(frames)
+    if frames.is_floating_point():
+        check_finite(frames, "frames")
+    grey = grey_openseqslam(frames)
+    small = resize(grey, size)
+    if tuple(small.shape[1:]) != tuple(grey.shape[1:]):
+        small = _to_uint8_values(small)
+    if patch:
+        small = patch_normalise_openseqslam(small, patch)
+    dtype = torch.float64 if frames.dtype == torch.float64 else torch.float32
+    return small.reshape(small.shape[0], -1).to(dtype)

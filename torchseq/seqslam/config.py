@@ -7,6 +7,9 @@ from dataclasses import dataclass
 
 METRICS = ("l1", "l2", "cosine")
 MATCH_AT = ("start", "trajectory")
+PREPROCESSING = ("torchseq", "openseqslam")
+PRESETS = ("default", "openseqslam", "events")
+KEEP_MATRICES_MAX = 2**27  # R * Q above which the full matrices are not kept by default
 
 
 @dataclass
@@ -34,6 +37,21 @@ class SeqSLAMConfig:
             ``"trajectory"`` = start + floor(v_best ds/2), the row the best trajectory
             actually crosses at the centre column. None (default): ``"trajectory"`` when
             ``speed_ratio`` is set (speeds far from 1), else ``"start"`` (parity).
+        preprocessing: ``"torchseq"`` (default): float grey, a flat 8x8 block becomes 127;
+            ``"openseqslam"``: OpenSeqSLAM's uint8 rules (MATLAB ``rgb2gray`` rounded to
+            integer grey, integer resize output, ``127 + round(z)`` stored in uint8 so a flat
+            block, z = 0/0 = NaN, becomes 0). See ``preprocess.preprocess_openseqslam``.
+        edges: also match the first and last ``ds/2`` queries, which no centred window covers:
+            from the leading window (the query and the ``ds`` after it; reported place: the
+            trajectory's start) and the trailing window (the ``ds`` before it; its end).
+            OpenSeqSLAM leaves them unmatched (False).
+        threads: CPU worker threads per stage, each taking whole blocks; every op runs on one
+            intra-op thread (see ``seqslam/_parallel.py``). None: ``torch.get_num_threads()``
+            capped by the cores no other process keeps busy.
+        keep_matrices: return the full ``(R, Q)`` difference and enhanced matrices. False:
+            work in bands of query columns in O(R (B + ds)) memory (``seqslam/banded.py``)
+            and return only a reduced copy (``SeqSLAMResult.preview``). None (default): keep
+            them while ``R * Q <= KEEP_MATRICES_MAX`` (2**27, two 512 MiB float32 matrices).
     """
 
     image_size: tuple[int, int] = (32, 64)
@@ -49,6 +67,44 @@ class SeqSLAMConfig:
     top_k: int = 10
     max_chunk_elements: int = 2**26
     match_at: str | None = None
+    preprocessing: str = "torchseq"
+    edges: bool = False
+    threads: int | None = None
+    keep_matrices: bool | None = None
+
+    @classmethod
+    def openseqslam(cls, **overrides) -> SeqSLAMConfig:
+        """OpenSeqSLAM 2013 exactly: its defaults and its uint8 preprocessing rules.
+
+        Parameters as ``defaultParameters.m`` (64x32, side 8, ds 10, v 0.8..1.2, R 10,
+        Rwindow 10), integer grey and flat blocks -> 0 (``preprocessing="openseqslam"``),
+        ``start + ds/2``, the centred window, no edge matches. ``overrides`` replace fields.
+        """
+        base = dict(image_size=(32, 64), patch_size=8, metric="l1", enhance_window=10, ds=10,
+                    vmin=0.8, vmax=1.2, speed_ratio=None, rwindow=10, match_at="start",
+                    preprocessing="openseqslam", edges=False)
+        return cls(**{**base, **overrides}).validate()
+
+    @classmethod
+    def events(cls, speed_ratio: float = 1.0, **overrides) -> SeqSLAMConfig:
+        """The seed's event-camera setting: 16x16 frames, ds = 100, a known speed ratio.
+
+        Frames 16x16 (the DVS128's 128x128 area-pooled), ds = 100 and a velocity range of
+        ``speed_ratio`` +- 20% (reference windows per query window), reporting where the best
+        trajectory crosses the query centre.
+        """
+        base = dict(image_size=(16, 16), patch_size=8, ds=100, speed_ratio=speed_ratio,
+                    speed_tolerance=0.2, match_at="trajectory")
+        return cls(**{**base, **overrides}).validate()
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> SeqSLAMConfig:
+        """A named preset: ``"default"``, ``"openseqslam"`` or ``"events"``."""
+        if name not in PRESETS:
+            raise ValueError(f"preset must be one of {PRESETS}, got {name!r}")
+        if name == "default":
+            return cls(**overrides).validate()
+        return getattr(cls, name)(**overrides)
 
     def validate(self) -> SeqSLAMConfig:
         """Raise ``ValueError`` on nonsense values; return ``self`` for chaining."""
@@ -83,6 +139,11 @@ class SeqSLAMConfig:
             raise ValueError(f"max_chunk_elements must be >= 1, got {self.max_chunk_elements}")
         if self.match_at not in (None, *MATCH_AT):
             raise ValueError(f"match_at must be one of {MATCH_AT} or None, got {self.match_at!r}")
+        if self.preprocessing not in PREPROCESSING:
+            raise ValueError(
+                f"preprocessing must be one of {PREPROCESSING}, got {self.preprocessing!r}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be >= 1 or None, got {self.threads}")
         from torchseq.seqslam.search import velocities
 
         velocities(self.sequence_length, vmin, vmax)  # raises when the range holds no step
@@ -92,6 +153,12 @@ class SeqSLAMConfig:
     def sequence_length(self) -> int:
         """``ds`` rounded up to even, as OpenSeqSLAM uses it."""
         return int(self.ds) + int(self.ds) % 2
+
+    def keeps_matrices(self, n_ref: int, n_query: int) -> bool:
+        """Whether a run of ``n_ref`` x ``n_query`` keeps the full matrices."""
+        if self.keep_matrices is not None:
+            return bool(self.keep_matrices)
+        return n_ref * n_query <= KEEP_MATRICES_MAX
 
     @property
     def match_rule(self) -> str:

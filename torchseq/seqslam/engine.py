@@ -10,9 +10,11 @@ from torch import nn
 
 from torchseq._checks import check_not_empty
 from torchseq.matches import Matches
-from torchseq.preprocess import preprocess
+from torchseq.preprocess import preprocess, preprocess_openseqslam
+from torchseq.seqslam._parallel import resolve_threads, single_threaded_ops
+from torchseq.seqslam.banded import match_banded, preview_columns, preview_rows
 from torchseq.seqslam.config import SeqSLAMConfig
-from torchseq.seqslam.difference import check_descriptors, difference_matrix
+from torchseq.seqslam.difference import check_descriptors, difference_with_kernel
 from torchseq.seqslam.enhance import enhance_contrast
 from torchseq.seqslam.search import search, velocities
 
@@ -23,21 +25,29 @@ class SeqSLAMResult:
 
     Attributes:
         matches: per query, the matched reference (``-1`` for the first and last ``ds/2``
-            queries and where no trajectory is finite) and its uniqueness ratio
-            (``lower_is_better=True``; NaN without a match).
-        difference: ``(R, Q)`` difference matrix on CPU.
-        enhanced: ``(R, Q)`` contrast-enhanced difference matrix on CPU.
+            queries unless ``config.edges``, and where no trajectory is finite) and its
+            uniqueness ratio (``lower_is_better=True``; NaN without a match).
+        difference: ``(R, Q)`` difference matrix on CPU (None when the config does not keep
+            the full matrices, see ``SeqSLAMConfig.keep_matrices``).
+        enhanced: ``(R, Q)`` contrast-enhanced difference matrix on CPU (or None, as above).
         ranked: ``(Q, top_k)`` int64 candidate references, best first, ``-1`` for none.
         best_score: ``(Q,)`` best trajectory cost (NaN where unscored).
         seconds: wall time of ``"difference"``, ``"enhance"``, ``"search"`` and ``"total"``.
+        kernels: which kernel ran per stage, e.g. ``{"difference": "thermometer"}``,
+            ``"threads"``: the worker threads each stage used, ``"matrices"``: ``"full"`` or
+            ``"banded"``.
+        preview: ``(R', Q')`` reduced copy of the enhanced matrix on CPU (area averages,
+            at most 1024 on a side) for plots, or None.
     """
 
     matches: Matches
-    difference: torch.Tensor
-    enhanced: torch.Tensor
+    difference: torch.Tensor | None
+    enhanced: torch.Tensor | None
     ranked: torch.Tensor
     best_score: torch.Tensor
     seconds: dict = field(default_factory=dict)
+    kernels: dict = field(default_factory=dict)
+    preview: torch.Tensor | None = None
 
 
 def _sync(device: torch.device) -> None:
@@ -84,7 +94,10 @@ class SeqSLAM(nn.Module):
         """
         c = self.config
         frames = torch.as_tensor(frames)
-        desc = preprocess(frames.to(self.device), c.image_size, c.patch_size, mode="seqslam")
+        if c.preprocessing == "openseqslam":
+            desc = preprocess_openseqslam(frames.to(self.device), c.image_size, c.patch_size)
+        else:
+            desc = preprocess(frames.to(self.device), c.image_size, c.patch_size, mode="seqslam")
         return desc.to(self._working_dtype(frames))
 
     def match(self, reference: torch.Tensor, query: torch.Tensor,
@@ -103,7 +116,18 @@ class SeqSLAM(nn.Module):
 
     def match_descriptors(self, reference: torch.Tensor, query: torch.Tensor,
                           progress: bool = False) -> SeqSLAMResult:
-        """Match ``(Q, D)`` query descriptors against ``(R, D)`` reference descriptors."""
+        """Match ``(Q, D)`` query descriptors against ``(R, D)`` reference descriptors.
+
+        On CPU every op runs on one intra-op thread; the stages spread whole blocks over
+        worker threads instead (``config.threads``, see ``seqslam/_parallel.py``).
+        """
+        if self.device.type == "cuda":
+            return self._match_descriptors(reference, query, progress)
+        with single_threaded_ops():
+            return self._match_descriptors(reference, query, progress)
+
+    def _match_descriptors(self, reference: torch.Tensor, query: torch.Tensor,
+                           progress: bool) -> SeqSLAMResult:
         c = self.config
         reference, query = torch.as_tensor(reference), torch.as_tensor(query)
         check_descriptors(reference, query)
@@ -117,25 +141,47 @@ class SeqSLAM(nn.Module):
         dtype = self._working_dtype(reference)
         reference = reference.to(self.device, dtype)
         query = query.to(self.device, dtype)
+        if not c.keeps_matrices(reference.shape[0], query.shape[0]):
+            t0 = time.perf_counter()
+            out = match_banded(reference, query, c, self.speeds, progress)
+            _sync(self.device)
+            seconds = {**out["seconds"], "total": time.perf_counter() - t0}
+            return SeqSLAMResult(
+                matches=Matches(out["match"].cpu(), out["ratio"].to(dtype).cpu(),
+                                lower_is_better=True),
+                difference=None, enhanced=None, ranked=out["ranked"].cpu(),
+                best_score=out["best"].to(dtype).cpu(), seconds=seconds,
+                kernels={"difference": out["kernel"], "threads": out["threads"],
+                         "matrices": "banded"},
+                preview=out["preview"].cpu())
         seconds = {}
+        threads = {}
         t0 = t = time.perf_counter()
-        diff = difference_matrix(reference, query, c.metric, c.max_chunk_elements)
+        threads["difference"] = resolve_threads(c.threads)  # per stage: the load changes
+        diff, kernel = difference_with_kernel(reference, query, c.metric, c.max_chunk_elements,
+                                              threads["difference"])
         _sync(self.device)
         seconds["difference"] = time.perf_counter() - t
         t = time.perf_counter()
-        enhanced = enhance_contrast(diff, c.enhance_window, True, c.max_chunk_elements)
+        threads["enhance"] = resolve_threads(c.threads)
+        enhanced = enhance_contrast(diff, c.enhance_window, True, c.max_chunk_elements,
+                                    threads["enhance"])
         _sync(self.device)
         seconds["enhance"] = time.perf_counter() - t
         t = time.perf_counter()
+        threads["search"] = resolve_threads(c.threads)
         match, best, ratio, ranked = search(enhanced, ds, self.speeds, c.rwindow, c.top_k,
-                                            c.max_chunk_elements, progress, c.match_rule)
+                                            c.max_chunk_elements, progress, c.match_rule,
+                                            threads["search"], c.edges)
         _sync(self.device)
         seconds["search"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
         return SeqSLAMResult(
             matches=Matches(match.cpu(), ratio.cpu(), lower_is_better=True),
             difference=diff.cpu(), enhanced=enhanced.cpu(), ranked=ranked.cpu(),
-            best_score=best.cpu(), seconds=seconds)
+            best_score=best.cpu(), seconds=seconds,
+            kernels={"difference": kernel, "threads": threads, "matrices": "full"},
+            preview=preview_columns(preview_rows(enhanced.T)).cpu())
 
     def forward(self, reference: torch.Tensor, query: torch.Tensor) -> SeqSLAMResult:
         """Same as :meth:`match`."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 
 from torchseq._checks import check_finite, check_not_empty, check_shape
+from torchseq.seqslam._parallel import run_blocks
 
 SEGMENT = 256  # rows per cumulative-sum segment
 # On CPU a tile holds about this many float64 elements per temporary (cache-sized) and is
@@ -123,6 +124,7 @@ def enhance_contrast(
     window: int = 10,
     subtract_min: bool = True,
     max_chunk_elements: int = 2**26,
+    threads: int = 1,
 ) -> torch.Tensor:
     """Normalise each entry by the mean and sample std of its local window of reference rows.
 
@@ -138,6 +140,7 @@ def enhance_contrast(
             apart from the minimum subtraction.
         subtract_min: subtract the global minimum afterwards.
         max_chunk_elements: bound on the elements of each temporary block.
+        threads: CPU worker threads, each taking whole bands of query columns.
 
     Returns:
         ``(R, Q)`` enhanced matrix, same dtype and device (transposed view of a ``(Q, R)``
@@ -162,11 +165,14 @@ def enhance_contrast(
         if cpu:
             budget = min(budget, CPU_BLOCK_ELEMENTS)
         cols, n_seg, seg = _tiles(n_ref, n_query, half, budget, cpu)
-        for q0 in range(0, n_query, cols):
+
+        def band(q0: int) -> None:
             q1 = min(n_query, q0 + cols)
             for r0 in range(0, n_ref, n_seg * seg):
                 z = _enhance_tile(difference, q0, q1, r0, n_seg, seg, half)
                 out_t[q0:q1, r0:r0 + z.shape[1]] = z
+
+        run_blocks(band, range(0, n_query, cols), threads, difference.device)
     else:
         out_t.copy_(difference.T)
     if subtract_min:

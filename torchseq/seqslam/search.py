@@ -18,6 +18,7 @@ import torch
 from tqdm import tqdm
 
 from torchseq._checks import check_not_empty, check_shape
+from torchseq.seqslam._parallel import run_blocks
 
 _EPS = 1e-9
 # Score blocks on CPU are kept about this size (elements) so they stay in the L2 cache.
@@ -88,6 +89,45 @@ def trajectory_scores(
     return best, best_v
 
 
+def uniqueness_ratio(best: torch.Tensor, second: torch.Tensor,
+                     shift: float = 0.0) -> torch.Tensor:
+    """OpenSeqSLAM's uniqueness: ``(best + shift) / (second + shift)``, elementwise.
+
+    ``second`` is the best score outside the exclusion window; ``shift`` a constant added to
+    every finite trajectory score (0 for scores taken as they are). 0 when ``second`` is inf,
+    1 when both are 0 (nothing is distinctive), NaN when ``best`` is inf.
+    """
+    best, second = best + shift, second + shift
+    ratio = torch.where(second > 0, best / torch.where(second > 0, second, 1.0),
+                        torch.ones_like(best))  # 0 / 0: nothing is distinctive -> 1
+    return torch.where(torch.isfinite(best), ratio, torch.full_like(ratio, math.nan))
+
+
+def _rank(
+    scores: torch.Tensor, ds: int, n_ref: int, rwindow: int, top_k: int,
+    centre: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`rank_scores` with the best score outside the window in place of the ratio."""
+    rows, n_starts = scores.shape
+    start = scores.argmin(dim=1)  # first minimum: ties -> lowest start
+    best = scores.gather(1, start[:, None])[:, 0]
+    idx = torch.arange(n_starts, device=scores.device)
+    half = rwindow // 2
+    inside = (idx[None] >= (start - half)[:, None]) & (idx[None] <= (start + half)[:, None])
+    second = scores.masked_fill(inside, math.inf).min(dim=1).values
+    k = min(top_k, n_starts)
+    vals, cand = torch.topk(scores, k, dim=1, largest=False, sorted=True)
+    order = cand.argsort(dim=1)  # make ties come out lowest start first
+    cand, vals = cand.gather(1, order), vals.gather(1, order)
+    order = vals.argsort(dim=1, stable=True)
+    cand, vals = cand.gather(1, order), vals.gather(1, order)
+    shift = ds // 2 if centre is None else centre.gather(1, cand)
+    ranked = torch.where(torch.isfinite(vals), (cand + shift).clamp_max(n_ref - 1), -1)
+    if k < top_k:
+        ranked = torch.cat([ranked, ranked.new_full((rows, top_k - k), -1)], dim=1)
+    return start, best, second, ranked
+
+
 def rank_scores(
     scores: torch.Tensor, ds: int, n_ref: int, rwindow: int, top_k: int,
     centre: torch.Tensor | None = None,
@@ -104,32 +144,13 @@ def rank_scores(
             (None: ``ds / 2`` for all, OpenSeqSLAM).
 
     Returns:
-        ``(C,)`` best start, ``(C,)`` best score, ``(C,)`` uniqueness (best / best outside
-        ``start +- rwindow // 2``; 0 when everything outside is inf, 1 when it is 0, NaN when
-        the best is inf) and ``(C, top_k)`` ranked references (``start + ds / 2`` clamped to
-        ``R - 1``, ``-1`` for inf scores).
+        ``(C,)`` best start, ``(C,)`` best score, ``(C,)`` uniqueness
+        (:func:`uniqueness_ratio` of the best and the best outside ``start +- rwindow // 2``)
+        and ``(C, top_k)`` ranked references (``start + ds / 2`` clamped to ``R - 1``, ``-1``
+        for inf scores).
     """
-    rows, n_starts = scores.shape
-    start = scores.argmin(dim=1)  # first minimum: ties -> lowest start
-    best = scores.gather(1, start[:, None])[:, 0]
-    idx = torch.arange(n_starts, device=scores.device)
-    half = rwindow // 2
-    inside = (idx[None] >= (start - half)[:, None]) & (idx[None] <= (start + half)[:, None])
-    second = scores.masked_fill(inside, math.inf).min(dim=1).values
-    ratio = torch.where(second > 0, best / torch.where(second > 0, second, 1.0),
-                        torch.ones_like(best))  # 0 / 0: nothing is distinctive -> 1
-    ratio = torch.where(torch.isfinite(best), ratio, torch.full_like(ratio, math.nan))
-    k = min(top_k, n_starts)
-    vals, cand = torch.topk(scores, k, dim=1, largest=False, sorted=True)
-    order = cand.argsort(dim=1)  # make ties come out lowest start first
-    cand, vals = cand.gather(1, order), vals.gather(1, order)
-    order = vals.argsort(dim=1, stable=True)
-    cand, vals = cand.gather(1, order), vals.gather(1, order)
-    shift = ds // 2 if centre is None else centre.gather(1, cand)
-    ranked = torch.where(torch.isfinite(vals), (cand + shift).clamp_max(n_ref - 1), -1)
-    if k < top_k:
-        ranked = torch.cat([ranked, ranked.new_full((rows, top_k - k), -1)], dim=1)
-    return start, best, ratio, ranked
+    start, best, second, ranked = _rank(scores, ds, n_ref, rwindow, top_k, centre)
+    return start, best, uniqueness_ratio(best, second), ranked
 
 
 def search(
@@ -141,6 +162,8 @@ def search(
     max_chunk_elements: int = 2**26,
     progress: bool = False,
     match_at: str = "start",
+    threads: int = 1,
+    edges: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Match every query by its best trajectory (OpenSeqSLAM's ``findMatches``).
 
@@ -155,11 +178,44 @@ def search(
         match_at: ``"start"``: a start ``s`` reports ``s + ds/2`` (OpenSeqSLAM);
             ``"trajectory"``: ``s + floor(v ds/2)`` with ``v`` its best velocity (ties ->
             slowest), the row its trajectory crosses at the query centre.
+        threads: CPU worker threads, each taking whole blocks of queries.
+        edges: also match the first and last ``ds/2`` queries (no centred window covers
+            them): query ``N < ds/2`` from its leading window (columns ``N .. N + ds``),
+            reporting the start row ``s``; query ``N > Q - 1 - ds/2`` from its trailing
+            window (``N - ds .. N``), reporting the end row ``s + floor(ds v_best)``; both
+            clamped to ``R - 1``.
 
     Returns:
         ``match (Q,)`` int64 reference (``-1`` when unscored or no finite trajectory),
         ``best_score (Q,)`` (NaN when unscored), ``uniqueness (Q,)`` (NaN when no match) and
         ``ranked (Q, top_k)`` int64 (``-1`` when none), all on the input's device.
+    """
+    match, best, second, ranked = search_scores(enhanced, ds, speeds, rwindow, top_k,
+                                                max_chunk_elements, progress, match_at,
+                                                threads, edges)
+    return match, best, uniqueness_ratio(best, second), ranked
+
+
+def search_scores(
+    enhanced: torch.Tensor,
+    ds: int,
+    speeds: Sequence[float],
+    rwindow: int = 10,
+    top_k: int = 10,
+    max_chunk_elements: int = 2**26,
+    progress: bool = False,
+    match_at: str = "start",
+    threads: int = 1,
+    edges: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`search`, returning the best score outside the exclusion window instead of the ratio.
+
+    Same arguments as :func:`search`. For callers that add a constant to every trajectory
+    score afterwards (:func:`uniqueness_ratio` takes it).
+
+    Returns:
+        ``match (Q,)``, ``best_score (Q,)``, ``second (Q,)`` (the best score outside
+        ``start +- rwindow // 2``; NaN when unscored) and ``ranked (Q, top_k)``.
     """
     check_shape(enhanced, ("R", "Q"), "enhanced difference matrix")
     check_not_empty(enhanced, "enhanced difference matrix")
@@ -178,23 +234,47 @@ def search(
     dev, dtype = enhanced.device, enhanced.dtype
     match = torch.full((n_query,), -1, dtype=torch.int64, device=dev)
     best_score = torch.full((n_query,), math.nan, dtype=dtype, device=dev)
-    uniqueness = torch.full((n_query,), math.nan, dtype=dtype, device=dev)
+    second_score = torch.full((n_query,), math.nan, dtype=dtype, device=dev)
     ranked = torch.full((n_query, top_k), -1, dtype=torch.int64, device=dev)
     budget = max_chunk_elements
     if dev.type != "cuda":
         budget = min(budget, CPU_BLOCK_ELEMENTS)
     rows = max(1, budget // (n_ref + 1))
     first, stop = ds // 2, n_query - ds // 2
-    for c0 in tqdm(range(first, stop, rows), desc="sequence search", disable=not progress,
-                   leave=False):
+    bar = tqdm(total=max(0, stop - first), desc="sequence search", disable=not progress,
+               leave=False)
+
+    def block(c0: int) -> None:
         c1 = min(c0 + rows, stop)
         scores, best_v = trajectory_scores(d_t, c0, c1, ds, offsets, with_velocity=by_velocity)
         centre = half[best_v] if by_velocity else None  # (C, R + 1) offset to report
-        start, best, ratio, rank = rank_scores(scores, ds, n_ref, rwindow, top_k, centre)
+        start, best, second, rank = _rank(scores, ds, n_ref, rwindow, top_k, centre)
         ok = torch.isfinite(best)
         shift = ds // 2 if centre is None else centre.gather(1, start[:, None])[:, 0]
         match[c0:c1] = torch.where(ok, (start + shift).clamp_max(n_ref - 1), -1)
         best_score[c0:c1] = best
-        uniqueness[c0:c1] = ratio
+        second_score[c0:c1] = second
         ranked[c0:c1] = rank
-    return match, best_score, uniqueness, ranked
+        bar.update(c1 - c0)
+
+    run_blocks(block, range(first, stop, rows), threads, dev)
+    bar.close()
+    if edges:
+        ends = torch.tensor([off[-1] for off in offsets], device=dev)
+        # the leading window of query N (N < ds/2, N + ds < Q) is the centred window of
+        # N + ds/2; the trailing window of N (N >= Q - ds/2, N >= ds) that of N - ds/2
+        lead = range(0, min(first, n_query - ds))
+        trail = range(max(stop, ds), n_query)
+        for queries, shift_c, end in ((lead, first, False), (trail, -first, True)):
+            if len(queries) == 0:
+                continue
+            centres = range(queries[0] + shift_c, queries[-1] + 1 + shift_c)
+            scores, best_v = trajectory_scores(d_t, centres[0], centres[-1] + 1, ds, offsets,
+                                               with_velocity=True)
+            centre = ends[best_v] if end else torch.zeros_like(best_v)
+            start, best, second, rank = _rank(scores, ds, n_ref, rwindow, top_k, centre)
+            q = torch.arange(queries[0], queries[-1] + 1, device=dev)
+            shift = centre.gather(1, start[:, None])[:, 0]
+            match[q] = torch.where(torch.isfinite(best), (start + shift).clamp_max(n_ref - 1), -1)
+            best_score[q], second_score[q], ranked[q] = best, second, rank
+    return match, best_score, second_score, ranked
