@@ -1,8 +1,10 @@
 """Learn a Neural SeqSLAM model from a reference traverse (one pass, local learning rules).
 
-With no arguments it trains on the built-in demo route. Writes ``OUT/model.pt`` (the
-checkpoint carries its config), ``OUT/config.json``, PNG plots and TensorBoard logs in
-``OUT/tensorboard``. ``--export`` then writes the deployment files to ``OUT/export``.
+With no arguments it trains on the built-in demo route. Each run writes into its own folder
+(``--out``, default a new ``runs/train-<time>``): ``model.pt`` (the checkpoint carries its
+config and a record of its reference), ``config.json`` (replay it with ``--config``), PNG
+plots and TensorBoard logs in ``tensorboard/``. ``--export`` then writes the deployment files
+to ``OUT/export``, validated as ``python -m torchseq.export`` does.
 """
 
 from __future__ import annotations
@@ -19,17 +21,24 @@ from torchseq import plots
 from torchseq.atomic import write_text
 from torchseq.demo import make_demo
 from torchseq.frontend import (
+    Parser,
     add_config_flags,
+    check_neural,
+    check_ranges,
+    config_file_defaults,
     config_from_args,
     config_text,
     event_options,
     load_frames,
+    parse_size,
     resolve_device,
+    run_folder,
     run_main,
     to_jsonable,
 )
-from torchseq.ground_truth import alignment_ground_truth
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
+
+PROG = "train.py"
 
 
 @dataclass
@@ -37,10 +46,12 @@ class TrainConfig:
     """What a training run depends on besides the model's own :class:`NeuralConfig`."""
 
     reference: str | None = None
-    out: str = "runs/train"
+    out: str | None = None
+    overwrite: bool = False
     window_ms: float = 10.0
     event_count: int | None = None
     frame_size: str | None = None
+    window_anchor: str = "first"
     demo_frames: int = 200
     demo_seed: int = 0
     device: str = "cpu"
@@ -49,35 +60,57 @@ class TrainConfig:
     export: bool = False
     export_query: str | None = None
     export_ground_truth: str | None = None
+    export_frame_size: str | None = None
 
 
 HELP = {
     "reference": "reference traverse: image folder, video, frame array (.npy/.npz) or event file; "
                  "default: the built-in demo route",
-    "out": "output folder",
+    "out": "output folder of this run (default: a new runs/train-<UTC time>)",
+    "overwrite": "replace a previous run's --out folder instead of refusing",
     "window_ms": "event files: accumulation window in milliseconds",
     "event_count": "event files: events per frame instead of a time window",
-    "frame_size": "event files: downsample frames to HxW by area pooling",
+    "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
+    "window_anchor": "event files: where the first window starts: 'first' (first event), "
+                     "'zero' (sensor time 0) or a sensor time in microseconds",
     "demo_frames": "demo: reference frames",
     "demo_seed": "demo: random seed of the route",
     "device": "cpu, cuda or auto",
     "tensorboard": "write TensorBoard logs",
     "progress": "show progress bars",
     "export": "after training, export ONNX and integer files to OUT/export and validate them",
-    "export_query": "query traverse to validate the export on (default: the demo query when "
-                    "training on the demo, else a replay of the reference)",
+    "export_query": "query traverse to validate the export on (default: the model's own "
+                    "reference, as python -m torchseq.export)",
     "export_ground_truth": "ground truth of --export-query (CSV or .npy, see eval.py)",
+    "export_frame_size": "camera frame size HxW the integer device takes (default: the "
+                         "reference's frame size)",
 }
+LIMITS = {"demo_frames": (2, 20_000), "demo_seed": (0, 2 ** 32 - 1)}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The train.py flags: TrainConfig, then every NeuralConfig field."""
+    parser = Parser(prog=PROG, description=__doc__.split("\n")[0])
+    parser.add_argument("--config", help="replay a run: its config.json gives the defaults, "
+                        "flags override them")
+    add_config_flags(parser, TrainConfig, HELP)
+    add_config_flags(parser.add_argument_group("model (NeuralConfig)"), NeuralConfig, {})
+    return parser
 
 
 def parse_args(argv: list[str] | None) -> tuple[TrainConfig, NeuralConfig]:
-    """Flags -> (:class:`TrainConfig`, :class:`NeuralConfig`); every model field is a flag."""
-    parser = argparse.ArgumentParser(prog="train.py", description=__doc__)
-    add_config_flags(parser, TrainConfig, HELP)
-    model = parser.add_argument_group("model (NeuralConfig)")
-    add_config_flags(model, NeuralConfig, {})
+    """Flags -> (:class:`TrainConfig`, :class:`NeuralConfig`), every number range-checked."""
+    parser = build_parser()
+    pre, _ = parser.parse_known_args(argv)
+    if pre.config:
+        config_file_defaults(parser, pre.config, {"train": "", "model": ""})
     args = parser.parse_args(argv)
-    return config_from_args(TrainConfig, args), config_from_args(NeuralConfig, args).validate()
+    cfg = config_from_args(TrainConfig, args)
+    check_ranges(cfg, LIMITS)
+    parse_size(cfg.export_frame_size)
+    ncfg = config_from_args(NeuralConfig, args)
+    check_neural(ncfg)
+    return cfg, ncfg.validate()
 
 
 def log_training(cfg: TrainConfig, ncfg: NeuralConfig, model: NeuralSeqSLAM,
@@ -113,41 +146,43 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     cfg, ncfg = parse_args(argv)
     device = resolve_device(cfg.device)
-    events = event_options(cfg.window_ms, cfg.event_count, cfg.frame_size)
-    demo = None
+    events = event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
+                           cfg.window_anchor)
+    out = run_folder(cfg.out, "train", cfg.overwrite)
     if cfg.reference is None:
-        demo = make_demo(n_reference=cfg.demo_frames, seed=cfg.demo_seed)
-        frames = demo.reference
+        frames = make_demo(n_reference=cfg.demo_frames, seed=cfg.demo_seed).reference
+        reference = {"source": "demo", "demo_frames": cfg.demo_frames,
+                     "demo_seed": cfg.demo_seed}
     else:
         frames = load_frames(cfg.reference, "reference", events, cfg.progress)
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+        reference = {"source": str(Path(cfg.reference).resolve()),
+                     "events": to_jsonable(events)}
+    reference.update(n_frames=int(len(frames)), frame_size=[int(v) for v in frames.shape[1:3]])
     model = NeuralSeqSLAM(ncfg, device=device)
     start = time.perf_counter()
     log = model.fit(frames, progress=cfg.progress)
     seconds = time.perf_counter() - start
-    model.save(out / "model.pt", extra={"train_config": to_jsonable(cfg)})
+    model.save(out / "model.pt", extra={"train_config": to_jsonable(cfg),
+                                        "reference": reference})
     write_text(out / "config.json", config_text({"train": cfg, "model": ncfg}) + "\n")
     log_training(cfg, ncfg, model, log, out)
     print(f"trained on {len(frames)} reference frames in {seconds:.2f} s "
           f"({1e3 * seconds / len(frames):.2f} ms/frame); model {model.model_bytes()} bytes; "
           f"wrote {out / 'model.pt'}")
     if cfg.export:
-        from torchseq.export.cli import export_checkpoint
+        from torchseq.export.cli import export_checkpoint, summary_lines
 
-        if cfg.export_query is not None:
-            query, gt = cfg.export_query, cfg.export_ground_truth
-        elif demo is not None:
-            query, gt = demo.query, demo.ground_truth
-        else:  # a replay of the reference: each frame should come back to itself
-            query, gt = frames, alignment_ground_truth(len(frames), len(frames), 0)
-        ok = export_checkpoint(out / "model.pt", out / "export", query=query, ground_truth=gt)
+        ok = export_checkpoint(out / "model.pt", out / "export", query=cfg.export_query,
+                               ground_truth=cfg.export_ground_truth,
+                               frame_size=parse_size(cfg.export_frame_size))
+        for line in summary_lines(out / "export"):
+            print(f"export: {line}")
         if not ok:
-            print("train.py: export validation failed, see export/validation.json",
+            print(f"{PROG}: export validation failed, see {out / 'export' / 'validation.json'}",
                   file=sys.stderr)
             return 1
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(run_main(main, "train.py"))
+    raise SystemExit(run_main(main, PROG))

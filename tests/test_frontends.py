@@ -91,7 +91,7 @@ def test_eval_ground_truth_that_does_not_fit(tmp_path, capsys):
     np.save(frames, np.random.default_rng(0).integers(0, 255, (30, 32, 64)).astype(np.uint8))
     code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--reference", str(frames),
                               "--query", str(frames), "--ground-truth", str(bad),
-                              "--out", str(tmp_path))
+                              "--out", str(tmp_path / "out"))
     assert code == 2 and "(30, 30)" in err
 
 

@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from torchseq.npyfile import load_npy, load_npz_member, npy_header, npz_members
+
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v"}
 EVENT_SUFFIXES = {".aedat", ".aedat4", ".raw", ".dat", ".csv", ".txt", ".npz", ".npy", ".h5"}
@@ -35,11 +37,15 @@ class EventFrameOptions:
         window_ms: accumulation window in milliseconds (ignored when ``event_count`` is set).
         event_count: accumulate a fixed number of events per frame instead of a time window.
         frame_size: ``(H, W)`` to downsample the frames to by area pooling, or None.
+        anchor: where the first time window starts: ``"first"`` (the first event),
+            ``"zero"`` (sensor time 0) or a sensor time in microseconds (windows then line up
+            with ground truth given in sensor time).
     """
 
     window_ms: float = 10.0
     event_count: int | None = None
     frame_size: tuple[int, int] | None = None
+    anchor: str | int = "first"
 
 
 def natural_key(name: str) -> list:
@@ -47,14 +53,46 @@ def natural_key(name: str) -> list:
     return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", name)]
 
 
-def _grey_uint(image: np.ndarray) -> np.ndarray:
+def _grey_uint(image: np.ndarray, name: object = "image") -> np.ndarray:
+    """A decoded image (OpenCV BGR/BGRA/grey, 8 or 16 bit, or float) -> grey float32 0..255.
+
+    16-bit images are scaled to 0..255 (``/ 257``); float images must already hold finite
+    values in 0..255.
+    """
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
     if image.ndim == 3 and image.shape[2] == 4:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+        image = image[..., :3]
     if image.ndim == 3 and image.shape[2] == 3:
+        if image.dtype not in (np.uint8, np.uint16, np.float32):
+            image = image.astype(np.float32)
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)  # ITU-R 601 weights
-    if image.ndim != 2:
-        raise TraverseError(f"unsupported image layout {image.shape}")
-    return image.astype(np.float32)
+    if image.ndim != 2 or image.size == 0:
+        raise TraverseError(f"{name}: unsupported image layout {image.shape}")
+    if image.dtype == np.uint8:
+        return image.astype(np.float32)
+    if image.dtype == np.uint16:
+        return image.astype(np.float32) / np.float32(257.0)  # 65535 -> 255
+    if image.dtype.kind not in "iuf":
+        raise TraverseError(f"{name}: unsupported pixel type {image.dtype}")
+    grey = image.astype(np.float32)
+    if not np.isfinite(grey).all():
+        raise TraverseError(f"{name}: holds NaN or infinite pixels")
+    if grey.min() < 0 or grey.max() > 255:
+        raise TraverseError(f"{name}: {image.dtype} pixels span {grey.min():g}..{grey.max():g}, "
+                            f"outside 0..255; convert the images to 8 or 16 bit")
+    return grey
+
+
+def _imread(path: Path) -> np.ndarray:
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as err:
+        raise TraverseError(f"cannot read image {path} ({str(err).strip().splitlines()[-1]})"
+                            ) from None
+    if image is None:
+        raise TraverseError(f"cannot read image {path}")
+    return image
 
 
 def load_image_folder(folder: Path, progress: bool = True) -> torch.Tensor:
@@ -65,10 +103,7 @@ def load_image_folder(folder: Path, progress: bool = True) -> torch.Tensor:
         raise TraverseError(f"no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in folder {folder}")
     frames = []
     for f in tqdm(files, desc=f"reading {folder.name}", disable=not progress, leave=False):
-        image = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise TraverseError(f"cannot read image {f}")
-        grey = _grey_uint(image)
+        grey = _grey_uint(_imread(f), f)
         if frames and grey.shape != frames[0].shape:
             raise TraverseError(
                 f"mixed image sizes in {folder}: {files[0].name} is {frames[0].shape[1]}x"
@@ -89,7 +124,7 @@ def load_video(path: Path, progress: bool = True) -> torch.Tensor:
             ok, image = cap.read()
             if not ok:
                 break
-            frames.append(_grey_uint(image))
+            frames.append(_grey_uint(image, path))
             bar.update(1)
     cap.release()
     if not frames:
@@ -106,6 +141,8 @@ def frames_from_array(array: np.ndarray | torch.Tensor, name: str = "array") -> 
         raise TraverseError(f"{name} must be (T, H, W) or (T, H, W, 3), got {tuple(x.shape)}")
     if x.shape[0] == 0:
         raise TraverseError(f"{name} has no frames")
+    if x.shape[1] == 0 or x.shape[2] == 0:
+        raise TraverseError(f"{name} has empty frames {tuple(x.shape)}")
     if x.dtype == torch.bool or x.is_complex():
         raise TraverseError(f"{name} has unsupported dtype {x.dtype}")
     x = to_grey(x).to(torch.float32)
@@ -114,13 +151,36 @@ def frames_from_array(array: np.ndarray | torch.Tensor, name: str = "array") -> 
     return x
 
 
+def _frame_array(array: np.ndarray, path: Path) -> np.ndarray:
+    """A frame array from a file: plain numbers (its values are taken as grey levels)."""
+    if array.dtype.names is not None or array.dtype.kind not in "iuf":
+        raise TraverseError(f"{path}: frame arrays must be numeric, got dtype {array.dtype}")
+    return array
+
+
 def _is_event_file(path: Path) -> bool:
+    """Sniff an event file: structured ``.npy``, ``.npz`` without ``frames``, or a suffix."""
     if path.suffix.lower() == ".npy":
-        return np.load(path, mmap_mode="r", allow_pickle=False).dtype.names is not None
+        _, dtype = npy_header(path, TraverseError)
+        return dtype.names is not None
     if path.suffix.lower() == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            return "frames" not in z.files
+        return "frames" not in npz_members(path, TraverseError)
     return path.suffix.lower() in EVENT_SUFFIXES
+
+
+def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
+    import inspect
+
+    from torchseq.events import load_event_frames
+
+    kwargs = {}
+    if opts.anchor != "first":  # today's behaviour needs no keyword
+        if "anchor" not in inspect.signature(load_event_frames).parameters:
+            raise TraverseError("window anchoring ('zero' or a time) needs a torchseq.events "
+                                "with load_event_frames(anchor=...)")
+        kwargs["anchor"] = opts.anchor
+    return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
+                             frame_size=opts.frame_size, **kwargs)
 
 
 def load_traverse(source: Source, events: EventFrameOptions | None = None,
@@ -148,21 +208,13 @@ def load_traverse(source: Source, events: EventFrameOptions | None = None,
     suffix = path.suffix.lower()
     if suffix in VIDEO_SUFFIXES:
         return load_video(path, progress)
-    try:
-        is_events = _is_event_file(path)
-    except (ValueError, OSError) as err:
-        raise TraverseError(f"cannot read {path}: {err}") from err
-    if is_events:
-        from torchseq.events import load_event_frames
-
-        opts = events or EventFrameOptions()
-        return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
-                                 frame_size=opts.frame_size)
+    if _is_event_file(path):
+        return _event_frames(path, events or EventFrameOptions())
     if suffix == ".npy":
-        return frames_from_array(np.load(path, allow_pickle=False), str(path))
+        return frames_from_array(_frame_array(load_npy(path, TraverseError), path), str(path))
     if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            return frames_from_array(z["frames"], str(path))
+        array = load_npz_member(path, "frames", TraverseError)
+        return frames_from_array(_frame_array(array, path), str(path))
     if suffix in IMAGE_SUFFIXES:
         raise TraverseError(f"{path} is a single image; give the folder that holds the traverse")
     raise TraverseError(f"unknown traverse format: {path}")
