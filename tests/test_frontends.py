@@ -155,3 +155,95 @@ def test_eval_takes_event_files(tmp_path, capsys):
     m = json.loads((tmp_path / "metrics.json").read_text())["seqslam"]
     assert m["n_queries"] == 689  # 6.89 s of events in 10 ms windows
     assert m["recall_at_1"] > 0.95  # measured 0.985: a replay of the same recording
+
+
+def test_run_folders_overwrite_and_config_replay(tmp_path):
+    out = tmp_path / "run"
+    base = ["--engine", "seqslam", "--demo-frames", "40", "--ds", "6", "--no-tensorboard"]
+    run("eval.py", *base, "--out", str(out))
+    first = json.loads((out / "metrics.json").read_text())["seqslam"]
+    (out / "stale.png").write_bytes(b"x")
+    again = run("eval.py", *base, "--out", str(out), check=False)
+    assert again.returncode == 2 and "already holds files" in again.stderr
+    run("eval.py", *base, "--out", str(out), "--overwrite")
+    assert not (out / "stale.png").exists()  # the old run's files do not mix with the new
+    # replay: same settings from config.json, new folder, same numbers
+    replay = tmp_path / "replay"
+    run("eval.py", "--config", str(out / "config.json"), "--out", str(replay))
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["seqslam"]["ds"] == 6 and saved["demo_frames"] == 40
+    assert json.loads((replay / "config.json").read_text())["seqslam"] == saved["seqslam"]
+    assert json.loads((replay / "metrics.json").read_text())["seqslam"]["recall_at_1"] == \
+        first["recall_at_1"]
+    # no --out: a fresh timestamped folder under runs/ of the working directory
+    proc = subprocess.run([sys.executable, str(ROOT / "eval.py"), *base, "--no-progress"],
+                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    made = list((tmp_path / "runs").glob("eval-*/metrics.json"))
+    assert len(made) == 1
+
+
+def test_sweep_writes_one_row_per_setting(tmp_path):
+    out = tmp_path / "sweep"
+    run("eval.py", "--engine", "seqslam", "--demo-frames", "40", "--sweep", "ds=4,6,8",
+        "--no-tensorboard", "--out", str(out))
+    rows = list(csv.DictReader(open(out / "sweep.csv")))
+    assert [r["setting"] for r in rows] == ["--ds 4", "--ds 6", "--ds 8"]
+    assert all(r["engine"] == "seqslam" and 0 <= float(r["recall_at_1"]) <= 1 for r in rows)
+    # each row is the run that flag gives on its own
+    single = tmp_path / "single"
+    run("eval.py", "--engine", "seqslam", "--demo-frames", "40", "--ds", "6",
+        "--no-tensorboard", "--out", str(single))
+    m = json.loads((single / "metrics.json").read_text())["seqslam"]
+    assert float(rows[1]["recall_at_1"]) == pytest.approx(m["recall_at_1"])
+    assert float(rows[1]["operating_recall"]) == pytest.approx(m["operating_point"]["recall"])
+
+
+def test_neural_flags_place_resolution_and_recall_at_k(tmp_path):
+    out = tmp_path / "n"
+    proc = run("eval.py", "--engine", "neural", "--demo-frames", "60", "--neural-hidden",
+               "256", "--neural-n-output", "20", "--neural-patch-size", "8",
+               "--no-tensorboard", "--out", str(out))
+    assert "one unit stands for about 3.0 frames" in proc.stderr
+    m = json.loads((out / "metrics.json").read_text())
+    n = m["neural"]
+    assert n["parameters"]["hidden"] == 256 and n["parameters"]["patch_size"] == 8
+    assert n["frames_per_unit"] == 3.0 and m["warnings"]
+    assert n["recall_at_1"] <= n["recall_at_5"] <= n["recall_at_10"] <= 1
+    op = n["operating_point"]
+    assert op["precision_target"] == 0.99 and (op["precision"] is None or op["precision"] >= 0.99)
+
+
+def test_checkpoint_on_another_reference_is_said_plainly(tmp_path):
+    ckpt_dir = tmp_path / "train"
+    run("train.py", "--demo-frames", "40", "--hidden", "256", "--n-output", "40",
+        "--no-tensorboard", "--out", str(ckpt_dir))
+    ckpt = str(ckpt_dir / "model.pt")
+    same = run("eval.py", "--engine", "neural", "--checkpoint", ckpt, "--demo-frames", "40",
+               "--no-tensorboard", "--out", str(tmp_path / "same"))
+    assert "warning" not in same.stderr
+    other = run("eval.py", "--engine", "neural", "--checkpoint", ckpt, "--demo-frames", "50",
+                "--no-tensorboard", "--out", str(tmp_path / "other"))
+    assert "does not match this reference" in other.stderr
+    assert "it learnt 40 reference frames, this reference has 50" in other.stderr
+    warnings = json.loads((tmp_path / "other" / "metrics.json").read_text())["warnings"]
+    assert any("does not match" in w for w in warnings)
+
+
+def test_help_is_plain_text_with_one_default_each():
+    for script in ("train.py", "eval.py"):
+        out = subprocess.run([sys.executable, str(ROOT / script), "--help"], capture_output=True,
+                             text=True, cwd=ROOT, timeout=120).stdout
+        assert "``" not in out and ":class:" not in out
+        entries = out.split("\n  -")
+        assert all(e.count("(default") <= 1 for e in entries), [
+            e for e in entries if e.count("(default") > 1]
+    assert "--neural-patch-size" in out and "--neural-seed" in out and "--patch-size" in out
+
+
+def test_size_flags_take_n_for_n_by_n():
+    from torchseq.frontend import UsageError, parse_size
+
+    assert parse_size("16") == (16, 16) and parse_size("12x16") == (12, 16)
+    with pytest.raises(UsageError):
+        parse_size("16x")
