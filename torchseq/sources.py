@@ -7,6 +7,8 @@ event frames, see :mod:`torchseq.events`).
 from __future__ import annotations
 
 import re
+import struct
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Union
@@ -179,8 +181,14 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
             raise TraverseError("window anchoring ('zero' or a time) needs a torchseq.events "
                                 "with load_event_frames(anchor=...)")
         kwargs["anchor"] = opts.anchor
-    return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
-                             frame_size=opts.frame_size, **kwargs)
+    try:
+        return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
+                                 frame_size=opts.frame_size, **kwargs)
+    except (ValueError, OSError, EOFError, IndexError, KeyError, TypeError, OverflowError,
+            MemoryError, zipfile.BadZipFile, struct.error) as err:
+        # whatever the event reader met in a damaged file, the traverse names it
+        text = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise TraverseError(text if str(path) in text else f"{path}: {text}") from err
 
 
 def load_traverse(source: Source, events: EventFrameOptions | None = None,
