@@ -34,7 +34,7 @@ from torchseq.frontend import (
     config_from_args,
     config_text,
     event_options,
-    load_frames,
+    frame_selection,
     load_model,
     resolve_device,
     run_folder,
@@ -46,6 +46,7 @@ from torchseq.frontend import (
 from torchseq.ground_truth import alignment_ground_truth, load_ground_truth
 from torchseq.neural import NeuralConfig
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+from torchseq.sources import FrameSelection, load_traverse_sizes
 
 PROG = "torchseq eval"  # set by main() to the name the user ran
 ENGINES = ("seqslam", "neural", "both")
@@ -70,6 +71,12 @@ class EvalConfig:
     event_count: int | None = None
     frame_size: str | None = None
     window_anchor: str = "first"
+    sensor_size: str | None = None
+    event_mode: str = "count"
+    start: int = 0
+    stop: int | None = None
+    frame_step: int = 1
+    max_frames: int | None = None
     demo_frames: int = 200
     demo_speed: float = 0.8
     seed: int = 0
@@ -101,6 +108,12 @@ HELP = {
     "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
     "window_anchor": "event files: where the first window starts: 'first' (first event), "
                      "'zero' (sensor time 0) or a sensor time in microseconds",
+    "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
+    "event_mode": "event files: pixel value of a frame: count (events) or signed (|ON - OFF|)",
+    "start": "first frame of each traverse to use (0-based; OpenSeqSLAM's image indices)",
+    "stop": "frame index of each traverse to stop before",
+    "frame_step": "use every N-th frame from --start (OpenSeqSLAM's image skip)",
+    "max_frames": "use at most this many frames of each traverse",
     "demo_frames": "demo: reference frames",
     "demo_speed": "demo: query speed relative to the reference",
     "seed": "random seed (demo data; the neural model unless --neural-seed)",
@@ -115,7 +128,10 @@ HELP = {
 LIMITS = {
     "tolerance": (0.0, 1e9), "gt_offset": (-1e9, 1e9), "target_precision": (0.0, 1.0),
     "demo_frames": (2, 20_000), "demo_speed": (0.01, 100.0), "seed": (0, 2 ** 32 - 1),
+    "start": (0, 2 ** 40), "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40),
+    "max_frames": (1, 2 ** 40),
 }
+THUMBNAIL = 160  # longer side of the frames kept for plots
 SEQSLAM_LIMITS = {
     "patch_size": (0, 4096), "enhance_window": (0, 10 ** 6), "ds": (2, 10 ** 5),
     "vmin": (1e-3, 1e3), "vmax": (1e-3, 1e3), "speed_ratio": (1e-3, 1e3),
@@ -193,31 +209,101 @@ def event_frame_options(cfg: EvalConfig):
     from torchseq.frontend import parse_size
 
     return event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
-                         cfg.window_anchor)
+                         cfg.window_anchor, cfg.sensor_size, cfg.event_mode)
 
 
-def load_data(cfg: EvalConfig):
-    """Reference and query frames plus ``(R, Q)`` ground truth (or None) and a description."""
-    events = event_frame_options(cfg)
+def size_key(size) -> str:
+    """``(32, 64)`` -> ``"32x64"``."""
+    return f"{int(size[0])}x{int(size[1])}"
+
+
+@dataclass
+class Traverse:
+    """A loaded traverse: frames at each size an engine needs, thumbnails for plots, facts."""
+
+    frames: dict
+    thumbnail: torch.Tensor
+    info: dict
+
+    def __len__(self) -> int:
+        return int(self.info["n_frames"])
+
+    def at(self, size) -> torch.Tensor:
+        """``(T, h, w)`` frames at ``size``."""
+        return self.frames[size_key(size)]
+
+
+def needed_sizes(settings: list[Settings], model=None) -> dict:
+    """Every frame size the run's engines read, by key."""
+    sizes = {}
+    for s in settings:
+        if s.run.engine in ("seqslam", "both"):
+            sizes[size_key(s.seqslam.image_size)] = tuple(s.seqslam.image_size)
+        if s.run.engine in ("neural", "both"):
+            size = model.config.input_size if model is not None else s.neural.input_size
+            sizes[size_key(size)] = tuple(size)
+    return sizes
+
+
+def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -> Traverse:
+    """One traverse, shrunk frame by frame to ``sizes`` (a library error names it)."""
+    try:
+        frames, info = load_traverse_sizes(source, sizes, event_frame_options(cfg),
+                                           cfg.progress, select, thumbnail=THUMBNAIL)
+    except (ValueError, OSError) as err:
+        name = "demo" if not isinstance(source, (str, Path)) else source
+        raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
+    return Traverse({k: v for k, v in frames.items() if k != "thumbnail"},
+                    frames["thumbnail"], info)
+
+
+def selected_ground_truth(gt_full: np.ndarray, ref: Traverse, query: Traverse) -> np.ndarray:
+    """Rows and columns of the selected frames of a ground truth over whole traverses."""
+    return gt_full[np.ix_(ref.info["indices"], query.info["indices"])]
+
+
+def load_data(cfg: EvalConfig, sizes: dict, notes: list):
+    """Reference and query traverses, ``(R, Q)`` ground truth (or None) and a description."""
+    select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     if cfg.reference is None and cfg.query is None:
         demo = make_demo(n_reference=cfg.demo_frames, speed=cfg.demo_speed, seed=cfg.seed)
-        ref, query, gt = demo.reference, demo.query, demo.ground_truth
+        ref = load_traverse_for(demo.reference, "reference", cfg, sizes, select)
+        query = load_traverse_for(demo.query, "query", cfg, sizes, select)
+        gt = selected_ground_truth(demo.ground_truth, ref, query)
         source = {"reference": "demo", "query": "demo", "ground_truth": "demo (exact)"}
     elif cfg.reference is None or cfg.query is None:
         raise UsageError("give both --reference and --query (or neither, for the demo)")
     else:
-        ref = load_frames(cfg.reference, "reference", events, cfg.progress)
-        query = load_frames(cfg.query, "query", events, cfg.progress)
+        ref = load_traverse_for(cfg.reference, "reference", cfg, sizes, select)
+        query = load_traverse_for(cfg.query, "query", cfg, sizes, select)
         gt, source = None, {"reference": cfg.reference, "query": cfg.query}
+    selected = select != FrameSelection()
+    totals = (ref.info["n_total"], query.info["n_total"])
+    if selected and (cfg.ground_truth is not None or cfg.tolerance is not None) and None in totals:
+        raise UsageError("a video's frame count is unknown to its container, so ground truth "
+                         "cannot be matched to --start/--stop/--frame-step; convert it to "
+                         "images or drop the selection")
+    n_ref, n_query = totals if selected else (len(ref), len(query))
     if cfg.ground_truth is not None:
-        gt = load_ground_truth(cfg.ground_truth, len(ref), len(query),
-                               widen=cfg.tolerance or 0.0)
+        gt = load_ground_truth(cfg.ground_truth, n_ref, n_query, widen=cfg.tolerance or 0.0)
         source["ground_truth"] = cfg.ground_truth + (
             f", widened by {cfg.tolerance} frames" if cfg.tolerance else "")
     elif cfg.tolerance is not None:
-        gt = alignment_ground_truth(len(ref), len(query), cfg.tolerance, offset=cfg.gt_offset)
+        gt = alignment_ground_truth(n_ref, n_query, cfg.tolerance, offset=cfg.gt_offset)
         source["ground_truth"] = f"index alignment, tolerance {cfg.tolerance}" + (
             f", offset {cfg.gt_offset}" if cfg.gt_offset else "")
+    if selected and cfg.reference is not None and gt is not None:
+        gt = selected_ground_truth(gt, ref, query)
+    if selected:
+        source["selection"] = {"start": cfg.start, "stop": cfg.stop,
+                               "frame_step": cfg.frame_step, "max_frames": cfg.max_frames}
+    for what, t in (("reference", ref), ("query", query)):
+        fh, fw = t.info["frame_size"]
+        for key, (h, w) in sizes.items():
+            if h > fh or w > fw:
+                warn(PROG, f"{what} frames are {fh}x{fw}, smaller than the {key} an engine "
+                     f"reads: they are upsampled (set --image-size or --neural-input-size "
+                     f"to the frame size)", notes)
     return ref, query, gt, source
 
 
@@ -225,18 +311,20 @@ def run_seqslam(s: Settings, ref, query, device, notes: list):
     """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
     if s.seqslam.sequence_length > len(query):
         raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)")
-    result = SeqSLAM(s.seqslam, device=device).match(ref, query, progress=s.run.progress)
+    size = s.seqslam.image_size
+    result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
+                                                     progress=s.run.progress)
     return {"matches": result.matches, "ranked": result.ranked, "matrix": result.enhanced,
             "seconds": result.seconds["total"], "parameters": to_jsonable(s.seqslam)}
 
 
-def describe_reference(cfg: EvalConfig, ref) -> dict:
+def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
     """What identifies a reference traverse: where it came from, frames, frame size."""
     if cfg.reference is None:
         source = {"source": "demo", "demo_frames": cfg.demo_frames, "demo_seed": cfg.seed}
     else:
         source = {"source": str(Path(cfg.reference).resolve())}
-    return {**source, "n_frames": int(len(ref)), "frame_size": [int(v) for v in ref.shape[1:3]]}
+    return {**source, "n_frames": len(ref), "frame_size": list(ref.info["frame_size"])}
 
 
 def checkpoint_mismatch(model, this: dict) -> str | None:
@@ -267,20 +355,20 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
             "unless that is the same route")
 
 
-def run_neural(s: Settings, ref, query, device, notes: list):
-    """Neural SeqSLAM, from a checkpoint or trained on the reference now."""
+def run_neural(s: Settings, ref, query, device, notes: list, model=None):
+    """Neural SeqSLAM, from a checkpoint (``model``, loaded) or trained on the reference now."""
     from torchseq.neural import NeuralSeqSLAM
 
     cfg = s.run
     start = time.perf_counter()
-    if cfg.checkpoint:
-        model = load_model(cfg.checkpoint, device)
+    if model is not None:
         problem = checkpoint_mismatch(model, describe_reference(cfg, ref))
         if problem:
             warn(PROG, problem, notes)
     else:
         model = NeuralSeqSLAM(s.neural, device=device)
-        model.fit(ref, progress=cfg.progress)
+        model.fit(ref.at(s.neural.input_size), progress=cfg.progress)
+    size = model.config.input_size
     fit_seconds = time.perf_counter() - start
     n_ref = int(model.unit_to_reference[-1, 1])
     per_unit = n_ref / model.n_units
@@ -288,7 +376,7 @@ def run_neural(s: Settings, ref, query, device, notes: list):
         warn(PROG, f"neural: {n_ref} reference frames on {model.n_units} output units, one "
              f"unit stands for about {per_unit:.1f} frames (matches are unit centres; "
              f"raise --neural-n-output for a finer place resolution)", notes)
-    result = model.run(query, progress=cfg.progress)
+    result = model.run(query.at(size), progress=cfg.progress)
     k = min(10, model.n_units)
     ranked = model.unit_centre.cpu()[result.activity.topk(k, dim=1).indices]
     return {"matches": result.matches, "ranked": ranked, "activity": result.activity,
@@ -331,7 +419,9 @@ def config_dict(s: Settings) -> dict:
 
 def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list) -> dict:
     """Write metrics.json, matches.csv, plots and TensorBoard logs; return the metrics."""
-    summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query)},
+    summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
+                          "reference_frame_size": ref.info["frame_size"],
+                          "query_frame_size": query.info["frame_size"]},
                "warnings": notes}
     curves = {}
     for name, r in results.items():
@@ -351,7 +441,8 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list)
             results["neural"]["activity"], title="neural output activity over the query")
     for name, r in results.items():
         figures[f"{name}_matched_pairs"] = plots.plot_matched_pairs(
-            ref, query, r["matches"], gt, title=f"{name}: query (top) and matched reference")
+            ref.thumbnail, query.thumbnail, r["matches"], gt,
+            title=f"{name}: query (top) and matched reference")
     if curves:
         figures["pr_curve"] = plots.plot_pr_curves(curves)
     images = {k: plots.figure_to_array(f) for k, f in figures.items()}
@@ -389,21 +480,21 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
             tb.add_pr_curve(f"{name}/pr_curve", labels, pred.float())
 
 
-def run_engines(s: Settings, ref, query, device, notes: list) -> dict:
-    """Every engine the run asks for, by name."""
-    runners = {"seqslam": run_seqslam, "neural": run_neural}
+def run_engines(s: Settings, ref, query, device, notes: list, model=None) -> dict:
+    """Every engine the run asks for, by name (``model``: a loaded checkpoint)."""
     names = ["seqslam", "neural"] if s.run.engine == "both" else [s.run.engine]
-    return {name: runners[name](s, ref, query, device, notes) for name in names}
+    return {name: run_seqslam(s, ref, query, device, notes) if name == "seqslam" else
+            run_neural(s, ref, query, device, notes, model) for name in names}
 
 
 def sweep(base: Settings, points: list[Settings], grid: list[list[str]], ref, query, gt,
-          source, device, out: Path, notes: list) -> int:
+          source, device, out: Path, notes: list, model=None) -> int:
     """Run every grid point; write sweep.csv (one row per setting and engine) and sweep.json."""
     rows = []
     for point, flags in zip(points, grid):
         setting = " ".join(flags)
         print(f"sweep: {setting}", file=sys.stderr)
-        for name, r in run_engines(point, ref, query, device, notes).items():
+        for name, r in run_engines(point, ref, query, device, notes, model).items():
             m = engine_metrics(r, gt, point.run.target_precision)
             op = m.get("operating_point") or {}
             rows.append({"setting": setting, "engine": name,
@@ -440,13 +531,17 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     cfg = s.run
     device = resolve_device(cfg.device)
     event_frame_options(cfg)  # checked before any work
+    frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "eval", cfg.overwrite)
     torch.manual_seed(cfg.seed)
-    ref, query, gt, source = load_data(cfg)
+    model = None
+    if cfg.checkpoint and cfg.engine in ("neural", "both"):
+        model = load_model(cfg.checkpoint, device)
     notes: list[str] = []
+    ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes)
     if grid:
-        return sweep(s, points, grid, ref, query, gt, source, device, out, notes)
-    results = run_engines(s, ref, query, device, notes)
+        return sweep(s, points, grid, ref, query, gt, source, device, out, notes, model)
+    results = run_engines(s, ref, query, device, notes, model)
     summary = report(s, ref, query, gt, source, results, out, notes)
     for name in results:
         m = summary[name]

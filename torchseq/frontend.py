@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from torchseq.sources import EventFrameOptions, load_traverse
+from torchseq.sources import EventFrameOptions, FrameSelection, load_traverse
 
 
 class UsageError(ValueError):
@@ -150,7 +150,7 @@ def config_from_args(config_cls: type, args: argparse.Namespace, prefix: str = "
     values = {}
     for f in dataclasses.fields(config_cls):
         v = getattr(args, prefix + f.name)
-        if f.name.endswith("_size") and isinstance(v, str):
+        if f.name.endswith("_size") and f.name != "sensor_size" and isinstance(v, str):
             try:
                 v = parse_size(v)
             except UsageError as err:
@@ -177,25 +177,63 @@ def parse_anchor(text: str | int) -> str | int:
     return text
 
 
+EVENT_MODES = ("count", "signed")
+
+
+def parse_sensor_size(text: str | None) -> tuple[int, int] | None:
+    """``--sensor-size``: ``WxH`` (or tonic's ``W,H,P``) -> ``(W, H)``."""
+    if text is None:
+        return None
+    parts = str(text).lower().replace(",", "x").split("x")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError(text)
+        w, h = int(parts[0]), int(parts[1])
+    except ValueError:
+        raise UsageError(f"--sensor-size must look like WxH (e.g. 128x128) or W,H,P, "
+                         f"got {text!r}") from None
+    if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE):
+        raise UsageError(f"--sensor-size sides must be in 1..{MAX_SIDE}, got {text!r}")
+    return w, h
+
+
 def event_options(window_ms: float, event_count: int | None,
-                  frame_size: tuple[int, int] | None, anchor: str | int = "first"
-                  ) -> EventFrameOptions:
+                  frame_size: tuple[int, int] | None, anchor: str | int = "first",
+                  sensor_size: str | None = None, mode: str = "count") -> EventFrameOptions:
     """Check and bundle the event-accumulation flags."""
+    if mode not in EVENT_MODES:
+        raise UsageError(f"--event-mode must be one of {', '.join(EVENT_MODES)}, got {mode!r}")
     if not (math.isfinite(window_ms) and 0 < window_ms <= MAX_WINDOW_MS):
         raise UsageError(f"--window-ms must be in (0, {MAX_WINDOW_MS:g}] ms, got {window_ms}")
     if event_count is not None and not 0 < event_count <= MAX_EVENT_COUNT:
         raise UsageError(f"--event-count must be in 1..{MAX_EVENT_COUNT}, got {event_count}")
     return EventFrameOptions(window_ms=window_ms, event_count=event_count, frame_size=frame_size,
-                             anchor=parse_anchor(anchor))
+                             anchor=parse_anchor(anchor),
+                             sensor_size=parse_sensor_size(sensor_size), mode=mode)
 
 
-def load_frames(path: str, what: str, events: EventFrameOptions, progress: bool) -> torch.Tensor:
+def load_frames(path: str, what: str, events: EventFrameOptions, progress: bool,
+                select: FrameSelection | None = None) -> torch.Tensor:
     """Load a traverse, naming it in any error."""
     try:
-        frames = load_traverse(path, events=events, progress=progress)
+        frames = load_traverse(path, events=events, progress=progress, select=select)
     except (ValueError, OSError) as err:
         raise UsageError(f"{what} traverse {path}: {err}") from err
     return frames
+
+
+def frame_selection(start: int, stop: int | None, step: int,
+                    max_frames: int | None) -> FrameSelection:
+    """Check and bundle ``--start``, ``--stop``, ``--frame-step`` and ``--max-frames``."""
+    if start < 0:
+        raise UsageError(f"--start must be >= 0, got {start}")
+    if stop is not None and stop <= start:
+        raise UsageError(f"--stop must be after --start ({start}), got {stop}")
+    if step < 1:
+        raise UsageError(f"--frame-step must be >= 1, got {step}")
+    if max_frames is not None and max_frames < 1:
+        raise UsageError(f"--max-frames must be >= 1, got {max_frames}")
+    return FrameSelection(start, stop, step, max_frames)
 
 
 def load_model(path: str, device=None):
