@@ -22,6 +22,7 @@ from torchseq.atomic import write_text
 from torchseq.demo import make_demo
 from torchseq.frontend import (
     Parser,
+    UsageError,
     add_config_flags,
     check_neural,
     check_ranges,
@@ -29,7 +30,7 @@ from torchseq.frontend import (
     config_from_args,
     config_text,
     event_options,
-    load_frames,
+    frame_selection,
     parse_size,
     resolve_device,
     run_folder,
@@ -37,6 +38,7 @@ from torchseq.frontend import (
     to_jsonable,
 )
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
+from torchseq.sources import FrameSelection, load_traverse_sizes
 
 PROG = "torchseq train"  # set by main() to the name the user ran
 
@@ -52,6 +54,12 @@ class TrainConfig:
     event_count: int | None = None
     frame_size: str | None = None
     window_anchor: str = "first"
+    sensor_size: str | None = None
+    event_mode: str = "count"
+    start: int = 0
+    stop: int | None = None
+    frame_step: int = 1
+    max_frames: int | None = None
     demo_frames: int = 200
     demo_seed: int = 0
     device: str = "cpu"
@@ -78,6 +86,12 @@ HELP = {
     "device": "cpu, cuda or auto",
     "tensorboard": "write TensorBoard logs",
     "progress": "show progress bars",
+    "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
+    "event_mode": "event files: pixel value of a frame: count (events) or signed (|ON - OFF|)",
+    "start": "first reference frame to use (0-based)",
+    "stop": "reference frame index to stop before",
+    "frame_step": "use every N-th reference frame from --start",
+    "max_frames": "use at most this many reference frames",
     "export": "after training, export ONNX and integer files to OUT/export and validate them",
     "export_query": "query traverse to validate the export on (default: the model's own "
                     "reference, as python -m torchseq.export)",
@@ -85,7 +99,8 @@ HELP = {
     "export_frame_size": "camera frame size HxW the integer device takes (default: the "
                          "reference's frame size)",
 }
-LIMITS = {"demo_frames": (2, 20_000), "demo_seed": (0, 2 ** 32 - 1)}
+LIMITS = {"demo_frames": (2, 20_000), "demo_seed": (0, 2 ** 32 - 1), "start": (0, 2 ** 40),
+          "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40), "max_frames": (1, 2 ** 40)}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -154,17 +169,28 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     cfg, ncfg = parse_args(argv)
     device = resolve_device(cfg.device)
     events = event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
-                           cfg.window_anchor)
+                           cfg.window_anchor, cfg.sensor_size, cfg.event_mode)
+    select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "train", cfg.overwrite)
     if cfg.reference is None:
-        frames = make_demo(n_reference=cfg.demo_frames, seed=cfg.demo_seed).reference
+        if select != FrameSelection():
+            raise UsageError("--start/--stop/--frame-step/--max-frames select frames of "
+                             "--reference, not of the demo route (use --demo-frames)")
+        source = make_demo(n_reference=cfg.demo_frames, seed=cfg.demo_seed).reference
         reference = {"source": "demo", "demo_frames": cfg.demo_frames,
                      "demo_seed": cfg.demo_seed}
     else:
-        frames = load_frames(cfg.reference, "reference", events, cfg.progress)
+        source = cfg.reference
         reference = {"source": str(Path(cfg.reference).resolve()),
-                     "events": to_jsonable(events)}
-    reference.update(n_frames=int(len(frames)), frame_size=[int(v) for v in frames.shape[1:3]])
+                     "events": to_jsonable(events), "select": to_jsonable(select)}
+    try:  # shrunk frame by frame to the model's input size: long videos fit in memory
+        loaded, info = load_traverse_sizes(source, {"input": ncfg.input_size}, events,
+                                           cfg.progress, select)
+    except (ValueError, OSError) as err:
+        raise UsageError(f"reference traverse {cfg.reference}: {str(err).splitlines()[0]}"
+                         ) from err
+    frames = loaded["input"]
+    reference.update(n_frames=info["n_frames"], frame_size=info["frame_size"])
     model = NeuralSeqSLAM(ncfg, device=device)
     start = time.perf_counter()
     log = model.fit(frames, progress=cfg.progress)

@@ -86,12 +86,14 @@ def _own_reference(model, ckpt: Path):
         return (demo.query, demo.ground_truth, rec,
                 f"the checkpoint's own reference: demo route ({demo.reference.shape[0]} "
                 f"frames), its query traverse", "demo exact ground truth")
-    from torchseq.sources import EventFrameOptions, load_traverse
+    from torchseq.sources import EventFrameOptions, FrameSelection, load_traverse
 
     events = rec.get("events") if isinstance(rec.get("events"), dict) else {}
+    select = rec.get("select") if isinstance(rec.get("select"), dict) else {}
     try:
         opts = EventFrameOptions(**{k: v for k, v in events.items() if v is not None})
-        frames = load_traverse(rec["source"], events=opts, progress=False)
+        frames = load_traverse(rec["source"], events=opts, progress=False,
+                               select=FrameSelection(**select))
     except (ValueError, TypeError, OSError) as err:
         raise ExportError(f"{ckpt}: its reference {rec['source']} cannot be loaded for "
                           f"validation ({_first_line(err)}); give --query") from None
