@@ -112,8 +112,12 @@ def test_train_then_eval_neural_checkpoint(tmp_path):
 
     from torchseq.neural import NeuralSeqSLAM
 
-    run("train.py", "--demo-frames", "60", "--hidden", "512", "--n-output", "60",
-        "--out", str(tmp_path / "train"), "--export")
+    trained = run("train.py", "--demo-frames", "60", "--hidden", "512", "--n-output", "60",
+                  "--out", str(tmp_path / "train"), "--export")
+    # --export says what it validated on, the device input, and the verdict (main: silent)
+    assert "export: validated on the checkpoint's own reference: demo" in trained.stdout
+    assert "export: device input: uint8 96x128" in trained.stdout
+    assert trained.stdout.strip().endswith("export: PASS")
     validation = json.loads((tmp_path / "train" / "export" / "validation.json").read_text())
     assert validation["passed"] and validation["integer_agreement"] >= 0.99
     assert validation["recall_at_1"]["integer_onnx"] >= 0.95  # validated on the demo query
@@ -247,3 +251,45 @@ def test_size_flags_take_n_for_n_by_n():
     assert parse_size("16") == (16, 16) and parse_size("12x16") == (12, 16)
     with pytest.raises(UsageError):
         parse_size("16x")
+
+
+def test_selection_slices_the_ground_truth_file(tmp_path):
+    from torchseq import cli_eval
+
+    import cv2
+
+    rng = np.random.default_rng(0)
+    for name in ("ref", "query"):
+        (tmp_path / name).mkdir()
+        for i in range(20):
+            cv2.imwrite(str(tmp_path / name / f"{i}.png"),
+                        rng.integers(0, 255, (32, 64), dtype=np.uint8))
+    rows = ["query,references"] + [f"{q},{q} {min(q + 1, 19)}" for q in range(20)]
+    (tmp_path / "gt.csv").write_text("\n".join(rows) + "\n")
+    s, _, _ = cli_eval.parse_args([
+        "--reference", str(tmp_path / "ref"), "--query", str(tmp_path / "query"),
+        "--ground-truth", str(tmp_path / "gt.csv"), "--start", "3", "--frame-step", "4",
+        "--engine", "seqslam", "--no-progress"])
+    notes = []
+    ref, query, gt, source = cli_eval.load_data(s.run, {"32x64": (32, 64)}, notes)
+    assert ref.info["indices"] == [3, 7, 11, 15, 19] and len(query) == 5
+    full = np.zeros((20, 20), bool)
+    for q in range(20):
+        full[[q, min(q + 1, 19)], q] = True
+    assert np.array_equal(gt, full[np.ix_([3, 7, 11, 15, 19], [3, 7, 11, 15, 19])])
+    assert source["selection"]["frame_step"] == 4 and not notes
+
+
+def test_event_flags_reach_the_reader_and_small_frames_warn(tmp_path, capsys):
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--reference", str(aedat),
+                              "--query", str(aedat), "--tolerance", "2", "--frame-size", "16",
+                              "--event-mode", "signed", "--max-frames", "120",
+                              "--out", str(tmp_path / "o"), "--no-tensorboard")
+    assert code == 0, err
+    # 16x16 event frames under the default 32x64 SeqSLAM size: said, not silently upsampled
+    assert "frames are 16x16, smaller than the 32x64" in err
+    m = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert m["inputs"]["reference_frame_size"] == [16, 16] and m["seqslam"]["n_queries"] == 120
+    cfg = json.loads((tmp_path / "o" / "config.json").read_text())
+    assert cfg["event_mode"] == "signed" and cfg["max_frames"] == 120

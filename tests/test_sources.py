@@ -247,3 +247,71 @@ def test_array_files_that_lie_or_hold_the_wrong_thing(tmp_path):
     np.save(tmp_path / "obj.npy", obj, allow_pickle=True)
     with pytest.raises(TraverseError, match="pickle"):
         load_traverse(tmp_path / "obj.npy")
+
+
+# ---------------------------------------------------------------- streaming, selection
+
+
+def write_video(path, frames):
+    h, w = frames[0].shape
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h))
+    for f in frames:
+        writer.write(cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))
+    writer.release()
+
+
+def test_streaming_sizes_equal_resizing_the_whole_traverse(tmp_path):
+    from torchseq.preprocess import resize
+    from torchseq.sources import load_traverse_sizes
+
+    rng = np.random.default_rng(1)
+    frames = [rng.integers(0, 255, (45, 70), dtype=np.uint8) for _ in range(7)]
+    write_images(tmp_path / "f", frames)
+    full = load_traverse(tmp_path / "f", progress=False)
+    got, info = load_traverse_sizes(tmp_path / "f", {"a": (32, 64), "b": (24, 32), "c": None},
+                                    progress=False, thumbnail=20)
+    assert torch.equal(got["a"], resize(full, (32, 64)))  # bit for bit
+    assert torch.equal(got["b"], resize(full, (24, 32)))
+    assert torch.equal(got["c"], full)
+    assert got["thumbnail"].dtype == torch.uint8 and tuple(got["thumbnail"].shape) == (7, 13, 20)
+    assert info == {"n_frames": 7, "frame_size": [45, 70], "indices": list(range(7)),
+                    "n_total": 7}
+
+
+@pytest.mark.parametrize("kind", ["folder", "video", "array"])
+def test_frame_selection_keeps_the_same_frames_everywhere(tmp_path, kind):
+    from torchseq.sources import FrameSelection, load_traverse_sizes
+
+    frames = [np.full((16, 24), 10 * i, np.uint8) for i in range(12)]
+    if kind == "folder":
+        write_images(tmp_path / "f", frames)
+        source = tmp_path / "f"
+    elif kind == "video":
+        write_video(tmp_path / "v.avi", frames)
+        source = tmp_path / "v.avi"
+    else:
+        source = np.stack(frames)
+    select = FrameSelection(start=2, stop=11, step=3, max_frames=2)
+    got, info = load_traverse_sizes(source, {"x": None}, progress=False, select=select)
+    # kept: 2, 5 (8 would be the third, but max_frames=2)
+    assert info["indices"] == [2, 5] and info["n_total"] == 12
+    assert [round(float(f.mean()) / 10) for f in got["x"]] == [2, 5]
+    with pytest.raises(TraverseError, match="stop"):
+        load_traverse(source, select=FrameSelection(start=5, stop=5), progress=False)
+
+
+def test_tonic_sensor_size_and_event_mode(tmp_path):
+    from torchseq.sources import EventFrameOptions
+
+    assert EventFrameOptions(sensor_size=(34, 34, 2)).sensor_size == (34, 34)  # tonic's order
+    with pytest.raises(TraverseError, match="sensor_size"):
+        EventFrameOptions(sensor_size=(34,))
+    ev = np.zeros(4, dtype=[("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "i1")])
+    ev["t"], ev["x"], ev["y"], ev["p"] = [0, 1, 2, 3], [1, 1, 1, 2], [0, 0, 0, 0], [1, 1, 0, 1]
+    np.save(tmp_path / "e.npy", ev)
+    count = load_traverse(tmp_path / "e.npy", EventFrameOptions(
+        window_ms=1.0, sensor_size=(4, 2, 2)), progress=False)
+    signed = load_traverse(tmp_path / "e.npy", EventFrameOptions(
+        window_ms=1.0, sensor_size=(4, 2, 2), mode="signed"), progress=False)
+    assert count.shape == (1, 2, 4)  # (H, W) from tonic's (W, H, P)
+    assert float(count[0, 0, 1]) == 3 and float(signed[0, 0, 1]) == 1  # 2 ON - 1 OFF
