@@ -254,9 +254,9 @@ def test_size_flags_take_n_for_n_by_n():
 
 
 def test_selection_slices_the_ground_truth_file(tmp_path):
-    from torchseq import cli_eval
-
     import cv2
+
+    from torchseq import cli_eval
 
     rng = np.random.default_rng(0)
     for name in ("ref", "query"):
