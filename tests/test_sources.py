@@ -315,3 +315,20 @@ def test_tonic_sensor_size_and_event_mode(tmp_path):
         window_ms=1.0, sensor_size=(4, 2, 2), mode="signed"), progress=False)
     assert count.shape == (1, 2, 4)  # (H, W) from tonic's (W, H, P)
     assert float(count[0, 0, 1]) == 3 and float(signed[0, 0, 1]) == 1  # 2 ON - 1 OFF
+
+
+def test_evt3_time_rule_reaches_the_reader():
+    from torchseq.sources import EventFrameOptions
+
+    raw = next(iter(sorted(shared_data("events").glob("*.raw"))), None)
+    if raw is None:
+        pytest.skip("no EVT 3 .raw recording in ../shared/data/events")
+    from torchseq.events import load_event_frames
+
+    for rule in ("spec", "carry"):
+        got = load_traverse(raw, EventFrameOptions(window_ms=50.0, evt3_time=rule),
+                            progress=False)
+        assert torch.equal(got, load_event_frames(raw, window_ms=50.0, evt3_time=rule))
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    with pytest.raises(TraverseError, match=".raw files only"):
+        load_traverse(aedat, EventFrameOptions(evt3_time="carry"), progress=False)

@@ -73,6 +73,8 @@ class EvalConfig:
     window_anchor: str = "first"
     sensor_size: str | None = None
     event_mode: str = "count"
+    evt3_time: str = "spec"
+    truncated: str = "error"
     start: int = 0
     stop: int | None = None
     frame_step: int = 1
@@ -110,6 +112,9 @@ HELP = {
                      "'zero' (sensor time 0) or a sensor time in microseconds",
     "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
     "event_mode": "event files: pixel value of a frame: count (events) or signed (|ON - OFF|)",
+    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
+                 "incomplete record",
     "start": "first frame of each traverse to use (0-based; OpenSeqSLAM's image indices)",
     "stop": "frame index of each traverse to stop before",
     "frame_step": "use every N-th frame from --start (OpenSeqSLAM's image skip)",
@@ -209,7 +214,8 @@ def event_frame_options(cfg: EvalConfig):
     from torchseq.frontend import parse_size
 
     return event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
-                         cfg.window_anchor, cfg.sensor_size, cfg.event_mode)
+                         cfg.window_anchor, cfg.sensor_size, cfg.event_mode,
+                         cfg.evt3_time, cfg.truncated)
 
 
 def size_key(size) -> str:

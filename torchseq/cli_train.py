@@ -56,6 +56,8 @@ class TrainConfig:
     window_anchor: str = "first"
     sensor_size: str | None = None
     event_mode: str = "count"
+    evt3_time: str = "spec"
+    truncated: str = "error"
     start: int = 0
     stop: int | None = None
     frame_step: int = 1
@@ -88,6 +90,9 @@ HELP = {
     "progress": "show progress bars",
     "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
     "event_mode": "event files: pixel value of a frame: count (events) or signed (|ON - OFF|)",
+    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
+                 "incomplete record",
     "start": "first reference frame to use (0-based)",
     "stop": "reference frame index to stop before",
     "frame_step": "use every N-th reference frame from --start",
@@ -169,7 +174,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     cfg, ncfg = parse_args(argv)
     device = resolve_device(cfg.device)
     events = event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
-                           cfg.window_anchor, cfg.sensor_size, cfg.event_mode)
+                           cfg.window_anchor, cfg.sensor_size, cfg.event_mode,
+                           cfg.evt3_time, cfg.truncated)
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "train", cfg.overwrite)
     if cfg.reference is None:

@@ -199,8 +199,13 @@ def parse_sensor_size(text: str | None) -> tuple[int, int] | None:
 
 def event_options(window_ms: float, event_count: int | None,
                   frame_size: tuple[int, int] | None, anchor: str | int = "first",
-                  sensor_size: str | None = None, mode: str = "count") -> EventFrameOptions:
+                  sensor_size: str | None = None, mode: str = "count",
+                  evt3_time: str = "spec", truncated: str = "error") -> EventFrameOptions:
     """Check and bundle the event-accumulation flags."""
+    if evt3_time not in ("spec", "carry"):
+        raise UsageError(f"--evt3-time must be spec or carry, got {evt3_time!r}")
+    if truncated not in ("error", "drop"):
+        raise UsageError(f"--truncated must be error or drop, got {truncated!r}")
     if mode not in EVENT_MODES:
         raise UsageError(f"--event-mode must be one of {', '.join(EVENT_MODES)}, got {mode!r}")
     if not (math.isfinite(window_ms) and 0 < window_ms <= MAX_WINDOW_MS):
@@ -209,7 +214,8 @@ def event_options(window_ms: float, event_count: int | None,
         raise UsageError(f"--event-count must be in 1..{MAX_EVENT_COUNT}, got {event_count}")
     return EventFrameOptions(window_ms=window_ms, event_count=event_count, frame_size=frame_size,
                              anchor=parse_anchor(anchor),
-                             sensor_size=parse_sensor_size(sensor_size), mode=mode)
+                             sensor_size=parse_sensor_size(sensor_size), mode=mode,
+                             evt3_time=evt3_time, truncated=truncated)
 
 
 def load_frames(path: str, what: str, events: EventFrameOptions, progress: bool,

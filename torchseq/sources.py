@@ -45,6 +45,10 @@ class EventFrameOptions:
         sensor_size: ``(W, H)`` of the sensor, overriding the file; tonic's ``(W, H, P)``
             is accepted (``P``, the polarity count, is dropped).
         mode: ``"count"`` (events per pixel) or ``"signed"`` (``|ON - OFF|``).
+        evt3_time: Prophesee EVT 3 ``.raw`` time rule, ``"spec"`` or ``"carry"`` (see
+            :func:`torchseq.events.prophesee.decode_evt3`).
+        truncated: a recording cut short (AEDAT 2.0/4, ``.raw``): ``"error"`` or ``"drop"``
+            its last incomplete record.
     """
 
     window_ms: float = 10.0
@@ -53,6 +57,8 @@ class EventFrameOptions:
     anchor: str | int = "first"
     sensor_size: tuple[int, ...] | None = None
     mode: str = "count"
+    evt3_time: str = "spec"
+    truncated: str = "error"
 
     def __post_init__(self) -> None:
         if self.sensor_size is not None:  # tonic's (W, H, P): the polarity count is not a size
@@ -269,6 +275,15 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
         kwargs["sensor_size"] = tuple(opts.sensor_size)
     if opts.mode != "count":
         kwargs["mode"] = opts.mode
+    suffix = path.suffix.lower()
+    if opts.evt3_time != "spec":
+        if suffix != ".raw":
+            raise TraverseError(f"{path}: the EVT 3 time rule applies to .raw files only")
+        kwargs["evt3_time"] = opts.evt3_time
+    if opts.truncated != "error":
+        if suffix not in (".aedat", ".aedat4", ".raw"):
+            raise TraverseError(f"{path}: 'truncated' applies to .aedat, .aedat4 and .raw")
+        kwargs["truncated"] = opts.truncated
     if opts.anchor != "first":  # today's behaviour needs no keyword
         if "anchor" not in inspect.signature(load_event_frames).parameters:
             raise TraverseError("window anchoring ('zero' or a time) needs a torchseq.events "
