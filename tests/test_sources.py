@@ -332,3 +332,23 @@ def test_evt3_time_rule_reaches_the_reader():
     aedat = shared_data("events", "alex_walking_again.aedat")
     with pytest.raises(TraverseError, match=".raw files only"):
         load_traverse(aedat, EventFrameOptions(evt3_time="carry"), progress=False)
+
+
+def test_window_anchor_reaches_the_accumulator_or_is_refused():
+    import inspect
+
+    from torchseq.events import load_event_frames
+    from torchseq.frontend import UsageError, parse_anchor
+    from torchseq.sources import EventFrameOptions
+
+    assert parse_anchor("first") == "first" and parse_anchor("1500000") == 1_500_000
+    with pytest.raises(UsageError, match="window-anchor"):
+        parse_anchor("-3")
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    opts = EventFrameOptions(window_ms=10.0, anchor="zero")
+    if "anchor" in inspect.signature(load_event_frames).parameters:
+        assert torch.equal(load_traverse(aedat, opts, progress=False),
+                           load_event_frames(aedat, window_ms=10.0, anchor="zero"))
+    else:  # an accumulator without anchoring: said, not ignored
+        with pytest.raises(TraverseError, match="window anchoring"):
+            load_traverse(aedat, opts, progress=False)
