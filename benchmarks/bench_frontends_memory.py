@@ -1,7 +1,7 @@
 """Peak memory of ``eval.py`` on long 720p videos (streaming load vs. whole-traverse load).
 
 Makes two synthetic 1280x720 videos with OpenCV (a textured route scrolled past the camera;
-the query slower and relit), then runs ``eval.py`` on them in a child process and reads the
+the query relit), then runs ``eval.py`` on them in a child process and reads the
 child's peak resident set size (``ru_maxrss``). ``--baseline SRC`` also runs another checkout's
 ``eval.py`` (e.g. ``/work/main``, which loads whole traverses at full resolution) on the same
 videos, side by side.
