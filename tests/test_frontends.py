@@ -293,3 +293,15 @@ def test_event_flags_reach_the_reader_and_small_frames_warn(tmp_path, capsys):
     assert m["inputs"]["reference_frame_size"] == [16, 16] and m["seqslam"]["n_queries"] == 120
     cfg = json.loads((tmp_path / "o" / "config.json").read_text())
     assert cfg["event_mode"] == "signed" and cfg["max_frames"] == 120
+
+
+def test_a_recording_too_short_for_the_windows_says_what_fits(tmp_path, capsys):
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--reference", str(aedat),
+                              "--query", str(aedat), "--window-ms", "2000", "--frame-size",
+                              "16", "--image-size", "16", "--patch-size", "4",
+                              "--out", str(tmp_path / "o"))
+    assert code == 2
+    # 6.89 s of events fill 4 windows of 2 s; windows of 600 ms give 12 >= ds = 10 frames
+    assert "fills 4 windows of 2000 ms (more than 6000 ms of events); --window-ms 600 " \
+        "or less gives at least 10 frames" in err

@@ -275,7 +275,7 @@ def test_streaming_sizes_equal_resizing_the_whole_traverse(tmp_path):
     assert torch.equal(got["c"], full)
     assert got["thumbnail"].dtype == torch.uint8 and tuple(got["thumbnail"].shape) == (7, 13, 20)
     assert info == {"n_frames": 7, "frame_size": [45, 70], "indices": list(range(7)),
-                    "n_total": 7}
+                    "n_total": 7, "events": False}
 
 
 @pytest.mark.parametrize("kind", ["folder", "video", "array"])

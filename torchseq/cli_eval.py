@@ -315,8 +315,19 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: list):
 
 def run_seqslam(s: Settings, ref, query, device, notes: list):
     """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
-    if s.seqslam.sequence_length > len(query):
-        raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)")
+    ds = s.seqslam.sequence_length
+    if ds > len(query):
+        hint = ""
+        if query.info.get("events") and s.run.event_count is None:
+            n, w = query.info["n_total"], s.run.window_ms
+            if n > 1:  # the events span more than (n - 1) windows
+                hint = (f": the query recording fills {n} windows of {w:g} ms (more than "
+                        f"{(n - 1) * w:g} ms of events); --window-ms {(n - 1) * w / ds:.3g} "
+                        f"or less gives at least {ds} frames")
+            else:
+                hint = f": the query recording is shorter than one {w:g} ms window"
+        raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
+                         + hint)
     size = s.seqslam.image_size
     result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
                                                      progress=s.run.progress)

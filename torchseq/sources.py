@@ -341,6 +341,7 @@ def iter_traverse(source: Source, events: EventFrameOptions | None = None,
             return
         if _is_event_file(path):
             frames = _event_frames(path, events or EventFrameOptions())
+            total["events"] = True
         elif suffix == ".npy":
             frames = frames_from_array(_frame_array(load_npy(path, TraverseError), path), name)
         elif suffix == ".npz":
@@ -413,7 +414,7 @@ def load_traverse_sizes(source: Source, sizes: dict[str, tuple[int, int] | None]
     n = len(thumbs) if thumbs else len(next(iter(out.values()), []))
     indices = list(range(select.start, select.start + n * select.step, select.step))
     return result, {"n_frames": n, "frame_size": list(frame_size), "indices": indices,
-                    "n_total": total.get("n_total")}
+                    "n_total": total.get("n_total"), "events": bool(total.get("events"))}
 
 
 def load_traverse(source: Source, events: EventFrameOptions | None = None,
