@@ -201,6 +201,11 @@ def test_sweep_writes_one_row_per_setting(tmp_path):
     m = json.loads((single / "metrics.json").read_text())["seqslam"]
     assert float(rows[1]["recall_at_1"]) == pytest.approx(m["recall_at_1"])
     assert float(rows[1]["operating_recall"]) == pytest.approx(m["operating_point"]["recall"])
+    # the sweep replays from its config.json
+    run("eval.py", "--config", str(out / "config.json"), "--out", str(tmp_path / "again"))
+    again = list(csv.DictReader(open(tmp_path / "again" / "sweep.csv")))
+    assert [{k: v for k, v in r.items() if k != "seconds"} for r in again] == \
+        [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
 
 
 def test_neural_flags_place_resolution_and_recall_at_k(tmp_path):
@@ -266,7 +271,7 @@ def test_selection_slices_the_ground_truth_file(tmp_path):
                         rng.integers(0, 255, (32, 64), dtype=np.uint8))
     rows = ["query,references"] + [f"{q},{q} {min(q + 1, 19)}" for q in range(20)]
     (tmp_path / "gt.csv").write_text("\n".join(rows) + "\n")
-    s, _, _ = cli_eval.parse_args([
+    s, _, _, _ = cli_eval.parse_args([
         "--reference", str(tmp_path / "ref"), "--query", str(tmp_path / "query"),
         "--ground-truth", str(tmp_path / "gt.csv"), "--start", "3", "--frame-step", "4",
         "--engine", "seqslam", "--no-progress"])

@@ -195,8 +195,9 @@ def settings_from(args: argparse.Namespace) -> Settings:
     return Settings(cfg, scfg, ncfg)
 
 
-def parse_args(argv: list[str] | None) -> tuple[Settings, list[Settings], list[list[str]]]:
-    """Flags -> (the run's settings, one settings per ``--sweep`` point, the sweep flags)."""
+def parse_args(argv: list[str] | None
+               ) -> tuple[Settings, list[Settings], list[list[str]], list[str]]:
+    """Flags -> (the run's settings, settings per ``--sweep`` point, their flags, the specs)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     pre, _ = parser.parse_known_args(argv)
@@ -206,7 +207,7 @@ def parse_args(argv: list[str] | None) -> tuple[Settings, list[Settings], list[l
     base = settings_from(args)
     grid = sweep_grid(args.sweep, parser)
     points = [settings_from(parser.parse_args(argv + extra)) for extra in grid]
-    return base, points, grid
+    return base, points, grid, list(args.sweep)
 
 
 def event_frame_options(cfg: EvalConfig):
@@ -504,8 +505,8 @@ def run_engines(s: Settings, ref, query, device, notes: list, model=None) -> dic
             run_neural(s, ref, query, device, notes, model) for name in names}
 
 
-def sweep(base: Settings, points: list[Settings], grid: list[list[str]], ref, query, gt,
-          source, device, out: Path, notes: list, model=None) -> int:
+def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: list[str],
+          ref, query, gt, source, device, out: Path, notes: list, model=None) -> int:
     """Run every grid point; write sweep.csv (one row per setting and engine) and sweep.json."""
     rows = []
     for point, flags in zip(points, grid):
@@ -526,8 +527,7 @@ def sweep(base: Settings, points: list[Settings], grid: list[list[str]], ref, qu
     w.writerows(rows)
     write_text(out / "sweep.csv", buf.getvalue())
     write_json(out / "sweep.json", {"inputs": source, "rows": rows, "warnings": notes})
-    write_text(out / "config.json", config_text(
-        {**config_dict(base), "sweep": [" ".join(f) for f in grid]}) + "\n")
+    write_text(out / "config.json", config_text({**config_dict(base), "sweep": specs}) + "\n")
     for row in rows:
         r1 = "n/a" if row["recall_at_1"] is None else f"{row['recall_at_1']:.3f}"
         print(f"{row['setting']}: {row['engine']} recall@1 {r1}")
@@ -544,7 +544,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """
     global PROG
     PROG = prog or PROG
-    s, points, grid = parse_args(argv)
+    s, points, grid, specs = parse_args(argv)
     cfg = s.run
     device = resolve_device(cfg.device)
     event_frame_options(cfg)  # checked before any work
@@ -557,7 +557,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     notes: list[str] = []
     ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes)
     if grid:
-        return sweep(s, points, grid, ref, query, gt, source, device, out, notes, model)
+        return sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
     results = run_engines(s, ref, query, device, notes, model)
     summary = report(s, ref, query, gt, source, results, out, notes)
     for name in results:

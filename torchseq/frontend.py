@@ -374,6 +374,9 @@ def config_file_defaults(parser: argparse.ArgumentParser, path: str,
             if value is not None and not isinstance(value, bool):
                 raise UsageError(f"--config {path}: {dest} must be true or false")
             defaults[dest] = value
+        elif isinstance(action, argparse._AppendAction) and isinstance(value, list) and all(
+                isinstance(v, str) for v in value):
+            defaults[dest] = list(value)
         elif isinstance(value, list) and dest.endswith("_size"):
             defaults[dest] = "x".join(str(v) for v in value)
         elif isinstance(value, (str, int, float)) and not isinstance(value, bool):
