@@ -101,7 +101,7 @@ def eval_cases(d):
         (["--demo-speed", "1e-9"], "--demo-speed"),
         (["--ds", "10000000000"], "--ds"),
         (["--tolerance", "nan"], "--tolerance"),
-        (["--vmax", "inf"], "--vmax"),
+        (["--vmax", "inf"], "argument --vmax: must be a finite"),  # main: "vmin must be > 0"
         (["--vmin", "-1"], "--vmin"),
         (["--target-precision", "2"], "--target-precision"),
         (["--image-size", "0x64"], "--image-size"),
@@ -149,12 +149,6 @@ def test_hostile_arguments_are_one_line_and_exit_2(files, tmp_path):
     # nothing was written for any refused run
     assert not any((tmp_path / p).exists() and any((tmp_path / p).iterdir())
                    for p in [f"e{i}" for i in range(len(eval_cases(files)))])
-
-
-def test_vmax_inf_names_vmax():
-    # main said "vmin must be > 0, got 0.8" for --vmax inf
-    (code, err), = run_cases([("eval.py", ["--vmax", "inf"])])
-    assert code == 2 and "--vmax" in err and "vmin" not in err
 
 
 def test_real_subprocess_of_the_script(tmp_path):

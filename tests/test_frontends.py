@@ -161,33 +161,34 @@ def test_eval_takes_event_files(tmp_path, capsys):
     assert m["recall_at_1"] > 0.95  # measured 0.985: a replay of the same recording
 
 
-def test_run_folders_overwrite_and_config_replay(tmp_path):
+def test_run_folders_overwrite_and_config_replay(tmp_path, capsys, monkeypatch):
     out = tmp_path / "run"
     base = ["--engine", "seqslam", "--demo-frames", "40", "--ds", "6", "--no-tensorboard"]
-    run("eval.py", *base, "--out", str(out))
+    run("eval.py", *base, "--out", str(out))  # the real script
     first = json.loads((out / "metrics.json").read_text())["seqslam"]
     (out / "stale.png").write_bytes(b"x")
-    again = run("eval.py", *base, "--out", str(out), check=False)
-    assert again.returncode == 2 and "already holds files" in again.stderr
-    run("eval.py", *base, "--out", str(out), "--overwrite")
+    code, err = run_inprocess("eval", capsys, *base, "--out", str(out))
+    assert code == 2 and "already holds files" in err
+    assert run_inprocess("eval", capsys, *base, "--out", str(out), "--overwrite")[0] == 0
     assert not (out / "stale.png").exists()  # the old run's files do not mix with the new
     # replay: same settings from config.json, new folder, same numbers
     replay = tmp_path / "replay"
-    run("eval.py", "--config", str(out / "config.json"), "--out", str(replay))
+    assert run_inprocess("eval", capsys, "--config", str(out / "config.json"),
+                         "--out", str(replay))[0] == 0
     saved = json.loads((out / "config.json").read_text())
     assert saved["seqslam"]["ds"] == 6 and saved["demo_frames"] == 40
     assert json.loads((replay / "config.json").read_text())["seqslam"] == saved["seqslam"]
     assert json.loads((replay / "metrics.json").read_text())["seqslam"]["recall_at_1"] == \
         first["recall_at_1"]
     # no --out: a fresh timestamped folder under runs/ of the working directory
-    proc = subprocess.run([sys.executable, str(ROOT / "eval.py"), *base, "--no-progress"],
-                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
-    assert proc.returncode == 0, proc.stderr
+    monkeypatch.chdir(tmp_path)
+    assert run_inprocess("eval", capsys, *base)[0] == 0
+    assert run_inprocess("eval", capsys, *base)[0] == 0
     made = list((tmp_path / "runs").glob("eval-*/metrics.json"))
-    assert len(made) == 1
+    assert len(made) == 2
 
 
-def test_sweep_writes_one_row_per_setting(tmp_path):
+def test_sweep_writes_one_row_per_setting(tmp_path, capsys):
     out = tmp_path / "sweep"
     run("eval.py", "--engine", "seqslam", "--demo-frames", "40", "--sweep", "ds=4,6,8",
         "--no-tensorboard", "--out", str(out))
@@ -196,13 +197,14 @@ def test_sweep_writes_one_row_per_setting(tmp_path):
     assert all(r["engine"] == "seqslam" and 0 <= float(r["recall_at_1"]) <= 1 for r in rows)
     # each row is the run that flag gives on its own
     single = tmp_path / "single"
-    run("eval.py", "--engine", "seqslam", "--demo-frames", "40", "--ds", "6",
-        "--no-tensorboard", "--out", str(single))
+    assert run_inprocess("eval", capsys, "--engine", "seqslam", "--demo-frames", "40", "--ds",
+                         "6", "--no-tensorboard", "--out", str(single))[0] == 0
     m = json.loads((single / "metrics.json").read_text())["seqslam"]
     assert float(rows[1]["recall_at_1"]) == pytest.approx(m["recall_at_1"])
     assert float(rows[1]["operating_recall"]) == pytest.approx(m["operating_point"]["recall"])
     # the sweep replays from its config.json
-    run("eval.py", "--config", str(out / "config.json"), "--out", str(tmp_path / "again"))
+    assert run_inprocess("eval", capsys, "--config", str(out / "config.json"),
+                         "--out", str(tmp_path / "again"))[0] == 0
     again = list(csv.DictReader(open(tmp_path / "again" / "sweep.csv")))
     assert [{k: v for k, v in r.items() if k != "seconds"} for r in again] == \
         [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
@@ -223,14 +225,15 @@ def test_neural_flags_place_resolution_and_recall_at_k(tmp_path):
     assert op["precision_target"] == 0.99 and (op["precision"] is None or op["precision"] >= 0.99)
 
 
-def test_checkpoint_on_another_reference_is_said_plainly(tmp_path):
+def test_checkpoint_on_another_reference_is_said_plainly(tmp_path, capsys):
     ckpt_dir = tmp_path / "train"
-    run("train.py", "--demo-frames", "40", "--hidden", "256", "--n-output", "40",
-        "--no-tensorboard", "--out", str(ckpt_dir))
+    assert run_inprocess("train", capsys, "--demo-frames", "40", "--hidden", "256",
+                         "--n-output", "40", "--no-tensorboard", "--out", str(ckpt_dir))[0] == 0
     ckpt = str(ckpt_dir / "model.pt")
-    same = run("eval.py", "--engine", "neural", "--checkpoint", ckpt, "--demo-frames", "40",
-               "--no-tensorboard", "--out", str(tmp_path / "same"))
-    assert "warning" not in same.stderr
+    code, err = run_inprocess("eval", capsys, "--engine", "neural", "--checkpoint", ckpt,
+                              "--demo-frames", "40", "--no-tensorboard", "--out",
+                              str(tmp_path / "same"))
+    assert code == 0 and "warning" not in err
     other = run("eval.py", "--engine", "neural", "--checkpoint", ckpt, "--demo-frames", "50",
                 "--no-tensorboard", "--out", str(tmp_path / "other"))
     assert "does not match this reference" in other.stderr
@@ -239,10 +242,11 @@ def test_checkpoint_on_another_reference_is_said_plainly(tmp_path):
     assert any("does not match" in w for w in warnings)
 
 
-def test_help_is_plain_text_with_one_default_each():
-    for script in ("train.py", "eval.py"):
-        out = subprocess.run([sys.executable, str(ROOT / script), "--help"], capture_output=True,
-                             text=True, cwd=ROOT, timeout=120).stdout
+def test_help_is_plain_text_with_one_default_each(capsys):
+    for script in ("train", "eval"):
+        with pytest.raises(SystemExit):
+            load_script(script).main(["--help"])
+        out = capsys.readouterr().out
         assert "``" not in out and ":class:" not in out
         entries = out.split("\n  -")
         assert all(e.count("(default") <= 1 for e in entries), [
