@@ -217,7 +217,9 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
     """The export command's flags."""
     from torchseq.frontend import Parser
 
-    ap = Parser(prog=prog, description=__doc__.split("\n")[0])
+    ap = Parser(prog=prog, description="Export a Neural SeqSLAM checkpoint to ONNX and "
+                "integer files and validate them (exit 0: every check passed, 1: one "
+                "failed, 2: bad input).")
     ap.add_argument("checkpoint", help="Neural SeqSLAM checkpoint (NeuralSeqSLAM.save)")
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--query", help="validation query traverse (default: the checkpoint's own "
