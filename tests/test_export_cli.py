@@ -162,3 +162,18 @@ def test_bad_ground_truth_is_rejected(checkpoint, tmp_path):
     code = main([str(checkpoint / "small.pt"), "--out", str(tmp_path / "o"), "--query",
                  str(checkpoint / "query.npy"), "--ground-truth", str(tmp_path / "gt.npy")])
     assert code == 2
+
+
+def test_device_input_does_not_follow_the_validation_query(camera_checkpoint, tmp_path):
+    # validating on 48x64 frames must not make a 48x64 device for a 120x160 camera
+    query = np.load(camera_checkpoint / "ref.npy")[:30]
+    small = torch.nn.functional.adaptive_avg_pool2d(torch.from_numpy(query).float()[:, None],
+                                                    (48, 64))[:, 0].round().numpy()
+    np.save(tmp_path / "q.npy", small.astype(np.uint8))
+    out = tmp_path / "out"
+    assert main([str(camera_checkpoint / "cam.pt"), "--out", str(out), "--query",
+                 str(tmp_path / "q.npy")]) == 0
+    report = json.loads((out / "validation.json").read_text())
+    assert report["query_frame_size"] == [48, 64]
+    assert report["device_frame_size"] == [120, 160] and report["integer_pool"] == [5, 5]
+    assert report["device_frame_size_source"] == "the checkpoint's reference frames"
