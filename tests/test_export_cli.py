@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 from export_helpers import small_setup
 
 from torchseq.export import export_checkpoint
@@ -52,13 +53,81 @@ def test_export_checkpoint_on_the_demo_route(tmp_path):
 
     model = NeuralSeqSLAM(NeuralConfig(hidden=1024, n_output=100))
     model.fit(make_demo().reference, log=False)
-    model.save(tmp_path / "demo.pt")
+    model.save(tmp_path / "demo.pt", extra={"reference": {
+        "source": "demo", "demo_frames": 200, "demo_seed": 0, "frame_size": [96, 128]}})
     assert export_checkpoint(tmp_path / "demo.pt", tmp_path / "out") is True
     report = json.loads((tmp_path / "out" / "validation.json").read_text())
-    assert report["query_source"].startswith("demo")
+    assert report["query_source"].startswith("the checkpoint's own reference: demo")
     assert report["n_query"] == 249 and report["integer_pool"] == [4, 4]
     assert report["integer_agreement"] >= 0.99
     assert report["recall_at_1"]["integer_onnx"] >= 0.9  # measured 0.924 (1024 L2 units)
+
+
+@pytest.fixture(scope="module")
+def camera_checkpoint(tmp_path_factory):
+    """A model fitted on a 120x160 reference file (not the demo), as train.py records it."""
+    from torchseq.demo import make_demo
+    from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+
+    folder = tmp_path_factory.mktemp("camera")
+    route = make_demo(n_reference=50, size=(120, 160), seed=7)
+    frames = route.reference.round().clamp(0, 255).to(torch.uint8).numpy()
+    np.save(folder / "ref.npy", frames)
+    model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=50))
+    model.fit(torch.from_numpy(frames).float(), log=False)
+    model.save(folder / "cam.pt", extra={"reference": {
+        "source": str(folder / "ref.npy"), "n_frames": 50, "frame_size": [120, 160]}})
+    return folder
+
+
+def test_default_validation_uses_the_checkpoints_own_reference(camera_checkpoint, tmp_path):
+    # main validated every checkpoint on the synthetic demo route (recall ~0, FAIL) and took
+    # the device input size (96x128) from it
+    out = tmp_path / "out"
+    assert export_checkpoint(camera_checkpoint / "cam.pt", out) is True
+    report = json.loads((out / "validation.json").read_text())
+    assert str(camera_checkpoint / "ref.npy") in report["query_source"]
+    assert report["n_query"] == 50 and report["device_frame_size"] == [120, 160]
+    assert report["integer_pool"] == [5, 5]
+    assert report["recall_at_1"]["pytorch"] >= 0.9  # a replay of the learnt route
+
+
+def test_frame_size_sets_the_device_input_not_the_query(camera_checkpoint, tmp_path):
+    out = tmp_path / "out"
+    code = main([str(camera_checkpoint / "cam.pt"), "--out", str(out), "--frame-size", "48x64"])
+    assert code == 0
+    report = json.loads((out / "validation.json").read_text())
+    assert report["device_frame_size"] == [48, 64] and report["integer_pool"] == [2, 2]
+    assert report["query_frame_size"] == [120, 160]
+    assert report["device_frame_size_source"] == "--frame-size"
+    stored = read_integer_model(out / "model_int.tsq")
+    assert (stored.params["pool_h"], stored.params["pool_w"]) == (2, 2)
+
+
+def test_onnx_files_carry_the_device_contract(camera_checkpoint, tmp_path):
+    from torchseq.export.contract import read_contract
+
+    out = tmp_path / "out"
+    assert export_checkpoint(camera_checkpoint / "cam.pt", out) is True
+    report = json.loads((out / "validation.json").read_text())
+    for name in ("model_float.onnx", "model_quant.onnx"):
+        meta = read_contract(out / name)
+        assert meta["torchseq.contract_version"] == "1" and meta["torchseq.input_size"] == "24x32"
+        assert "COLOR_BGR2GRAY" in meta["torchseq.grey"] and "floor(i*H/h)" in meta[
+            "torchseq.resize"]
+        assert meta["torchseq.initial_state"] == "zeros float32 (B, 50)"
+        assert float(meta["torchseq.confidence_threshold"]) == pytest.approx(
+            report["suggested_confidence_threshold"], rel=1e-5)
+    meta = read_contract(out / "model_int.onnx")
+    assert meta["torchseq.device_frame_size"] == "120x160"
+    assert meta["torchseq.integer_pool"] == "5x5"
+    assert meta["torchseq.input"] == "frames uint8 (B, 120, 160)"
+    assert meta["torchseq.initial_state"] == "zeros int32 (B, 50)"
+
+
+def test_checkpoint_without_a_recorded_reference_needs_a_query(checkpoint, tmp_path):
+    with pytest.raises(ExportError, match="does not record which reference"):
+        export_checkpoint(checkpoint / "small.pt", tmp_path / "o")
 
 
 def test_a_failed_check_exits_1(checkpoint, tmp_path, monkeypatch, capsys):
@@ -83,7 +152,8 @@ def test_corrupt_checkpoint_fails_with_one_line(checkpoint, tmp_path):
                            str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error:") and "bad.pt" in lines[0]
+    assert len(lines) == 1 and lines[0].startswith("python -m torchseq.export: error:")
+    assert "bad.pt" in lines[0]
     assert not (tmp_path / "o" / "validation.json").exists()
 
 
@@ -92,3 +162,18 @@ def test_bad_ground_truth_is_rejected(checkpoint, tmp_path):
     code = main([str(checkpoint / "small.pt"), "--out", str(tmp_path / "o"), "--query",
                  str(checkpoint / "query.npy"), "--ground-truth", str(tmp_path / "gt.npy")])
     assert code == 2
+
+
+def test_device_input_does_not_follow_the_validation_query(camera_checkpoint, tmp_path):
+    # validating on 48x64 frames must not make a 48x64 device for a 120x160 camera
+    query = np.load(camera_checkpoint / "ref.npy")[:30]
+    small = torch.nn.functional.adaptive_avg_pool2d(torch.from_numpy(query).float()[:, None],
+                                                    (48, 64))[:, 0].round().numpy()
+    np.save(tmp_path / "q.npy", small.astype(np.uint8))
+    out = tmp_path / "out"
+    assert main([str(camera_checkpoint / "cam.pt"), "--out", str(out), "--query",
+                 str(tmp_path / "q.npy")]) == 0
+    report = json.loads((out / "validation.json").read_text())
+    assert report["query_frame_size"] == [48, 64]
+    assert report["device_frame_size"] == [120, 160] and report["integer_pool"] == [5, 5]
+    assert report["device_frame_size_source"] == "the checkpoint's reference frames"

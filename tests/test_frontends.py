@@ -91,7 +91,7 @@ def test_eval_ground_truth_that_does_not_fit(tmp_path, capsys):
     np.save(frames, np.random.default_rng(0).integers(0, 255, (30, 32, 64)).astype(np.uint8))
     code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--reference", str(frames),
                               "--query", str(frames), "--ground-truth", str(bad),
-                              "--out", str(tmp_path))
+                              "--out", str(tmp_path / "out"))
     assert code == 2 and "(30, 30)" in err
 
 
@@ -112,8 +112,12 @@ def test_train_then_eval_neural_checkpoint(tmp_path):
 
     from torchseq.neural import NeuralSeqSLAM
 
-    run("train.py", "--demo-frames", "60", "--hidden", "512", "--n-output", "60",
-        "--out", str(tmp_path / "train"), "--export")
+    trained = run("train.py", "--demo-frames", "60", "--hidden", "512", "--n-output", "60",
+                  "--out", str(tmp_path / "train"), "--export")
+    # --export says what it validated on, the device input, and the verdict (main: silent)
+    assert "export: validated on the checkpoint's own reference: demo" in trained.stdout
+    assert "export: device input: uint8 96x128" in trained.stdout
+    assert trained.stdout.strip().endswith("export: PASS")
     validation = json.loads((tmp_path / "train" / "export" / "validation.json").read_text())
     assert validation["passed"] and validation["integer_agreement"] >= 0.99
     assert validation["recall_at_1"]["integer_onnx"] >= 0.95  # validated on the demo query
@@ -155,3 +159,158 @@ def test_eval_takes_event_files(tmp_path, capsys):
     m = json.loads((tmp_path / "metrics.json").read_text())["seqslam"]
     assert m["n_queries"] == 689  # 6.89 s of events in 10 ms windows
     assert m["recall_at_1"] > 0.95  # measured 0.985: a replay of the same recording
+
+
+def test_run_folders_overwrite_and_config_replay(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "run"
+    base = ["--engine", "seqslam", "--demo-frames", "40", "--ds", "6", "--no-tensorboard"]
+    run("eval.py", *base, "--out", str(out))  # the real script
+    first = json.loads((out / "metrics.json").read_text())["seqslam"]
+    (out / "stale.png").write_bytes(b"x")
+    code, err = run_inprocess("eval", capsys, *base, "--out", str(out))
+    assert code == 2 and "already holds files" in err
+    assert run_inprocess("eval", capsys, *base, "--out", str(out), "--overwrite")[0] == 0
+    assert not (out / "stale.png").exists()  # the old run's files do not mix with the new
+    # replay: same settings from config.json, new folder, same numbers
+    replay = tmp_path / "replay"
+    assert run_inprocess("eval", capsys, "--config", str(out / "config.json"),
+                         "--out", str(replay))[0] == 0
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["seqslam"]["ds"] == 6 and saved["demo_frames"] == 40
+    assert json.loads((replay / "config.json").read_text())["seqslam"] == saved["seqslam"]
+    assert json.loads((replay / "metrics.json").read_text())["seqslam"]["recall_at_1"] == \
+        first["recall_at_1"]
+    # no --out: a fresh timestamped folder under runs/ of the working directory
+    monkeypatch.chdir(tmp_path)
+    assert run_inprocess("eval", capsys, *base)[0] == 0
+    assert run_inprocess("eval", capsys, *base)[0] == 0
+    made = list((tmp_path / "runs").glob("eval-*/metrics.json"))
+    assert len(made) == 2
+
+
+def test_sweep_writes_one_row_per_setting(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    run("eval.py", "--engine", "seqslam", "--demo-frames", "40", "--sweep", "ds=4,6,8",
+        "--no-tensorboard", "--out", str(out))
+    rows = list(csv.DictReader(open(out / "sweep.csv")))
+    assert [r["setting"] for r in rows] == ["--ds 4", "--ds 6", "--ds 8"]
+    assert all(r["engine"] == "seqslam" and 0 <= float(r["recall_at_1"]) <= 1 for r in rows)
+    # each row is the run that flag gives on its own
+    single = tmp_path / "single"
+    assert run_inprocess("eval", capsys, "--engine", "seqslam", "--demo-frames", "40", "--ds",
+                         "6", "--no-tensorboard", "--out", str(single))[0] == 0
+    m = json.loads((single / "metrics.json").read_text())["seqslam"]
+    assert float(rows[1]["recall_at_1"]) == pytest.approx(m["recall_at_1"])
+    assert float(rows[1]["operating_recall"]) == pytest.approx(m["operating_point"]["recall"])
+    # the sweep replays from its config.json
+    assert run_inprocess("eval", capsys, "--config", str(out / "config.json"),
+                         "--out", str(tmp_path / "again"))[0] == 0
+    again = list(csv.DictReader(open(tmp_path / "again" / "sweep.csv")))
+    assert [{k: v for k, v in r.items() if k != "seconds"} for r in again] == \
+        [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
+
+
+def test_neural_flags_place_resolution_and_recall_at_k(tmp_path):
+    out = tmp_path / "n"
+    proc = run("eval.py", "--engine", "neural", "--demo-frames", "60", "--neural-hidden",
+               "256", "--neural-n-output", "20", "--neural-patch-size", "8",
+               "--no-tensorboard", "--out", str(out))
+    assert "one unit stands for about 3.0 frames" in proc.stderr
+    m = json.loads((out / "metrics.json").read_text())
+    n = m["neural"]
+    assert n["parameters"]["hidden"] == 256 and n["parameters"]["patch_size"] == 8
+    assert n["frames_per_unit"] == 3.0 and m["warnings"]
+    assert n["recall_at_1"] <= n["recall_at_5"] <= n["recall_at_10"] <= 1
+    op = n["operating_point"]
+    assert op["precision_target"] == 0.99 and (op["precision"] is None or op["precision"] >= 0.99)
+
+
+def test_checkpoint_on_another_reference_is_said_plainly(tmp_path, capsys):
+    ckpt_dir = tmp_path / "train"
+    assert run_inprocess("train", capsys, "--demo-frames", "40", "--hidden", "256",
+                         "--n-output", "40", "--no-tensorboard", "--out", str(ckpt_dir))[0] == 0
+    ckpt = str(ckpt_dir / "model.pt")
+    code, err = run_inprocess("eval", capsys, "--engine", "neural", "--checkpoint", ckpt,
+                              "--demo-frames", "40", "--no-tensorboard", "--out",
+                              str(tmp_path / "same"))
+    assert code == 0 and "warning" not in err
+    other = run("eval.py", "--engine", "neural", "--checkpoint", ckpt, "--demo-frames", "50",
+                "--no-tensorboard", "--out", str(tmp_path / "other"))
+    assert "does not match this reference" in other.stderr
+    assert "it learnt 40 reference frames, this reference has 50" in other.stderr
+    warnings = json.loads((tmp_path / "other" / "metrics.json").read_text())["warnings"]
+    assert any("does not match" in w for w in warnings)
+
+
+def test_help_is_plain_text_with_one_default_each(capsys):
+    for script in ("train", "eval"):
+        with pytest.raises(SystemExit):
+            load_script(script).main(["--help"])
+        out = capsys.readouterr().out
+        assert "``" not in out and ":class:" not in out
+        entries = out.split("\n  -")
+        assert all(e.count("(default") <= 1 for e in entries), [
+            e for e in entries if e.count("(default") > 1]
+    assert "--neural-patch-size" in out and "--neural-seed" in out and "--patch-size" in out
+
+
+def test_size_flags_take_n_for_n_by_n():
+    from torchseq.frontend import UsageError, parse_size
+
+    assert parse_size("16") == (16, 16) and parse_size("12x16") == (12, 16)
+    with pytest.raises(UsageError):
+        parse_size("16x")
+
+
+def test_selection_slices_the_ground_truth_file(tmp_path):
+    import cv2
+
+    from torchseq import cli_eval
+
+    rng = np.random.default_rng(0)
+    for name in ("ref", "query"):
+        (tmp_path / name).mkdir()
+        for i in range(20):
+            cv2.imwrite(str(tmp_path / name / f"{i}.png"),
+                        rng.integers(0, 255, (32, 64), dtype=np.uint8))
+    rows = ["query,references"] + [f"{q},{q} {min(q + 1, 19)}" for q in range(20)]
+    (tmp_path / "gt.csv").write_text("\n".join(rows) + "\n")
+    s, _, _, _ = cli_eval.parse_args([
+        "--reference", str(tmp_path / "ref"), "--query", str(tmp_path / "query"),
+        "--ground-truth", str(tmp_path / "gt.csv"), "--start", "3", "--frame-step", "4",
+        "--engine", "seqslam", "--no-progress"])
+    notes = []
+    ref, query, gt, source = cli_eval.load_data(s.run, {"32x64": (32, 64)}, notes)
+    assert ref.info["indices"] == [3, 7, 11, 15, 19] and len(query) == 5
+    full = np.zeros((20, 20), bool)
+    for q in range(20):
+        full[[q, min(q + 1, 19)], q] = True
+    assert np.array_equal(gt, full[np.ix_([3, 7, 11, 15, 19], [3, 7, 11, 15, 19])])
+    assert source["selection"]["frame_step"] == 4 and not notes
+
+
+def test_event_flags_reach_the_reader_and_small_frames_warn(tmp_path, capsys):
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--reference", str(aedat),
+                              "--query", str(aedat), "--tolerance", "2", "--frame-size", "16",
+                              "--event-mode", "signed", "--max-frames", "120",
+                              "--out", str(tmp_path / "o"), "--no-tensorboard")
+    assert code == 0, err
+    # 16x16 event frames under the default 32x64 SeqSLAM size: said, not silently upsampled
+    assert "frames are 16x16, smaller than the 32x64" in err
+    m = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert m["inputs"]["reference_frame_size"] == [16, 16] and m["seqslam"]["n_queries"] == 120
+    cfg = json.loads((tmp_path / "o" / "config.json").read_text())
+    assert cfg["event_mode"] == "signed" and cfg["max_frames"] == 120
+
+
+def test_a_recording_too_short_for_the_windows_says_what_fits(tmp_path, capsys):
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--reference", str(aedat),
+                              "--query", str(aedat), "--window-ms", "2000", "--frame-size",
+                              "16", "--image-size", "16", "--patch-size", "4",
+                              "--out", str(tmp_path / "o"))
+    assert code == 2
+    # 6.89 s of events fill 4 windows of 2 s; windows of 600 ms give 12 >= ds = 10 frames
+    assert "fills 4 windows of 2000 ms (more than 6000 ms of events); --window-ms 600 " \
+        "or less gives at least 10 frames" in err

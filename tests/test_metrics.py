@@ -89,3 +89,33 @@ def test_perfect_matches_give_unit_scores():
 def test_matches_shape_check():
     with pytest.raises(ValueError):
         Matches(torch.zeros(3, dtype=torch.long), torch.zeros(4), True)
+
+
+def test_operating_point_against_a_plain_sweep():
+    from torchseq.metrics import operating_point
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q, r = 40, 30
+        gt = np.zeros((r, q), bool)
+        truth = rng.integers(0, r, q)
+        gt[truth, np.arange(q)] = True
+        ref = np.where(rng.random(q) < 0.7, truth, rng.integers(0, r, q))
+        ref[rng.random(q) < 0.1] = -1
+        score = rng.random(q).round(2)  # ties on purpose
+        m = Matches(torch.as_tensor(ref), torch.as_tensor(score), lower_is_better=True)
+        for target in (0.5, 0.9, 1.0):
+            op = operating_point(m, gt, target)
+            # the plain definition: every threshold t, accept score <= t
+            best = (0.0, None)
+            for t in sorted(set(score[ref >= 0])):
+                acc = (ref >= 0) & (score <= t)
+                tp = int(gt[ref[acc], np.nonzero(acc)[0]].sum())
+                prec = tp / acc.sum()
+                rec = tp / q
+                if prec >= target and rec > best[0]:
+                    best = (rec, t)
+            assert op["recall"] == pytest.approx(best[0])
+            if best[1] is not None:
+                assert op["score_threshold"] == pytest.approx(best[1])
+                assert op["precision"] >= target

@@ -1,6 +1,8 @@
 """torchseq: sequence-based visual place recognition for ordinary and event cameras."""
 
-from torchseq import metrics
+import types as _types
+
+from torchseq import metrics, preprocess
 from torchseq.demo import DemoRoute, make_demo
 from torchseq.events import (
     EventFormatError,
@@ -15,11 +17,25 @@ from torchseq.events import (
 from torchseq.ground_truth import alignment_ground_truth, load_ground_truth
 from torchseq.matches import Matches
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
-from torchseq.preprocess import patch_normalise, preprocess, resize, to_grey
+from torchseq.preprocess import patch_normalise, resize, to_grey
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, StreamingSeqSLAM
 from torchseq.sources import EventFrameOptions, TraverseError, load_traverse
 
 __version__ = "0.1.0"
+
+
+class _CallableModule(_types.ModuleType):
+    """``torchseq.preprocess`` is the module; calling it still runs ``preprocess.preprocess``.
+
+    ``import torchseq.preprocess`` must give the module (its ``resize``, ``patch_normalise``,
+    ...), while ``torchseq.preprocess(frames, size)`` keeps working for existing callers.
+    """
+
+    def __call__(self, *args, **kwargs):
+        return self.preprocess(*args, **kwargs)
+
+
+preprocess.__class__ = _CallableModule
 
 __all__ = [
     "DemoRoute",

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import re
 import sys
 from pathlib import Path
@@ -17,30 +18,84 @@ from typing import Callable
 import numpy as np
 import torch
 
-from torchseq.sources import EventFrameOptions, load_traverse
+from torchseq.sources import EventFrameOptions, FrameSelection, load_traverse
 
 
 class UsageError(ValueError):
     """A problem with what the user asked for; printed as one line."""
 
 
+MAX_SIDE = 16384  # largest frame side a size flag accepts (pixels)
+
+
+class Parser(argparse.ArgumentParser):
+    """``argparse`` with the scripts' contract: a bad flag is one ``prog: error:`` line, exit 2."""
+
+    def error(self, message: str):  # noqa: D102 - argparse's hook
+        self.exit(2, f"{self.prog}: error: {message.splitlines()[0]}\n")
+
+
 def parse_size(text: str | None) -> tuple[int, int] | None:
-    """Parse ``"HxW"`` (e.g. ``"16x16"``) into ``(H, W)``."""
-    if text is None:
-        return None
+    """Parse ``"HxW"`` (e.g. ``"16x12"``) into ``(H, W)``; a single ``"N"`` means ``N x N``."""
+    if text is None or isinstance(text, tuple):
+        return text
+    parts = str(text).lower().split("x")
     try:
-        h, w = (int(v) for v in text.lower().split("x"))
+        if len(parts) not in (1, 2):
+            raise ValueError(text)
+        h, w = (int(parts[0]), int(parts[-1]))
     except ValueError as err:
-        raise UsageError(f"size must look like HxW (e.g. 16x16), got {text!r}") from err
-    if h <= 0 or w <= 0:
-        raise UsageError(f"size must be positive, got {text!r}")
+        raise UsageError(f"size must look like HxW (e.g. 16x16) or N, got {text!r}") from err
+    if not (0 < h <= MAX_SIDE and 0 < w <= MAX_SIDE):
+        raise UsageError(f"size sides must be in 1..{MAX_SIDE}, got {text!r}")
     return h, w
+
+
+def finite_float(text: str) -> float:
+    """Flag type: a finite float (``nan`` and ``inf`` are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+def bounded_int(text: str) -> int:
+    """Flag type: an integer that fits in int64."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if abs(value) >= 2 ** 63:
+        raise argparse.ArgumentTypeError(f"integer out of range: {text!r}")
+    return value
+
+
+def check_ranges(config, limits: dict[str, tuple[float | None, float | None]],
+                 prefix: str = "") -> None:
+    """Raise :class:`UsageError` unless every named field lies in its inclusive ``(lo, hi)``.
+
+    None fields (unset options) pass; a None bound is open.
+    """
+    for name, (lo, hi) in limits.items():
+        value = getattr(config, name)
+        if value is None:
+            continue
+        flag = "--" + (prefix + name).replace("_", "-")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise UsageError(f"{flag} must be a finite number, got {value}")
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            span = f"{'-inf' if lo is None else lo}..{'inf' if hi is None else hi}"
+            raise UsageError(f"{flag} must be in {span}, got {value}")
 
 
 def _flag_type(annotation: object, default: object) -> type:
     """The argparse type of a dataclass field, from its annotation (``"float | None"``)."""
     text = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
-    for name, kind in (("tuple", str), ("bool", bool), ("float", float), ("int", int)):
+    for name, kind in (("tuple", str), ("bool", bool), ("float", finite_float),
+                       ("int", bounded_int)):
         if name in str(text):
             return kind
     return type(default) if default is not None else str
@@ -59,56 +114,145 @@ def docstring_help(config_cls: type) -> dict[str, str]:
             found[current] += " " + line.strip()
         else:
             current = None
-    return found
+    return {k: _plain(v) for k, v in found.items()}
 
 
-def add_config_flags(parser, config_cls: type, help: dict[str, str]) -> None:
+def _plain(text: str) -> str:
+    """Docstring markup -> terminal text: ``x`` -> x, and ``%`` escaped for argparse."""
+    text = re.sub(r":\w+:`~?([^`]+)`", r"\1", text).replace("``", "")
+    return text.replace("%", "%%")
+
+
+def add_config_flags(parser, config_cls: type, help: dict[str, str], prefix: str = "") -> None:
     """Add one ``--flag`` per dataclass field, defaulting to the dataclass default.
 
-    Tuple fields (sizes) take ``HxW`` strings; booleans get ``--flag/--no-flag``.
+    Tuple fields (sizes) take ``HxW`` strings; booleans get ``--flag/--no-flag``; floats must
+    be finite. ``prefix`` namespaces the flags (``--neural-patch-size`` for ``patch_size``).
     """
     help = {**docstring_help(config_cls), **help}
     for f in dataclasses.fields(config_cls):
-        flag = "--" + f.name.replace("_", "-")
+        flag = "--" + (prefix + f.name).replace("_", "-")
         default = f.default if f.default is not dataclasses.MISSING else None
         shown = "x".join(map(str, default)) if isinstance(default, tuple) else default
-        text = help.get(f.name, f.name.replace("_", " ")) + f" (default: {shown})"
+        text = help.get(f.name, f.name.replace("_", " "))
         kind = _flag_type(f.type, default)
-        if kind is bool:
+        if kind is bool:  # BooleanOptionalAction states the default itself
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default,
-                                help=text)
-        else:
-            parser.add_argument(flag, type=kind, default=default, help=text)
+                                dest=prefix + f.name, help=text)
+            continue
+        if default is not None and "(default" not in text:
+            text += f" (default: {shown})"
+        parser.add_argument(flag, type=kind, default=default, dest=prefix + f.name, help=text)
 
 
-def config_from_args(config_cls: type, args: argparse.Namespace):
+def config_from_args(config_cls: type, args: argparse.Namespace, prefix: str = ""):
     """Build the dataclass from parsed flags (``HxW`` strings of size fields are parsed)."""
     values = {}
     for f in dataclasses.fields(config_cls):
-        v = getattr(args, f.name)
-        if f.name.endswith("_size") and isinstance(v, str):
-            v = parse_size(v)
+        v = getattr(args, prefix + f.name)
+        if f.name.endswith("_size") and f.name != "sensor_size" and isinstance(v, str):
+            try:
+                v = parse_size(v)
+            except UsageError as err:
+                raise UsageError(f"--{(prefix + f.name).replace('_', '-')}: {err}") from None
         values[f.name] = v
     return config_cls(**values)
 
 
+MAX_WINDOW_MS = 3.6e9  # 1000 hours: longer windows are surely a mistake
+MAX_EVENT_COUNT = 2 ** 40
+
+
+def parse_anchor(text: str | int) -> str | int:
+    """``--window-anchor``: ``"first"``, ``"zero"`` or a sensor time in microseconds."""
+    if isinstance(text, int) or text not in ("first", "zero"):
+        try:
+            value = int(text)
+        except ValueError:
+            raise UsageError(f"--window-anchor must be 'first', 'zero' or a time in "
+                             f"microseconds, got {text!r}") from None
+        if not 0 <= value < 2 ** 62:
+            raise UsageError(f"--window-anchor time must be in 0..2**62 us, got {value}")
+        return value
+    return text
+
+
+EVENT_MODES = ("count", "signed")
+
+
+def parse_sensor_size(text: str | None) -> tuple[int, int] | None:
+    """``--sensor-size``: ``WxH`` (or tonic's ``W,H,P``) -> ``(W, H)``."""
+    if text is None:
+        return None
+    parts = str(text).lower().replace(",", "x").split("x")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError(text)
+        w, h = int(parts[0]), int(parts[1])
+    except ValueError:
+        raise UsageError(f"--sensor-size must look like WxH (e.g. 128x128) or W,H,P, "
+                         f"got {text!r}") from None
+    if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE):
+        raise UsageError(f"--sensor-size sides must be in 1..{MAX_SIDE}, got {text!r}")
+    return w, h
+
+
 def event_options(window_ms: float, event_count: int | None,
-                  frame_size: tuple[int, int] | None) -> EventFrameOptions:
+                  frame_size: tuple[int, int] | None, anchor: str | int = "first",
+                  sensor_size: str | None = None, mode: str = "count",
+                  evt3_time: str = "spec", truncated: str = "error") -> EventFrameOptions:
     """Check and bundle the event-accumulation flags."""
-    if window_ms <= 0:
-        raise UsageError(f"--window-ms must be positive, got {window_ms}")
-    if event_count is not None and event_count <= 0:
-        raise UsageError(f"--event-count must be positive, got {event_count}")
-    return EventFrameOptions(window_ms=window_ms, event_count=event_count, frame_size=frame_size)
+    if evt3_time not in ("spec", "carry"):
+        raise UsageError(f"--evt3-time must be spec or carry, got {evt3_time!r}")
+    if truncated not in ("error", "drop"):
+        raise UsageError(f"--truncated must be error or drop, got {truncated!r}")
+    if mode not in EVENT_MODES:
+        raise UsageError(f"--event-mode must be one of {', '.join(EVENT_MODES)}, got {mode!r}")
+    if not (math.isfinite(window_ms) and 0 < window_ms <= MAX_WINDOW_MS):
+        raise UsageError(f"--window-ms must be in (0, {MAX_WINDOW_MS:g}] ms, got {window_ms}")
+    if event_count is not None and not 0 < event_count <= MAX_EVENT_COUNT:
+        raise UsageError(f"--event-count must be in 1..{MAX_EVENT_COUNT}, got {event_count}")
+    return EventFrameOptions(window_ms=window_ms, event_count=event_count, frame_size=frame_size,
+                             anchor=parse_anchor(anchor),
+                             sensor_size=parse_sensor_size(sensor_size), mode=mode,
+                             evt3_time=evt3_time, truncated=truncated)
 
 
-def load_frames(path: str, what: str, events: EventFrameOptions, progress: bool) -> torch.Tensor:
+def load_frames(path: str, what: str, events: EventFrameOptions, progress: bool,
+                select: FrameSelection | None = None) -> torch.Tensor:
     """Load a traverse, naming it in any error."""
     try:
-        frames = load_traverse(path, events=events, progress=progress)
+        frames = load_traverse(path, events=events, progress=progress, select=select)
     except (ValueError, OSError) as err:
         raise UsageError(f"{what} traverse {path}: {err}") from err
     return frames
+
+
+def frame_selection(start: int, stop: int | None, step: int,
+                    max_frames: int | None) -> FrameSelection:
+    """Check and bundle ``--start``, ``--stop``, ``--frame-step`` and ``--max-frames``."""
+    if start < 0:
+        raise UsageError(f"--start must be >= 0, got {start}")
+    if stop is not None and stop <= start:
+        raise UsageError(f"--stop must be after --start ({start}), got {stop}")
+    if step < 1:
+        raise UsageError(f"--frame-step must be >= 1, got {step}")
+    if max_frames is not None and max_frames < 1:
+        raise UsageError(f"--max-frames must be >= 1, got {max_frames}")
+    return FrameSelection(start, stop, step, max_frames)
+
+
+def load_model(path: str, device=None):
+    """Read a Neural SeqSLAM checkpoint for a script; any failure is a :class:`UsageError`."""
+    from torchseq.neural import NeuralSeqSLAM
+
+    try:
+        return NeuralSeqSLAM.load(path, map_location=device)
+    except Exception as err:  # noqa: BLE001 - a hostile checkpoint must not end in a traceback
+        text = str(err).splitlines()[0] if str(err) else ""
+        where = "" if str(path) in text else f"{path}: "
+        raise UsageError(f"checkpoint {where}{text or 'unreadable'} "
+                         f"({type(err).__name__})") from err
 
 
 def resolve_device(name: str) -> torch.device:
@@ -152,3 +296,140 @@ def run_main(main: Callable[[list[str] | None], int], prog: str,
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
+
+
+def warn(prog: str, message: str, sink: list | None = None) -> None:
+    """Print ``prog: warning: message`` on stderr (and keep it in ``sink`` for the report)."""
+    print(f"{prog}: warning: {message}", file=sys.stderr)
+    if sink is not None:
+        sink.append(message)
+
+
+def run_folder(out: str | None, kind: str, overwrite: bool) -> Path:
+    """The output folder of one run, created empty.
+
+    ``out`` None: a new ``runs/<kind>-<UTC time>`` folder. An existing non-empty ``out`` is
+    refused unless ``overwrite`` is set and it holds a previous run (its ``config.json``),
+    which is then removed, so the outputs of two runs never mix.
+    """
+    import shutil
+    import time
+
+    if out is None:
+        stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+        path = Path("runs") / f"{kind}-{stamp}"
+        n = 1
+        while path.exists():
+            n += 1
+            path = Path("runs") / f"{kind}-{stamp}-{n}"
+    else:
+        path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"--out {path} is a file, not a folder")
+    if path.is_dir() and any(path.iterdir()):
+        if not overwrite:
+            raise UsageError(f"--out {path} already holds files; give a new folder or "
+                             f"--overwrite to replace the previous run there")
+        if not (path / "config.json").is_file():
+            raise UsageError(f"--overwrite only replaces a previous run's folder (one with a "
+                             f"config.json); {path} is not one")
+        shutil.rmtree(path)
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def config_file_defaults(parser: argparse.ArgumentParser, path: str,
+                         sections: dict[str, str]) -> None:
+    """Make a run's saved ``config.json`` the parser's defaults (flags still override it).
+
+    Args:
+        parser: the script's parser (its dests are the field names).
+        path: a ``config.json`` a previous run wrote.
+        sections: nested dicts of the file and the dest prefix of their fields
+            (``{"neural": "neural_"}``); ``""`` keeps field names as they are.
+
+    Values go through the same flag types as the command line (finite numbers, sizes).
+    """
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise UsageError(f"--config {path}: not a readable JSON file ({err})") from None
+    if not isinstance(data, dict):
+        raise UsageError(f"--config {path}: expected a JSON object")
+    dests = {a.dest: a for a in parser._actions}
+    flat = {}
+    for key, value in data.items():
+        if key in sections:
+            if not isinstance(value, dict):
+                raise UsageError(f"--config {path}: {key!r} must be an object")
+            flat.update({sections[key] + k: v for k, v in value.items()})
+        else:
+            flat[key] = value
+    defaults = {}
+    for dest, value in flat.items():
+        if dest not in dests or dest in ("help", "config"):
+            raise UsageError(f"--config {path}: unknown setting {dest!r}")
+        action = dests[dest]
+        if value is None or isinstance(action, argparse.BooleanOptionalAction):
+            if value is not None and not isinstance(value, bool):
+                raise UsageError(f"--config {path}: {dest} must be true or false")
+            defaults[dest] = value
+        elif isinstance(action, argparse._AppendAction) and isinstance(value, list) and all(
+                isinstance(v, str) for v in value):
+            defaults[dest] = list(value)
+        elif isinstance(value, list) and dest.endswith("_size"):
+            defaults[dest] = "x".join(str(v) for v in value)
+        elif isinstance(value, (str, int, float)) and not isinstance(value, bool):
+            defaults[dest] = str(value)  # argparse runs string defaults through the flag type
+        else:
+            raise UsageError(f"--config {path}: bad value for {dest}: {value!r}")
+    parser.set_defaults(**defaults)
+
+
+def sweep_grid(specs: list[str], parser: argparse.ArgumentParser) -> list[list[str]]:
+    """``["ds=10,20", "vmax=1.2,1.5"]`` -> one list of extra flags per grid point."""
+    import itertools
+
+    if not specs:
+        return []
+    dests = {a.dest for a in parser._actions}
+    axes = []
+    for spec in specs:
+        name, sep, values = spec.partition("=")
+        dest = name.strip().lstrip("-").replace("-", "_")
+        if not sep or not values.strip():
+            raise UsageError(f"--sweep must look like name=v1,v2,..., got {spec!r}")
+        if dest not in dests or dest in ("help", "config", "sweep", "out", "overwrite"):
+            raise UsageError(f"--sweep: {name!r} is not a setting of this script")
+        flag = "--" + dest.replace("_", "-")
+        axes.append([[flag, v.strip()] for v in values.split(",")])
+    grid = [sum(point, []) for point in itertools.product(*axes)]
+    if len(grid) > 1000:
+        raise UsageError(f"--sweep grid has {len(grid)} settings; at most 1000")
+    return grid
+
+
+# ranges of the numbers the scripts accept, checked before any work (relations between fields
+# stay with each config's own validate())
+NEURAL_LIMITS = {
+    "patch_size": (0, MAX_SIDE), "input_steps": (0, 2 ** 16), "hidden": (1, 2 ** 20),
+    "density": (0.0, 1.0), "density_out": (0.0, 1.0), "l1_levels": (0, 64),
+    "l3_levels": (0, 127), "k_fraction": (0.0, 1.0), "n_output": (1, 2 ** 16),
+    "ring_decay": (0.0, 1.0), "ring_gain": (0.0, 1e6), "ring_spread": (0, 2 ** 16),
+    "ring_spread_decay": (0.0, 1e6), "ring_stay": (0.0, 1e6), "n_cohorts": (1, 2 ** 16),
+    "uniqueness_window": (0, 2 ** 20), "eps": (1e-30, 1.0), "chunk": (1, 2 ** 16),
+    "seed": (0, 2 ** 32 - 1),
+}
+MAX_WEIGHTS = 2 ** 30  # elements of the largest weight matrix a script will build
+
+
+def check_neural(ncfg, prefix: str = "") -> None:
+    """Range-check a :class:`~torchseq.neural.NeuralConfig` from flags and size its weights."""
+    check_ranges(ncfg, {k: v for k, v in NEURAL_LIMITS.items() if hasattr(ncfg, k)}, prefix)
+    n_input = int(ncfg.input_size[0]) * int(ncfg.input_size[1])
+    for what, n in (("L1 -> L2", n_input * ncfg.hidden), ("L2 -> L3", ncfg.hidden *
+                    ncfg.n_output), ("ring", ncfg.n_output ** 2)):
+        if n > MAX_WEIGHTS:
+            raise UsageError(f"the {what} weights would hold {n} elements (more than "
+                             f"{MAX_WEIGHTS}); lower --{prefix.replace('_', '-')}hidden, "
+                             f"--{prefix.replace('_', '-')}n-output or the input size")

@@ -112,6 +112,40 @@ def recall_at_100_precision(curve: PRCurve) -> float:
     return float(curve.recall[first_bad - 1])
 
 
+def operating_point(matches: Matches, gt: np.ndarray, precision: float = 0.99) -> dict:
+    """The acceptance threshold that reaches ``precision`` with the most recall.
+
+    As OpenSeqSLAM2.0 tunes its match threshold: among the thresholds of the PR sweep whose
+    precision is at least ``precision``, the one with the highest recall (the lowest such
+    threshold). ``score_threshold`` is in the engine's own score units (accept a match when
+    its score is ``<=`` it for lower-is-better scores, ``>=`` otherwise).
+
+    Args:
+        matches: the engine's matches.
+        gt: ``(R, Q)`` bool ground truth.
+        precision: the precision to reach, 0..1.
+
+    Returns:
+        ``{"precision_target", "precision", "recall", "score_threshold", "n_accepted"}``;
+        ``score_threshold`` None (and recall 0) when no threshold reaches ``precision``.
+    """
+    if not 0.0 <= precision <= 1.0:
+        raise ValueError(f"precision must be in 0..1, got {precision}")
+    curve = precision_recall_curve(matches, gt)
+    ok = np.nonzero(curve.precision >= precision)[0]
+    out = {"precision_target": float(precision), "precision": None, "recall": 0.0,
+           "score_threshold": None, "n_accepted": 0}
+    if len(ok) == 0:
+        return out
+    i = ok[np.argmax(curve.recall[ok])]
+    conf = float(curve.thresholds[i])
+    _, all_conf = _as_numpy(matches)
+    out.update(precision=float(curve.precision[i]), recall=float(curve.recall[i]),
+               score_threshold=-conf if matches.lower_is_better else conf,
+               n_accepted=int((all_conf >= conf).sum()))
+    return out
+
+
 def coverage(matches: Matches, gt: np.ndarray | None = None) -> float:
     """Fraction of query frames that get a match; with ``gt``, a correct match."""
     ref, _ = _as_numpy(matches)

@@ -2,22 +2,30 @@
 
 Every ``plot_*`` function returns a matplotlib figure; :func:`save_figure` writes it atomically
 as PNG and :func:`figure_to_array` turns it into an ``(H, W, 3)`` uint8 image for TensorBoard.
+Figures are made with the non-interactive Agg canvas directly (``matplotlib.figure.Figure``),
+so importing this module leaves matplotlib's backend and ``pyplot``'s figure list alone.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+from torchseq.atomic import atomic_path
+from torchseq.matches import Matches
+from torchseq.metrics import PRCurve
 
-from torchseq.atomic import atomic_path  # noqa: E402
-from torchseq.matches import Matches  # noqa: E402
-from torchseq.metrics import PRCurve  # noqa: E402
+
+def _figure(figsize, nrows: int = 1, ncols: int = 1, **kw):
+    """A figure on its own Agg canvas and its axes (pyplot is never involved)."""
+    fig = Figure(figsize=figsize, dpi=100)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, **kw)
+    return fig, axes
 
 
 def _np(x) -> np.ndarray:
@@ -25,7 +33,7 @@ def _np(x) -> np.ndarray:
 
 
 def plot_difference_matrix(matrix, matches: Matches | None = None, gt: np.ndarray | None = None,
-                           title: str = "contrast-enhanced difference matrix") -> plt.Figure:
+                           title: str = "contrast-enhanced difference matrix") -> Figure:
     """Show a ``(R, Q)`` difference matrix with ground truth and matches overlaid.
 
     Args:
@@ -35,7 +43,7 @@ def plot_difference_matrix(matrix, matches: Matches | None = None, gt: np.ndarra
         title: figure title.
     """
     m = _np(matrix).astype(np.float64)
-    fig, ax = plt.subplots(figsize=(6, 5), dpi=100)
+    fig, ax = _figure((6, 5))
     finite = m[np.isfinite(m)]
     lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0, 1))
     ax.imshow(m, cmap="gray", aspect="auto", vmin=lo, vmax=hi, interpolation="nearest")
@@ -60,9 +68,9 @@ def plot_difference_matrix(matrix, matches: Matches | None = None, gt: np.ndarra
     return fig
 
 
-def plot_pr_curves(curves: dict[str, PRCurve]) -> plt.Figure:
+def plot_pr_curves(curves: dict[str, PRCurve]) -> Figure:
     """Precision-recall curves, one line per engine."""
-    fig, ax = plt.subplots(figsize=(5, 4), dpi=100)
+    fig, ax = _figure((5, 4))
     for name, c in curves.items():
         ax.plot(np.r_[0.0, c.recall], np.r_[c.precision[:1] if len(c.precision) else [1.0],
                                             c.precision], label=name)
@@ -77,7 +85,7 @@ def plot_pr_curves(curves: dict[str, PRCurve]) -> plt.Figure:
     return fig
 
 
-def plot_activity_raster(activity, winners=None, title: str = "output activity") -> plt.Figure:
+def plot_activity_raster(activity, winners=None, title: str = "output activity") -> Figure:
     """Output-unit activity over time with the winning unit marked (the seed's Figures 7 and 9).
 
     Args:
@@ -87,7 +95,7 @@ def plot_activity_raster(activity, winners=None, title: str = "output activity")
     """
     a = _np(activity).astype(np.float64)
     w = _np(winners) if winners is not None else a.argmax(1)
-    fig, ax = plt.subplots(figsize=(7, 4), dpi=100)
+    fig, ax = _figure((7, 4))
     ax.imshow(a.T, cmap="magma", aspect="auto", origin="lower", interpolation="nearest")
     ax.plot(np.arange(len(w)), w, ".", ms=2, c="cyan", label="winner")
     ax.set_xlabel("frame")
@@ -98,9 +106,9 @@ def plot_activity_raster(activity, winners=None, title: str = "output activity")
     return fig
 
 
-def plot_matrix(matrix, title: str, cmap: str = "viridis") -> plt.Figure:
+def plot_matrix(matrix, title: str, cmap: str = "viridis") -> Figure:
     """A plain heat map, e.g. the learnt ring shift matrix."""
-    fig, ax = plt.subplots(figsize=(5, 5), dpi=100)
+    fig, ax = _figure((5, 5))
     im = ax.imshow(_np(matrix), cmap=cmap, interpolation="nearest")
     fig.colorbar(im, ax=ax, fraction=0.046)
     ax.set_title(title)
@@ -108,8 +116,21 @@ def plot_matrix(matrix, title: str, cmap: str = "viridis") -> plt.Figure:
     return fig
 
 
+def _grey_range(frame: np.ndarray) -> dict:
+    """Display range of one frame, as ``imshow`` keywords.
+
+    Camera images show on 0..255 as they are. Event frames hold a few counts per pixel and a
+    few hot pixels with many: on 0..255, or stretched to their maximum, they look black, so
+    they are stretched to their 99.5th percentile.
+    """
+    f = np.asarray(frame, dtype=np.float64)
+    finite = f[np.isfinite(f)]
+    top = float(np.percentile(finite, 99.5)) if finite.size else 255.0
+    return {"vmin": 0.0, "vmax": 255.0 if top >= 64 else max(top, 1.0)}
+
+
 def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None = None,
-                       n: int = 6, title: str = "matched frames") -> plt.Figure:
+                       n: int = 6, title: str = "matched frames") -> Figure:
     """Query frames beside the reference frames they matched (the seed's Figure 10).
 
     Args:
@@ -124,15 +145,14 @@ def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None
     matched = np.nonzero(idx >= 0)[0]
     pick = matched[np.linspace(0, len(matched) - 1, min(n, len(matched))).round().astype(int)] \
         if len(matched) else np.array([], int)
-    fig, axes = plt.subplots(2, max(len(pick), 1), figsize=(2 * max(len(pick), 1), 4.2), dpi=100,
-                             squeeze=False)
+    fig, axes = _figure((2 * max(len(pick), 1), 4.2), 2, max(len(pick), 1), squeeze=False)
     for col, q in enumerate(pick):
         r = int(idx[q])
         good = bool(gt[r, q]) if gt is not None and r < gt.shape[0] else None
         colour = {True: "green", False: "red", None: "black"}[good]
-        axes[0, col].imshow(qry[q], cmap="gray")
+        axes[0, col].imshow(qry[q], cmap="gray", **_grey_range(qry[q]))
         axes[0, col].set_title(f"query {q}", fontsize=8)
-        axes[1, col].imshow(ref[r], cmap="gray")
+        axes[1, col].imshow(ref[r], cmap="gray", **_grey_range(ref[r]))
         axes[1, col].set_title(f"reference {r}", fontsize=8, color=colour)
     for ax in axes.ravel():
         ax.axis("off")
@@ -141,15 +161,15 @@ def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None
     return fig
 
 
-def figure_to_array(fig: plt.Figure) -> np.ndarray:
+def figure_to_array(fig: Figure) -> np.ndarray:
     """Render a figure to an ``(H, W, 3)`` uint8 RGB array."""
     fig.canvas.draw()
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-def save_figure(fig: plt.Figure, path: str | Path, close: bool = True) -> None:
+def save_figure(fig: Figure, path: str | Path, close: bool = True) -> None:
     """Save a figure as PNG atomically."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     if close:
-        plt.close(fig)
+        fig.clear()

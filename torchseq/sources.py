@@ -7,14 +7,18 @@ event frames, see :mod:`torchseq.events`).
 from __future__ import annotations
 
 import re
+import struct
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Union
+from typing import Iterator, Union
 
 import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
+
+from torchseq.npyfile import load_npy, load_npz_member, npy_header, npz_members
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v"}
@@ -36,11 +40,34 @@ class EventFrameOptions:
         window_ms: accumulation window in milliseconds (ignored when ``event_count`` is set).
         event_count: accumulate a fixed number of events per frame instead of a time window.
         frame_size: ``(H, W)`` to downsample the frames to by area pooling, or None.
+        anchor: where the first time window starts: ``"first"`` (the first event),
+            ``"zero"`` (sensor time 0) or a sensor time in microseconds (windows then line up
+            with ground truth given in sensor time).
+        sensor_size: ``(W, H)`` of the sensor, overriding the file; tonic's ``(W, H, P)``
+            is accepted (``P``, the polarity count, is dropped).
+        mode: ``"count"`` (events per pixel) or ``"signed"`` (``|ON - OFF|``).
+        evt3_time: Prophesee EVT 3 ``.raw`` time rule, ``"spec"`` or ``"carry"`` (see
+            :func:`torchseq.events.prophesee.decode_evt3`).
+        truncated: a recording cut short (AEDAT 2.0/4, ``.raw``): ``"error"`` or ``"drop"``
+            its last incomplete record.
     """
 
     window_ms: float = 10.0
     event_count: int | None = None
     frame_size: tuple[int, int] | None = None
+    anchor: str | int = "first"
+    sensor_size: tuple[int, ...] | None = None
+    mode: str = "count"
+    evt3_time: str = "spec"
+    truncated: str = "error"
+
+    def __post_init__(self) -> None:
+        if self.sensor_size is not None:  # tonic's (W, H, P): the polarity count is not a size
+            size = tuple(int(v) for v in self.sensor_size)
+            if len(size) not in (2, 3) or min(size[:2]) < 1:
+                raise TraverseError(f"sensor_size must be (W, H) or tonic's (W, H, P), got "
+                                    f"{self.sensor_size}")
+            self.sensor_size = size[:2]
 
 
 def natural_key(name: str) -> list:
@@ -48,54 +75,159 @@ def natural_key(name: str) -> list:
     return [int(s) if s.isdigit() else s.lower() for s in re.split(r"(\d+)", name)]
 
 
-def _grey_uint(image: np.ndarray) -> np.ndarray:
+def _grey_uint(image: np.ndarray, name: object = "image") -> np.ndarray:
+    """A decoded image (OpenCV BGR/BGRA/grey, 8 or 16 bit, or float) -> grey float32 0..255.
+
+    16-bit images are scaled to 0..255 (``/ 257``); float images must already hold finite
+    values in 0..255.
+    """
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
     if image.ndim == 3 and image.shape[2] == 4:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+        image = image[..., :3]
     if image.ndim == 3 and image.shape[2] == 3:
+        if image.dtype not in (np.uint8, np.uint16, np.float32):
+            image = image.astype(np.float32)
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)  # ITU-R 601 weights
-    if image.ndim != 2:
-        raise TraverseError(f"unsupported image layout {image.shape}")
-    return image.astype(np.float32)
+    if image.ndim != 2 or image.size == 0:
+        raise TraverseError(f"{name}: unsupported image layout {image.shape}")
+    if image.dtype == np.uint8:
+        return image.astype(np.float32)
+    if image.dtype == np.uint16:
+        return image.astype(np.float32) / np.float32(257.0)  # 65535 -> 255
+    if image.dtype.kind not in "iuf":
+        raise TraverseError(f"{name}: unsupported pixel type {image.dtype}")
+    grey = image.astype(np.float32)
+    if not np.isfinite(grey).all():
+        raise TraverseError(f"{name}: holds NaN or infinite pixels")
+    if grey.min() < 0 or grey.max() > 255:
+        raise TraverseError(f"{name}: {image.dtype} pixels span {grey.min():g}..{grey.max():g}, "
+                            f"outside 0..255; convert the images to 8 or 16 bit")
+    return grey
 
 
-def load_image_folder(folder: Path, progress: bool = True) -> torch.Tensor:
-    """Load every image of a folder in natural sort order as ``(T, H, W)`` float32 grey."""
+def _imread(path: Path) -> np.ndarray:
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as err:
+        raise TraverseError(f"cannot read image {path} ({str(err).strip().splitlines()[-1]})"
+                            ) from None
+    if image is None:
+        raise TraverseError(f"cannot read image {path}")
+    return image
+
+
+@dataclass
+class FrameSelection:
+    """Which frames of a traverse to keep (OpenSeqSLAM's image skip and indices).
+
+    Attributes:
+        start: first frame index kept (0-based).
+        stop: frame index to stop before (None: the end).
+        step: keep every ``step``-th frame from ``start``.
+        max_frames: keep at most this many frames (None: no limit).
+    """
+
+    start: int = 0
+    stop: int | None = None
+    step: int = 1
+    max_frames: int | None = None
+
+    def validate(self) -> FrameSelection:
+        """Raise :class:`TraverseError` for a selection that cannot hold frames; return self."""
+        if self.start < 0 or self.step < 1:
+            raise TraverseError(f"need start >= 0 and step >= 1, got {self.start}, {self.step}")
+        if self.stop is not None and self.stop <= self.start:
+            raise TraverseError(f"stop {self.stop} must be after start {self.start}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise TraverseError(f"max_frames must be >= 1, got {self.max_frames}")
+        return self
+
+    def keeps(self, i: int, kept: int) -> bool | None:
+        """True: keep frame ``i``; False: skip it; None: no later frame is kept either."""
+        if (self.stop is not None and i >= self.stop) or (
+                self.max_frames is not None and kept >= self.max_frames):
+            return None
+        return i >= self.start and (i - self.start) % self.step == 0
+
+    def indices(self, n: int) -> range:
+        """The kept indices of a traverse of ``n`` frames."""
+        r = range(self.start, n if self.stop is None else min(self.stop, n), self.step)
+        return r if self.max_frames is None else r[:self.max_frames]
+
+
+def _image_files(folder: Path) -> list[Path]:
     files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
                    key=lambda p: natural_key(p.name))
     if not files:
         raise TraverseError(f"no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in folder {folder}")
-    frames = []
-    for f in tqdm(files, desc=f"reading {folder.name}", disable=not progress, leave=False):
-        image = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise TraverseError(f"cannot read image {f}")
-        grey = _grey_uint(image)
-        if frames and grey.shape != frames[0].shape:
+    return files
+
+
+def iter_image_folder(folder: Path, progress: bool = True,
+                      select: FrameSelection | None = None) -> Iterator[np.ndarray]:
+    """Yield the (selected) images of a folder in natural order, one ``(H, W)`` float32 each."""
+    files = _image_files(folder)
+    keep = (select or FrameSelection()).indices(len(files))
+    first = None
+    for i in tqdm(keep, desc=f"reading {folder.name}", disable=not progress, leave=False):
+        f = files[i]
+        grey = _grey_uint(_imread(f), f)
+        if first is None:
+            first = (f, grey.shape)
+        elif grey.shape != first[1]:
             raise TraverseError(
-                f"mixed image sizes in {folder}: {files[0].name} is {frames[0].shape[1]}x"
-                f"{frames[0].shape[0]} but {f.name} is {grey.shape[1]}x{grey.shape[0]}")
-        frames.append(grey)
-    return torch.from_numpy(np.stack(frames))
+                f"mixed image sizes in {folder}: {first[0].name} is {first[1][1]}x"
+                f"{first[1][0]} but {f.name} is {grey.shape[1]}x{grey.shape[0]}")
+        yield grey
+
+
+def iter_video(path: Path, progress: bool = True,
+               select: FrameSelection | None = None) -> Iterator[np.ndarray]:
+    """Yield the (selected) frames of a video, one ``(H, W)`` float32 grey each.
+
+    Skipped frames are grabbed without decoding.
+    """
+    select = select or FrameSelection()
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise TraverseError(f"cannot open video {path}")
+    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+    kept = 0
+    try:
+        with tqdm(total=total, desc=f"reading {path.name}", disable=not progress,
+                  leave=False) as bar:
+            i = 0
+            while True:
+                verdict = select.keeps(i, kept)
+                if verdict is None:
+                    break
+                if not verdict:
+                    if not cap.grab():
+                        break
+                else:
+                    ok, image = cap.read()
+                    if not ok:
+                        break
+                    kept += 1
+                    yield _grey_uint(image, path)
+                i += 1
+                bar.update(1)
+    finally:
+        cap.release()
+    if kept == 0:
+        raise TraverseError(f"video {path} has no readable frames"
+                            + (" in the selected range" if select != FrameSelection() else ""))
+
+
+def load_image_folder(folder: Path, progress: bool = True) -> torch.Tensor:
+    """Load every image of a folder in natural sort order as ``(T, H, W)`` float32 grey."""
+    return torch.from_numpy(np.stack(list(iter_image_folder(folder, progress))))
 
 
 def load_video(path: Path, progress: bool = True) -> torch.Tensor:
     """Load every frame of a video file as ``(T, H, W)`` float32 grey."""
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise TraverseError(f"cannot open video {path}")
-    frames = []
-    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
-    with tqdm(total=total, desc=f"reading {path.name}", disable=not progress, leave=False) as bar:
-        while True:
-            ok, image = cap.read()
-            if not ok:
-                break
-            frames.append(_grey_uint(image))
-            bar.update(1)
-    cap.release()
-    if not frames:
-        raise TraverseError(f"video {path} has no readable frames")
-    return torch.from_numpy(np.stack(frames))
+    return torch.from_numpy(np.stack(list(iter_video(path, progress))))
 
 
 def frames_from_array(array: np.ndarray | torch.Tensor, name: str = "array") -> torch.Tensor:
@@ -107,6 +239,8 @@ def frames_from_array(array: np.ndarray | torch.Tensor, name: str = "array") -> 
         raise TraverseError(f"{name} must be (T, H, W) or (T, H, W, 3), got {tuple(x.shape)}")
     if x.shape[0] == 0:
         raise TraverseError(f"{name} has no frames")
+    if x.shape[1] == 0 or x.shape[2] == 0:
+        raise TraverseError(f"{name} has empty frames {tuple(x.shape)}")
     if x.dtype == torch.bool or x.is_complex():
         raise TraverseError(f"{name} has unsupported dtype {x.dtype}")
     x = to_grey(x).to(torch.float32)
@@ -115,17 +249,178 @@ def frames_from_array(array: np.ndarray | torch.Tensor, name: str = "array") -> 
     return x
 
 
+def _frame_array(array: np.ndarray, path: Path) -> np.ndarray:
+    """A frame array from a file: plain numbers (its values are taken as grey levels)."""
+    if array.dtype.names is not None or array.dtype.kind not in "iuf":
+        raise TraverseError(f"{path}: frame arrays must be numeric, got dtype {array.dtype}")
+    return array
+
+
 def _is_event_file(path: Path) -> bool:
+    """Sniff an event file: structured ``.npy``, ``.npz`` without ``frames``, or a suffix."""
     if path.suffix.lower() == ".npy":
-        return np.load(path, mmap_mode="r", allow_pickle=False).dtype.names is not None
+        _, dtype = npy_header(path, TraverseError)
+        return dtype.names is not None
     if path.suffix.lower() == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            return "frames" not in z.files
+        return "frames" not in npz_members(path, TraverseError)
     return path.suffix.lower() in EVENT_SUFFIXES
 
 
+def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
+    import inspect
+
+    from torchseq.events import load_event_frames
+
+    kwargs = {}
+    if opts.sensor_size is not None:
+        kwargs["sensor_size"] = tuple(opts.sensor_size)
+    if opts.mode != "count":
+        kwargs["mode"] = opts.mode
+    suffix = path.suffix.lower()
+    if opts.evt3_time != "spec":
+        if suffix != ".raw":
+            raise TraverseError(f"{path}: the EVT 3 time rule applies to .raw files only")
+        kwargs["evt3_time"] = opts.evt3_time
+    if opts.truncated != "error":
+        if suffix not in (".aedat", ".aedat4", ".raw"):
+            raise TraverseError(f"{path}: 'truncated' applies to .aedat, .aedat4 and .raw")
+        kwargs["truncated"] = opts.truncated
+    if opts.anchor != "first":  # today's behaviour needs no keyword
+        if "anchor" not in inspect.signature(load_event_frames).parameters:
+            raise TraverseError("window anchoring ('zero' or a time) needs a torchseq.events "
+                                "with load_event_frames(anchor=...)")
+        kwargs["anchor"] = opts.anchor
+    try:
+        return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
+                                 frame_size=opts.frame_size, **kwargs)
+    except (ValueError, OSError, EOFError, IndexError, KeyError, TypeError, OverflowError,
+            MemoryError, zipfile.BadZipFile, struct.error) as err:
+        # whatever the event reader met in a damaged file, the traverse names it
+        text = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise TraverseError(text if str(path) in text else f"{path}: {text}") from err
+
+
+def iter_traverse(source: Source, events: EventFrameOptions | None = None,
+                  progress: bool = True, select: FrameSelection | None = None,
+                  total: dict | None = None) -> Iterator[np.ndarray | torch.Tensor]:
+    """Yield the grey frames of a traverse one at a time, ``(H, W)`` float32 each.
+
+    Image folders and videos are decoded frame by frame (only the selected frames: a video's
+    skipped frames are not even decoded), so a long traverse never sits in memory at full
+    resolution; arrays and event files are read whole, then selected.
+
+    Args:
+        source: as :func:`load_traverse`.
+        events: how event files are accumulated into frames.
+        progress: show a progress bar for long reads.
+        select: which frames to keep (default: all).
+        total: a dict that receives ``"n_total"``, the traverse's frame count before the
+            selection (a video's container count; None when the container does not say).
+
+    Raises:
+        TraverseError: unreadable input, or no frame in the selection (the file named).
+    """
+    select = (select or FrameSelection()).validate()
+    total = {} if total is None else total
+    if isinstance(source, (np.ndarray, torch.Tensor)):
+        frames, name = frames_from_array(source), "array"
+    else:
+        path = Path(source)
+        name = str(path)
+        if not path.exists():
+            raise TraverseError(f"no such file or folder: {path}")
+        if path.is_dir():
+            total["n_total"] = len(_image_files(path))
+            yield from iter_image_folder(path, progress, select)
+            return
+        suffix = path.suffix.lower()
+        if suffix in VIDEO_SUFFIXES:
+            cap = cv2.VideoCapture(str(path))
+            total["n_total"] = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+            cap.release()
+            yield from iter_video(path, progress, select)
+            return
+        if _is_event_file(path):
+            frames = _event_frames(path, events or EventFrameOptions())
+            total["events"] = True
+        elif suffix == ".npy":
+            frames = frames_from_array(_frame_array(load_npy(path, TraverseError), path), name)
+        elif suffix == ".npz":
+            array = load_npz_member(path, "frames", TraverseError)
+            frames = frames_from_array(_frame_array(array, path), name)
+        elif suffix in IMAGE_SUFFIXES:
+            raise TraverseError(f"{path} is a single image; give the folder that holds the "
+                                f"traverse")
+        else:
+            raise TraverseError(f"unknown traverse format: {path}")
+    total["n_total"] = len(frames)
+    keep = select.indices(len(frames))
+    if len(keep) == 0:
+        raise TraverseError(f"{name}: no frame in the selected range ({len(frames)} frames)")
+    for i in keep:
+        yield frames[i]
+
+
+def thumbnail_size(frame_size: tuple[int, int], side: int = 160) -> tuple[int, int]:
+    """``(h, w)`` with the frame's aspect and the longer side at most ``side`` pixels."""
+    h, w = frame_size
+    scale = min(1.0, side / max(h, w))
+    return max(1, round(h * scale)), max(1, round(w * scale))
+
+
+def load_traverse_sizes(source: Source, sizes: dict[str, tuple[int, int] | None],
+                        events: EventFrameOptions | None = None, progress: bool = True,
+                        select: FrameSelection | None = None, thumbnail: int | None = None
+                        ) -> tuple[dict[str, torch.Tensor], dict]:
+    """Load a traverse once, keeping only the frame sizes the engines need.
+
+    Each frame is shrunk by :func:`torchseq.preprocess.resize` as it is decoded, so the result
+    equals resizing the full-resolution traverse, without ever holding it: 3000 frames of
+    720p video need about 30 MB at 32x64 instead of 11 GB.
+
+    Args:
+        source: as :func:`load_traverse`.
+        sizes: name -> ``(H, W)`` to resize to, or None for the original size.
+        events: how event files are accumulated into frames.
+        progress: show a progress bar.
+        select: which frames to keep.
+        thumbnail: also keep uint8 thumbnails (longer side at most this many pixels) under
+            ``"thumbnail"``, for plots.
+
+    Returns:
+        ``({name: (T, h, w) float32}, info)``; ``info``: ``n_frames`` (T), ``frame_size``
+        ``[H, W]`` (original), ``indices`` (the kept frames' original indices) and
+        ``n_total`` (frames before the selection, None when unknown).
+    """
+    from torchseq.preprocess import resize
+
+    out: dict[str, list] = {name: [] for name in sizes}
+    thumbs: list = []
+    frame_size = None
+    thumb_size = None
+    total: dict = {}
+    select = select or FrameSelection()
+    for frame in iter_traverse(source, events, progress, select, total):
+        x = torch.as_tensor(frame, dtype=torch.float32)[None]  # (1, H, W)
+        if frame_size is None:
+            frame_size = tuple(int(v) for v in x.shape[1:])
+            thumb_size = thumbnail_size(frame_size, thumbnail) if thumbnail else None
+        for name, size in sizes.items():
+            out[name].append(x[0].clone() if size is None else resize(x, size)[0])
+        if thumb_size is not None:
+            thumbs.append(resize(x, thumb_size)[0].round().clamp(0, 255).to(torch.uint8))
+    result = {name: torch.stack(v) for name, v in out.items()}
+    if thumbs:
+        result["thumbnail"] = torch.stack(thumbs)
+    n = len(thumbs) if thumbs else len(next(iter(out.values()), []))
+    indices = list(range(select.start, select.start + n * select.step, select.step))
+    return result, {"n_frames": n, "frame_size": list(frame_size), "indices": indices,
+                    "n_total": total.get("n_total"), "events": bool(total.get("events"))}
+
+
 def load_traverse(source: Source, events: EventFrameOptions | None = None,
-                  progress: bool = True) -> torch.Tensor:
+                  progress: bool = True, select: FrameSelection | None = None,
+                  size: tuple[int, int] | None = None) -> torch.Tensor:
     """Load a traverse as grey frames.
 
     Args:
@@ -135,35 +430,14 @@ def load_traverse(source: Source, events: EventFrameOptions | None = None,
             in-memory ``(T, H, W)`` / ``(T, H, W, 3)`` array or tensor.
         events: how event files are accumulated into frames.
         progress: show a progress bar for long reads.
+        select: which frames to keep (start, stop, step, max_frames); default all.
+        size: ``(H, W)`` to shrink each frame to as it is read (``torchseq.resize``);
+            None keeps the original size.
 
     Returns:
         ``(T, H, W)`` float32 frames.
     """
-    if isinstance(source, (np.ndarray, torch.Tensor)):
+    if isinstance(source, (np.ndarray, torch.Tensor)) and select is None and size is None:
         return frames_from_array(source)
-    path = Path(source)
-    if not path.exists():
-        raise TraverseError(f"no such file or folder: {path}")
-    if path.is_dir():
-        return load_image_folder(path, progress)
-    suffix = path.suffix.lower()
-    if suffix in VIDEO_SUFFIXES:
-        return load_video(path, progress)
-    try:
-        is_events = _is_event_file(path)
-    except (ValueError, OSError) as err:
-        raise TraverseError(f"cannot read {path}: {err}") from err
-    if is_events:
-        from torchseq.events import load_event_frames
-
-        opts = events or EventFrameOptions()
-        return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
-                                 frame_size=opts.frame_size)
-    if suffix == ".npy":
-        return frames_from_array(np.load(path, allow_pickle=False), str(path))
-    if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            return frames_from_array(z["frames"], str(path))
-    if suffix in IMAGE_SUFFIXES:
-        raise TraverseError(f"{path} is a single image; give the folder that holds the traverse")
-    raise TraverseError(f"unknown traverse format: {path}")
+    frames, _ = load_traverse_sizes(source, {"frames": size}, events, progress, select)
+    return frames["frames"]

@@ -4,4 +4,4 @@ import sys
 
 from torchseq.export.cli import main
 
-sys.exit(main())
+sys.exit(main(prog="python -m torchseq.export"))

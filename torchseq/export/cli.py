@@ -1,17 +1,21 @@
-"""``python -m torchseq.export CHECKPOINT --out DIR``: export and validate a Neural SeqSLAM model.
+"""``torchseq export CHECKPOINT --out DIR``: export and validate a Neural SeqSLAM model.
 
 Writes ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``, ``model_int.onnx`` and
 ``validation.json``; exits 0 when every check passes, 1 when a check fails, 2 on bad input.
+By default the export is validated on the checkpoint's own reference (recorded by
+``train.py``), replayed as the query; the integer device's camera frame size is
+``--frame-size`` (default: the reference's frame size), never the validation data's.
+The ONNX files carry the device contract in their ``metadata_props`` (``torchseq.*``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import sys
 import time
 from pathlib import Path
-
-import numpy as np
 
 from torchseq.atomic import write_json
 
@@ -20,55 +24,146 @@ class ExportError(ValueError):
     """Bad input to the exporter (unreadable checkpoint, query or ground truth)."""
 
 
+def _first_line(err: Exception) -> str:
+    return str(err).splitlines()[0] if str(err) else type(err).__name__
+
+
 def _load_model(path: Path):
     from torchseq.neural import NeuralSeqSLAM
 
     try:
         return NeuralSeqSLAM.load(path)
     except ValueError as err:
-        raise ExportError(str(err).splitlines()[0]) from None
+        raise ExportError(_first_line(err)) from None
     except Exception as err:  # noqa: BLE001 - any unreadable checkpoint is bad input
         raise ExportError(f"{path}: cannot load checkpoint ({type(err).__name__})") from None
 
 
-def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None) -> bool:
+def recorded_reference(model) -> dict | None:
+    """The reference a checkpoint learnt, as ``train.py`` records it (None: not recorded).
+
+    ``{"source": "demo", "demo_frames", "demo_seed"}`` or ``{"source": path, "events"}``,
+    with ``n_frames`` and ``frame_size`` where known (older checkpoints: from
+    ``train_config``).
+    """
+    extra = getattr(model, "extra", None)
+    if not isinstance(extra, dict):
+        return None
+    ref = extra.get("reference")
+    if isinstance(ref, dict) and isinstance(ref.get("source"), str):
+        return ref
+    tc = extra.get("train_config")
+    if isinstance(tc, dict) and "reference" in tc:
+        if tc["reference"] is None:
+            return {"source": "demo", "demo_frames": tc.get("demo_frames", 200),
+                    "demo_seed": tc.get("demo_seed", 0)}
+        if isinstance(tc["reference"], str):
+            return {"source": tc["reference"],
+                    "events": {k: tc.get(k) for k in ("window_ms", "event_count")}}
+    return None
+
+
+def _int(value, name: str, lo: int, hi: int) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
+        raise ExportError(f"checkpoint records a bad {name}: {value!r}")
+    return value
+
+
+def _own_reference(model, ckpt: Path):
+    """Validation query = the checkpoint's own reference: frames, ground truth, description."""
+    from torchseq.ground_truth import alignment_ground_truth
+
+    rec = recorded_reference(model)
+    if rec is None:
+        raise ExportError(f"{ckpt}: the checkpoint does not record which reference it learnt "
+                          f"(it was not written by train.py); give --query (and "
+                          f"--ground-truth) to validate on")
+    if rec["source"] == "demo":
+        from torchseq.demo import make_demo
+
+        demo = make_demo(n_reference=_int(rec.get("demo_frames"), "demo_frames", 2, 20_000),
+                         seed=_int(rec.get("demo_seed"), "demo_seed", 0, 2 ** 32 - 1))
+        return (demo.query, demo.ground_truth, rec,
+                f"the checkpoint's own reference: demo route ({demo.reference.shape[0]} "
+                f"frames), its query traverse", "demo exact ground truth")
+    from torchseq.sources import EventFrameOptions, FrameSelection, load_traverse
+
+    events = rec.get("events") if isinstance(rec.get("events"), dict) else {}
+    select = rec.get("select") if isinstance(rec.get("select"), dict) else {}
+    try:
+        opts = EventFrameOptions(**{k: v for k, v in events.items() if v is not None})
+        frames = load_traverse(rec["source"], events=opts, progress=False,
+                               select=FrameSelection(**select))
+    except (ValueError, TypeError, OSError) as err:
+        raise ExportError(f"{ckpt}: its reference {rec['source']} cannot be loaded for "
+                          f"validation ({_first_line(err)}); give --query") from None
+    n_learnt = int(model.unit_to_reference[-1, 1])
+    if len(frames) != n_learnt:
+        raise ExportError(f"{ckpt}: its reference {rec['source']} now has {len(frames)} "
+                          f"frames, but the model learnt {n_learnt}; give --query")
+    # a replay: each frame should come back to its own place, up to a unit's span
+    tol = math.ceil(n_learnt / model.n_units / 2) if n_learnt > model.n_units else 0
+    gt = alignment_ground_truth(n_learnt, n_learnt, tol)
+    return (frames, gt, rec, f"the checkpoint's own reference {rec['source']}, replayed",
+            f"replay alignment, tolerance {tol}")
+
+
+def _suggested_threshold(model, frames, gt) -> float | None:
+    """The confidence at 99% precision on the validation data (None without ground truth)."""
+    if gt is None:
+        return None
+    import torch
+
+    from torchseq.metrics import operating_point
+
+    matches = model.run(torch.as_tensor(frames).to(torch.float32)).matches
+    op = operating_point(matches, gt, 0.99)
+    return op["score_threshold"]
+
+
+def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
+                      frame_size: tuple[int, int] | None = None) -> bool:
     """Export a Neural SeqSLAM checkpoint to every deployment format and validate them.
 
     Args:
         checkpoint_path: a file written by ``NeuralSeqSLAM.save``.
         out_dir: output folder (created).
         query: validation query traverse (anything ``torchseq.load_traverse`` reads, or a
-            ``(T, H, W)`` array); None: the demo route (``torchseq.demo.make_demo()``).
+            ``(T, H, W)`` array); None: the checkpoint's own reference as ``train.py``
+            recorded it (the demo route's query, or a replay of the reference file).
         ground_truth: ``(R, T)`` bool array or a file ``load_ground_truth`` reads; None: no
-            recall (with the demo route: the demo's exact ground truth).
+            recall (with the checkpoint's own reference: its ground truth).
+        frame_size: ``(H0, W0)`` camera frames the integer device takes. None: the recorded
+            reference's frame size, else the validation query's (reported in
+            ``validation.json`` as ``device_frame_size_source``).
 
     Returns:
         True when every check passes (see ``validation.json`` ``checks``).
 
     Raises:
-        ExportError: unreadable checkpoint, query or ground truth.
+        ExportError: unreadable checkpoint, query or ground truth, or no reference recorded
+            and no query given.
     """
-    from torchseq.export.validate import export_and_validate
+    from torchseq.export.contract import contract, write_contract
+    from torchseq.export.validate import FLOAT_ONNX, INT_ONNX, QUANT_ONNX, export_and_validate
 
     t0 = time.perf_counter()
     ckpt, out = Path(checkpoint_path), Path(out_dir)
     model = _load_model(ckpt)
+    rec = recorded_reference(model)
     if query is None:
-        from torchseq.demo import make_demo
-
-        demo = make_demo()
-        frames, source = demo.query, "demo: torchseq.demo.make_demo() query traverse"
+        frames, own_gt, rec, source, gt_source = _own_reference(model, ckpt)
         if ground_truth is None:
-            ground_truth, gt_source = demo.ground_truth, "demo exact ground truth"
+            ground_truth = own_gt
         else:
-            gt_source = str(ground_truth) if not isinstance(ground_truth, np.ndarray) else "array"
+            gt_source = "array" if hasattr(ground_truth, "shape") else str(ground_truth)
     else:
         from torchseq.sources import load_traverse
 
         try:
             frames = load_traverse(query, progress=False)
         except ValueError as err:
-            raise ExportError(str(err).splitlines()[0]) from None
+            raise ExportError(_first_line(err)) from None
         source = str(query) if not hasattr(query, "shape") else "array"
         gt_source = None if ground_truth is None else (
             "array" if hasattr(ground_truth, "shape") else str(ground_truth))
@@ -79,36 +174,75 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None) -
         try:
             ground_truth = load_ground_truth(ground_truth, n_ref, int(frames.shape[0]))
         except ValueError as err:
-            raise ExportError(str(err).splitlines()[0]) from None
+            raise ExportError(_first_line(err)) from None
+    if frame_size is not None:
+        size_source = "--frame-size"
+    elif rec is not None and isinstance(rec.get("frame_size"), list):
+        frame_size = tuple(int(v) for v in rec["frame_size"])
+        size_source = "the checkpoint's reference frames"
+    else:
+        frame_size = tuple(int(v) for v in frames.shape[1:3])
+        size_source = "the validation query's frames (give --frame-size for the camera's)"
+    if len(frame_size) != 2 or not all(0 < v <= 16384 for v in frame_size):
+        raise ExportError(f"frame size must be two sides in 1..16384, got {frame_size}")
     report = {"checkpoint": str(ckpt), "checkpoint_bytes": ckpt.stat().st_size,
-              "query_source": source, "ground_truth_source": gt_source}
-    report.update(export_and_validate(model, out, frames, ground_truth))
+              "query_source": source, "ground_truth_source": gt_source,
+              "device_frame_size_source": size_source}
+    report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size))
+    threshold = _suggested_threshold(model, frames, ground_truth)
+    report["suggested_confidence_threshold"] = threshold
+    for name, kind in ((FLOAT_ONNX, "float"), (QUANT_ONNX, "float"), (INT_ONNX, "integer")):
+        write_contract(out / name, contract(kind, model, report, threshold))
+        report["files_bytes"][name] = (out / name).stat().st_size
     report["seconds"] = round(time.perf_counter() - t0, 3)
     write_json(out / "validation.json", report)
     return bool(report["passed"])
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Command-line entry point; returns the exit status."""
-    ap = argparse.ArgumentParser(prog="python -m torchseq.export", description=__doc__.split(
-        "\n")[0])
-    ap.add_argument("checkpoint", help="Neural SeqSLAM checkpoint (NeuralSeqSLAM.save)")
-    ap.add_argument("--out", required=True, help="output folder")
-    ap.add_argument("--query", help="validation query traverse (default: the demo route)")
-    ap.add_argument("--ground-truth", help="ground truth for --query (.csv or .npy)")
-    args = ap.parse_args(argv)
-    try:
-        ok = export_checkpoint(args.checkpoint, args.out, args.query, args.ground_truth)
-    except ValueError as err:
-        print(f"error: {str(err).splitlines()[0] if str(err) else type(err).__name__}",
-              file=sys.stderr)
-        return 2
-    import json
-
-    report = json.loads((Path(args.out) / "validation.json").read_text())
+def summary_lines(out_dir) -> list[str]:
+    """The lines the command prints from ``validation.json``: figures, then PASS or FAIL."""
+    report = json.loads((Path(out_dir) / "validation.json").read_text())
+    lines = [f"validated on {report['query_source']}",
+             f"device input: uint8 {'x'.join(map(str, report['device_frame_size']))} "
+             f"(from {report['device_frame_size_source']})"]
     for key, value in report.items():
         if key.endswith("_agreement") or key.endswith("_error") or key == "recall_at_1":
-            print(f"{key}: {value}")
+            lines.append(f"{key}: {value}")
     failed = [k for k, v in report["checks"].items() if not v]
-    print("PASS" if ok else f"FAIL: {', '.join(failed)}")
+    lines.append("PASS" if report["passed"] else f"FAIL: {', '.join(failed)}")
+    return lines
+
+
+def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
+    """The export command's flags."""
+    from torchseq.frontend import Parser
+
+    ap = Parser(prog=prog, description="Export a Neural SeqSLAM checkpoint to ONNX and "
+                "integer files and validate them (exit 0: every check passed, 1: one "
+                "failed, 2: bad input).")
+    ap.add_argument("checkpoint", help="Neural SeqSLAM checkpoint (NeuralSeqSLAM.save)")
+    ap.add_argument("--out", required=True, help="output folder")
+    ap.add_argument("--query", help="validation query traverse (default: the checkpoint's own "
+                    "reference, recorded by train.py)")
+    ap.add_argument("--ground-truth", help="ground truth for --query (.csv or .npy)")
+    ap.add_argument("--frame-size", metavar="HxW", help="camera frame size the integer device "
+                    "takes (default: the checkpoint's reference frame size)")
+    return ap
+
+
+def main(argv: list[str] | None = None, prog: str = "torchseq export") -> int:
+    """Command-line entry point; returns the exit status."""
+    from torchseq.frontend import UsageError, parse_size
+
+    args = build_parser(prog).parse_args(argv)
+    try:
+        size = parse_size(args.frame_size)
+        ok = export_checkpoint(args.checkpoint, args.out, args.query, args.ground_truth,
+                               frame_size=size)
+    except (ValueError, OSError, UsageError) as err:
+        print(f"{prog}: error: {_first_line(err)}", file=sys.stderr)
+        return 2
+    for line in summary_lines(args.out):
+        print(line)
     return 0 if ok else 1
+

@@ -66,7 +66,8 @@ def agreement(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
-                        ground_truth: np.ndarray | None = None) -> dict:
+                        ground_truth: np.ndarray | None = None,
+                        frame_size: tuple[int, int] | None = None) -> dict:
     """Write the four exported files and measure every variant on ``query``.
 
     Args:
@@ -75,6 +76,8 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
             ``model_int.onnx``.
         query: ``(T, H, W)`` (or RGB) query frames, 0..255.
         ground_truth: ``(R, T)`` bool, or None (no recall).
+        frame_size: ``(H0, W0)`` camera frames the integer device takes (sets its pooling);
+            the query is resized to it for the device. None: the query's frame size.
 
     Returns:
         A JSON-ready dict of measurements, ``checks`` and ``passed``.
@@ -85,7 +88,8 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
     out.mkdir(parents=True, exist_ok=True)
     grey = to_grey(torch.as_tensor(query)).to(torch.float32)
     size = tuple(model.config.input_size)
-    pool = choose_pool(tuple(grey.shape[1:3]), size)
+    camera = grey if frame_size is None else resize(grey, tuple(frame_size))
+    pool = choose_pool(tuple(camera.shape[1:3]), size)
     # build and write
     float_onnx = build_float_onnx(model)
     quant = quantise_onnx(float_onnx)
@@ -111,7 +115,7 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
     small = resize(grey, size).numpy()
     ref_f, conf_f, act_f = run_float_onnx(session(out / FLOAT_ONNX), small)
     ref_q, _, act_q = run_float_onnx(session(out / QUANT_ONNX), small)
-    frames_u8 = device_frames(grey, size, pool)
+    frames_u8 = device_frames(camera, size, pool)
     result_u8 = model.run(torch.from_numpy(frames_u8).to(torch.float32))
     ref_u8, act_u8 = result_u8.matches.reference.numpy(), result_u8.activity.numpy()
     ref_n, conf_n, act_n = IntegerRuntime(stored).run(frames_u8)
@@ -122,6 +126,7 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
     report = {
         "n_query": int(grey.shape[0]),
         "query_frame_size": list(grey.shape[1:3]),
+        "device_frame_size": list(frames_u8.shape[1:3]),
         "input_size": list(size),
         "integer_pool": list(pool),
         "n_units": int(model.n_units),

@@ -1,0 +1,39 @@
+"""``torchseq eval|train|export``: the command-line front ends as one console script.
+
+Installed by pip as ``torchseq`` (and runnable as ``python -m torchseq``); ``eval.py`` and
+``train.py`` in a source checkout are thin wrappers over the same code.
+"""
+
+from __future__ import annotations
+
+import sys
+
+COMMANDS = {
+    "eval": "run a query traverse through SeqSLAM and Neural SeqSLAM and report metrics",
+    "train": "learn a Neural SeqSLAM model from a reference traverse",
+    "export": "export a Neural SeqSLAM checkpoint to ONNX and integer files and validate them",
+}
+USAGE = "usage: torchseq {eval,train,export} [--help] ...\n\n" + "\n".join(
+    f"  {name:<8}{text}" for name, text in COMMANDS.items())
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Dispatch ``torchseq COMMAND ...``; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(USAGE)
+        return 0 if argv else 2
+    command, rest = argv[0], argv[1:]
+    prog = f"torchseq {command}"
+    if command == "eval":
+        from torchseq.cli_eval import cli
+        return cli(rest, prog)
+    if command == "train":
+        from torchseq.cli_train import cli
+        return cli(rest, prog)
+    if command == "export":
+        from torchseq.export.cli import main as export_main
+        return export_main(rest, prog)
+    print(f"torchseq: error: unknown command {command!r} (choose from "
+          f"{', '.join(COMMANDS)})", file=sys.stderr)
+    return 2

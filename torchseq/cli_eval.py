@@ -1,0 +1,602 @@
+"""Run a query traverse through torchseq's engines and report place-recognition metrics.
+
+With no arguments it runs on the built-in demo route. Each run writes into its own folder
+(``--out``, default a new ``runs/eval-<time>``): ``metrics.json``, ``matches.csv``, PNG plots,
+``config.json`` (replay it with ``--config``) and TensorBoard logs in ``tensorboard/``.
+SeqSLAM settings are the plain flags (``--ds``, ``--patch-size``, ...); Neural SeqSLAM settings
+carry a ``--neural-`` prefix (``--neural-patch-size``, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchseq import metrics, plots
+from torchseq.atomic import write_json, write_text
+from torchseq.demo import make_demo
+from torchseq.frontend import (
+    Parser,
+    UsageError,
+    add_config_flags,
+    check_neural,
+    check_ranges,
+    config_file_defaults,
+    config_from_args,
+    config_text,
+    event_options,
+    frame_selection,
+    load_model,
+    resolve_device,
+    run_folder,
+    run_main,
+    sweep_grid,
+    to_jsonable,
+    warn,
+)
+from torchseq.ground_truth import alignment_ground_truth, load_ground_truth
+from torchseq.neural import NeuralConfig
+from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+from torchseq.sources import FrameSelection, load_traverse_sizes
+
+PROG = "torchseq eval"  # set by main() to the name the user ran
+ENGINES = ("seqslam", "neural", "both")
+MAX_DEMO_QUERY = 50_000  # demo query frames (96x128 float32 each)
+
+
+@dataclass
+class EvalConfig:
+    """What an evaluation run depends on besides the engines' own configs."""
+
+    reference: str | None = None
+    query: str | None = None
+    ground_truth: str | None = None
+    tolerance: float | None = None
+    gt_offset: float = 0.0
+    engine: str = "both"
+    checkpoint: str | None = None
+    preset: str | None = None
+    out: str | None = None
+    overwrite: bool = False
+    target_precision: float = 0.99
+    window_ms: float = 10.0
+    event_count: int | None = None
+    frame_size: str | None = None
+    window_anchor: str = "first"
+    sensor_size: str | None = None
+    event_mode: str = "count"
+    evt3_time: str = "spec"
+    truncated: str = "error"
+    start: int = 0
+    stop: int | None = None
+    frame_step: int = 1
+    max_frames: int | None = None
+    demo_frames: int = 200
+    demo_speed: float = 0.8
+    seed: int = 0
+    device: str = "cpu"
+    tensorboard: bool = True
+    progress: bool = True
+
+
+HELP = {
+    "reference": "reference traverse: image folder, video, frame array (.npy/.npz) or event file "
+                 "(.aedat, .aedat4, .raw, event .npy/.npz, .csv); default: the built-in demo",
+    "query": "query traverse, same kinds as --reference (required with --reference)",
+    "ground_truth": "ground truth: CSV 'query,references', (reference x query) 0/1 .npy matrix, "
+                    "or VPR-Bench per-query .npy of admissible indices; with --tolerance it is "
+                    "widened by that many reference frames",
+    "tolerance": "ground truth by index alignment: admissible distance in reference frames "
+                 "(with --ground-truth: widen that file's ground truth)",
+    "gt_offset": "index alignment: reference frame where the query starts (traverses that "
+                 "begin at different places)",
+    "engine": f"engine to run: one of {', '.join(ENGINES)}",
+    "checkpoint": "neural model checkpoint (model.pt from train.py); without it the neural "
+                  "engine is trained on the reference first",
+    "preset": "SeqSLAM preset: openseqslam (OpenSeqSLAM 2013 exactly: uint8 preprocessing, "
+              "flat blocks -> 0, start + ds/2) or events (ds 100, 16x16, --speed-ratio); "
+              "SeqSLAM flags given with a non-default value override it",
+    "out": "output folder of this run (default: a new runs/eval-<UTC time>)",
+    "overwrite": "replace a previous run's --out folder instead of refusing",
+    "target_precision": "metrics.json operating point: the confidence threshold that reaches "
+                        "this precision with the most recall",
+    "window_ms": "event files: accumulation window in milliseconds",
+    "event_count": "event files: events per frame instead of a time window",
+    "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
+    "window_anchor": "event files: where the first window starts: 'first' (first event), "
+                     "'zero' (sensor time 0) or a sensor time in microseconds",
+    "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
+    "event_mode": "event files: pixel value of a frame: count (events) or signed (|ON - OFF|)",
+    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
+                 "incomplete record",
+    "start": "first frame of each traverse to use (0-based; OpenSeqSLAM's image indices)",
+    "stop": "frame index of each traverse to stop before",
+    "frame_step": "use every N-th frame from --start (OpenSeqSLAM's image skip)",
+    "max_frames": "use at most this many frames of each traverse",
+    "demo_frames": "demo: reference frames",
+    "demo_speed": "demo: query speed relative to the reference",
+    "seed": "random seed (demo data; the neural model unless --neural-seed)",
+    "device": "cpu, cuda or auto",
+    "tensorboard": "write TensorBoard logs",
+    "progress": "show progress bars",
+    # SeqSLAMConfig fields whose docstring reads poorly as a flag
+    "ds": "SeqSLAM sequence length in frames (rounded up to even)",
+    "image_size": "SeqSLAM image size HxW after resizing",
+}
+
+LIMITS = {
+    "tolerance": (0.0, 1e9), "gt_offset": (-1e9, 1e9), "target_precision": (0.0, 1.0),
+    "demo_frames": (2, 20_000), "demo_speed": (0.01, 100.0), "seed": (0, 2 ** 32 - 1),
+    "start": (0, 2 ** 40), "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40),
+    "max_frames": (1, 2 ** 40),
+}
+THUMBNAIL = 160  # longer side of the frames kept for plots
+SEQSLAM_LIMITS = {
+    "patch_size": (0, 4096), "enhance_window": (0, 10 ** 6), "ds": (2, 10 ** 5),
+    "vmin": (1e-3, 1e3), "vmax": (1e-3, 1e3), "speed_ratio": (1e-3, 1e3),
+    "speed_tolerance": (0.0, 1.0), "rwindow": (0, 10 ** 6), "top_k": (1, 1000),
+    "max_chunk_elements": (1, 2 ** 40),
+}
+
+
+@dataclass
+class Settings:
+    """Everything one run needs: the front end's, SeqSLAM's and Neural SeqSLAM's configs."""
+
+    run: EvalConfig
+    seqslam: SeqSLAMConfig
+    neural: NeuralConfig
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The eval.py flags: EvalConfig, SeqSLAMConfig (plain) and NeuralConfig (``--neural-``)."""
+    parser = Parser(prog=PROG, description=__doc__.split("\n")[0])
+    parser.add_argument("--config", help="replay a run: its config.json gives the defaults, "
+                        "flags override them")
+    parser.add_argument("--sweep", action="append", default=[], metavar="NAME=V1,V2,...",
+                        help="run every setting of a small grid (repeat for more axes), e.g. "
+                        "--sweep ds=10,20,40; writes sweep.csv with one row per setting")
+    add_config_flags(parser, EvalConfig, HELP)
+    add_config_flags(parser.add_argument_group("SeqSLAM (SeqSLAMConfig)"), SeqSLAMConfig,
+                     {k: v for k, v in HELP.items() if k in ("ds", "image_size")})
+    add_config_flags(parser.add_argument_group("Neural SeqSLAM (NeuralConfig)"), NeuralConfig,
+                     {"seed": "seed of the random masks and L1 weights (default: --seed)"},
+                     prefix="neural_")
+    parser.set_defaults(neural_seed=None)
+    return parser
+
+
+def settings_from(args: argparse.Namespace) -> Settings:
+    """Parsed flags -> checked :class:`Settings` (ranges first, then each config's rules)."""
+    cfg = config_from_args(EvalConfig, args)
+    check_ranges(cfg, LIMITS)
+    if cfg.engine not in ENGINES:
+        raise UsageError(f"--engine must be one of {', '.join(ENGINES)}, got {cfg.engine!r}")
+    if cfg.reference is None and (cfg.demo_frames - 1) / cfg.demo_speed + 1 > MAX_DEMO_QUERY:
+        raise UsageError(f"the demo query would have more than {MAX_DEMO_QUERY} frames; lower "
+                         f"--demo-frames or raise --demo-speed")
+    scfg = config_from_args(SeqSLAMConfig, args)
+    check_ranges(scfg, {k: v for k, v in SEQSLAM_LIMITS.items() if hasattr(scfg, k)})
+    scfg.validate()
+    if cfg.preset is not None:
+        scfg = seqslam_preset(cfg.preset, scfg)
+    if args.neural_seed is None:
+        args.neural_seed = cfg.seed
+    ncfg = config_from_args(NeuralConfig, args, prefix="neural_")
+    check_neural(ncfg, "neural_")
+    ncfg.validate()
+    if cfg.checkpoint and dataclasses.replace(ncfg, seed=0) != NeuralConfig(seed=0):
+        raise UsageError("--neural-* settings have no effect with --checkpoint (the "
+                         "checkpoint carries its own config); drop one of them")
+    return Settings(cfg, scfg, ncfg)
+
+
+def seqslam_preset(name: str, flags: SeqSLAMConfig) -> SeqSLAMConfig:
+    """``--preset NAME``, with the SeqSLAM flags whose value differs from the default on top."""
+    default = SeqSLAMConfig()
+    changed = {f.name: getattr(flags, f.name) for f in dataclasses.fields(SeqSLAMConfig)
+               if getattr(flags, f.name) != getattr(default, f.name)}
+    try:
+        return SeqSLAMConfig.preset(name, **changed)
+    except ValueError as err:
+        raise UsageError(f"--preset: {err}") from None
+
+
+def parse_args(argv: list[str] | None
+               ) -> tuple[Settings, list[Settings], list[list[str]], list[str]]:
+    """Flags -> (the run's settings, settings per ``--sweep`` point, their flags, the specs)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    pre, _ = parser.parse_known_args(argv)
+    if pre.config:
+        config_file_defaults(parser, pre.config, {"seqslam": "", "neural": "neural_"})
+    args = parser.parse_args(argv)
+    base = settings_from(args)
+    grid = sweep_grid(args.sweep, parser)
+    points = [settings_from(parser.parse_args(argv + extra)) for extra in grid]
+    return base, points, grid, list(args.sweep)
+
+
+def event_frame_options(cfg: EvalConfig):
+    """The event-accumulation flags of a run, checked."""
+    from torchseq.frontend import parse_size
+
+    return event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
+                         cfg.window_anchor, cfg.sensor_size, cfg.event_mode,
+                         cfg.evt3_time, cfg.truncated)
+
+
+def size_key(size) -> str:
+    """``(32, 64)`` -> ``"32x64"``."""
+    return f"{int(size[0])}x{int(size[1])}"
+
+
+@dataclass
+class Traverse:
+    """A loaded traverse: frames at each size an engine needs, thumbnails for plots, facts."""
+
+    frames: dict
+    thumbnail: torch.Tensor
+    info: dict
+
+    def __len__(self) -> int:
+        return int(self.info["n_frames"])
+
+    def at(self, size) -> torch.Tensor:
+        """``(T, h, w)`` frames at ``size``."""
+        return self.frames[size_key(size)]
+
+
+def needed_sizes(settings: list[Settings], model=None) -> dict:
+    """Every frame size the run's engines read, by key."""
+    sizes = {}
+    for s in settings:
+        if s.run.engine in ("seqslam", "both"):
+            sizes[size_key(s.seqslam.image_size)] = tuple(s.seqslam.image_size)
+        if s.run.engine in ("neural", "both"):
+            size = model.config.input_size if model is not None else s.neural.input_size
+            sizes[size_key(size)] = tuple(size)
+    return sizes
+
+
+def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -> Traverse:
+    """One traverse, shrunk frame by frame to ``sizes`` (a library error names it)."""
+    try:
+        frames, info = load_traverse_sizes(source, sizes, event_frame_options(cfg),
+                                           cfg.progress, select, thumbnail=THUMBNAIL)
+    except (ValueError, OSError) as err:
+        name = "demo" if not isinstance(source, (str, Path)) else source
+        raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
+    return Traverse({k: v for k, v in frames.items() if k != "thumbnail"},
+                    frames["thumbnail"], info)
+
+
+def selected_ground_truth(gt_full: np.ndarray, ref: Traverse, query: Traverse) -> np.ndarray:
+    """Rows and columns of the selected frames of a ground truth over whole traverses."""
+    return gt_full[np.ix_(ref.info["indices"], query.info["indices"])]
+
+
+def load_data(cfg: EvalConfig, sizes: dict, notes: list):
+    """Reference and query traverses, ``(R, Q)`` ground truth (or None) and a description."""
+    select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
+    if cfg.reference is None and cfg.query is None:
+        demo = make_demo(n_reference=cfg.demo_frames, speed=cfg.demo_speed, seed=cfg.seed)
+        ref = load_traverse_for(demo.reference, "reference", cfg, sizes, select)
+        query = load_traverse_for(demo.query, "query", cfg, sizes, select)
+        gt = selected_ground_truth(demo.ground_truth, ref, query)
+        source = {"reference": "demo", "query": "demo", "ground_truth": "demo (exact)"}
+    elif cfg.reference is None or cfg.query is None:
+        raise UsageError("give both --reference and --query (or neither, for the demo)")
+    else:
+        ref = load_traverse_for(cfg.reference, "reference", cfg, sizes, select)
+        query = load_traverse_for(cfg.query, "query", cfg, sizes, select)
+        gt, source = None, {"reference": cfg.reference, "query": cfg.query}
+    selected = select != FrameSelection()
+    totals = (ref.info["n_total"], query.info["n_total"])
+    if selected and (cfg.ground_truth is not None or cfg.tolerance is not None) and None in totals:
+        raise UsageError("a video's frame count is unknown to its container, so ground truth "
+                         "cannot be matched to --start/--stop/--frame-step; convert it to "
+                         "images or drop the selection")
+    n_ref, n_query = totals if selected else (len(ref), len(query))
+    if cfg.ground_truth is not None:
+        gt = load_ground_truth(cfg.ground_truth, n_ref, n_query, widen=cfg.tolerance or 0.0)
+        source["ground_truth"] = cfg.ground_truth + (
+            f", widened by {cfg.tolerance} frames" if cfg.tolerance else "")
+    elif cfg.tolerance is not None:
+        gt = alignment_ground_truth(n_ref, n_query, cfg.tolerance, offset=cfg.gt_offset)
+        source["ground_truth"] = f"index alignment, tolerance {cfg.tolerance}" + (
+            f", offset {cfg.gt_offset}" if cfg.gt_offset else "")
+    if selected and cfg.reference is not None and gt is not None:
+        gt = selected_ground_truth(gt, ref, query)
+    if selected:
+        source["selection"] = {"start": cfg.start, "stop": cfg.stop,
+                               "frame_step": cfg.frame_step, "max_frames": cfg.max_frames}
+    for what, t in (("reference", ref), ("query", query)):
+        fh, fw = t.info["frame_size"]
+        for key, (h, w) in sizes.items():
+            if h > fh or w > fw:
+                warn(PROG, f"{what} frames are {fh}x{fw}, smaller than the {key} an engine "
+                     f"reads: they are upsampled (set --image-size or --neural-input-size "
+                     f"to the frame size)", notes)
+    return ref, query, gt, source
+
+
+def run_seqslam(s: Settings, ref, query, device, notes: list):
+    """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
+    ds = s.seqslam.sequence_length
+    if ds > len(query):
+        hint = ""
+        if query.info.get("events") and s.run.event_count is None:
+            n, w = query.info["n_total"], s.run.window_ms
+            if n > 1:  # the events span more than (n - 1) windows
+                hint = (f": the query recording fills {n} windows of {w:g} ms (more than "
+                        f"{(n - 1) * w:g} ms of events); --window-ms {(n - 1) * w / ds:.3g} "
+                        f"or less gives at least {ds} frames")
+            else:
+                hint = f": the query recording is shorter than one {w:g} ms window"
+        raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
+                         + hint)
+    size = s.seqslam.image_size
+    result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
+                                                     progress=s.run.progress)
+    reduced = result.enhanced is None  # long routes: only the engine's reduced copy
+    return {"matches": result.matches, "ranked": result.ranked,
+            "matrix": result.preview if reduced else result.enhanced, "matrix_reduced": reduced,
+            "seconds": result.seconds["total"], "parameters": to_jsonable(s.seqslam)}
+
+
+def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
+    """What identifies a reference traverse: where it came from, frames, frame size."""
+    if cfg.reference is None:
+        source = {"source": "demo", "demo_frames": cfg.demo_frames, "demo_seed": cfg.seed}
+    else:
+        source = {"source": str(Path(cfg.reference).resolve())}
+    return {**source, "n_frames": len(ref), "frame_size": list(ref.info["frame_size"])}
+
+
+def checkpoint_mismatch(model, this: dict) -> str | None:
+    """Say how a checkpoint's learnt reference differs from this run's reference, if it does."""
+    learnt = model.extra.get("reference") if isinstance(model.extra, dict) else None
+    n_learnt = int(model.unit_to_reference[-1, 1])
+    problems = []
+    if n_learnt != this["n_frames"]:
+        problems.append(f"it learnt {n_learnt} reference frames, this reference has "
+                        f"{this['n_frames']}")
+    if isinstance(learnt, dict):
+        keys = ("source", "demo_frames", "demo_seed")
+        was = {k: learnt.get(k) for k in keys if k in learnt or k in this}
+        now = {k: this.get(k) for k in keys if k in learnt or k in this}
+        if was != now:
+            problems.append(f"it learnt {learnt.get('source')}, this reference is "
+                            f"{this['source']}")
+        if learnt.get("frame_size") not in (None, this["frame_size"]):
+            fs = learnt["frame_size"]
+            problems.append(f"its frames were {fs[0]}x{fs[1]}, these are "
+                            f"{this['frame_size'][0]}x{this['frame_size'][1]}")
+    elif not problems:
+        return None  # an API-saved model: the frame count is all there is to check
+    if not problems:
+        return None
+    return ("the checkpoint does not match this reference (" + "; ".join(problems) +
+            "): its matches index the reference it learnt, so the metrics are meaningless "
+            "unless that is the same route")
+
+
+def run_neural(s: Settings, ref, query, device, notes: list, model=None):
+    """Neural SeqSLAM, from a checkpoint (``model``, loaded) or trained on the reference now."""
+    from torchseq.neural import NeuralSeqSLAM
+
+    cfg = s.run
+    start = time.perf_counter()
+    if model is not None:
+        problem = checkpoint_mismatch(model, describe_reference(cfg, ref))
+        if problem:
+            warn(PROG, problem, notes)
+    else:
+        model = NeuralSeqSLAM(s.neural, device=device)
+        model.fit(ref.at(s.neural.input_size), progress=cfg.progress)
+    size = model.config.input_size
+    fit_seconds = time.perf_counter() - start
+    n_ref = int(model.unit_to_reference[-1, 1])
+    per_unit = n_ref / model.n_units
+    if per_unit > 1:
+        warn(PROG, f"neural: {n_ref} reference frames on {model.n_units} output units, one "
+             f"unit stands for about {per_unit:.1f} frames (matches are unit centres; "
+             f"raise --neural-n-output for a finer place resolution)", notes)
+    result = model.run(query.at(size), progress=cfg.progress)
+    k = min(10, model.n_units)
+    ranked = model.unit_centre.cpu()[result.activity.topk(k, dim=1).indices]
+    return {"matches": result.matches, "ranked": ranked, "activity": result.activity,
+            "seconds": float(result.seconds), "fit_seconds": fit_seconds,
+            "parameters": to_jsonable(model.config), "model_bytes": int(model.model_bytes()),
+            "frames_per_unit": per_unit}
+
+
+def matches_csv(results: dict) -> str:
+    """``engine,query,reference,score`` rows, empty reference and score where no match."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["engine", "query", "reference", "score"])
+    for name, r in results.items():
+        ref = r["matches"].reference.cpu().numpy()
+        score = r["matches"].score.cpu().numpy()
+        for q, (i, s) in enumerate(zip(ref, score)):
+            w.writerow([name, q, int(i) if i >= 0 else "", f"{s:.6g}" if i >= 0 else ""])
+    return buf.getvalue()
+
+
+def engine_metrics(r: dict, gt, target_precision: float) -> dict:
+    """metrics.json entry of one engine."""
+    if gt is None:
+        m = {"recall_at_1": None, "auc": None, "recall_at_100_precision": None,
+             "n_queries": len(r["matches"]), "coverage": metrics.coverage(r["matches"])}
+    else:
+        m = metrics.evaluate(r["matches"], gt, r["ranked"])
+        m["operating_point"] = metrics.operating_point(r["matches"], gt, target_precision)
+    m.update({k: r[k] for k in ("seconds", "fit_seconds", "model_bytes", "frames_per_unit",
+                                "parameters") if k in r})
+    return m
+
+
+def config_dict(s: Settings) -> dict:
+    """config.json: the front end's fields, then ``seqslam`` and ``neural`` sections."""
+    return {**to_jsonable(s.run), "seqslam": to_jsonable(s.seqslam),
+            "neural": to_jsonable(s.neural)}
+
+
+def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list) -> dict:
+    """Write metrics.json, matches.csv, plots and TensorBoard logs; return the metrics."""
+    summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
+                          "reference_frame_size": ref.info["frame_size"],
+                          "query_frame_size": query.info["frame_size"]},
+               "warnings": notes}
+    curves = {}
+    for name, r in results.items():
+        summary[name] = engine_metrics(r, gt, s.run.target_precision)
+        if gt is not None:
+            curves[name] = metrics.precision_recall_curve(r["matches"], gt)
+    write_json(out / "metrics.json", summary)
+    write_text(out / "matches.csv", matches_csv(results))
+    write_text(out / "config.json", config_text(config_dict(s)) + "\n")
+    figures = {}
+    if "seqslam" in results:
+        r = results["seqslam"]
+        full = not r.get("matrix_reduced")  # overlays need the full matrix's coordinates
+        figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
+            r["matrix"], r["matches"] if full else None, gt if full else None,
+            "SeqSLAM contrast-enhanced difference matrix" + ("" if full else " (reduced)"))
+    if "neural" in results:
+        figures["neural_activity"] = plots.plot_activity_raster(
+            results["neural"]["activity"], title="neural output activity over the query")
+    for name, r in results.items():
+        figures[f"{name}_matched_pairs"] = plots.plot_matched_pairs(
+            ref.thumbnail, query.thumbnail, r["matches"], gt,
+            title=f"{name}: query (top) and matched reference")
+    if curves:
+        figures["pr_curve"] = plots.plot_pr_curves(curves)
+    images = {k: plots.figure_to_array(f) for k, f in figures.items()}
+    for k, f in figures.items():
+        plots.save_figure(f, out / f"{k}.png")
+    if s.run.tensorboard:
+        log_tensorboard(s, out, summary, results, gt, images)
+    return summary
+
+
+def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
+                    images: dict) -> None:
+    """Scalars, images, PR curves and the config in ``OUT/tensorboard``."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    with SummaryWriter(log_dir=str(out / "tensorboard")) as tb:
+        tb.add_text("config", "```\n" + config_text(config_dict(s)) + "\n```")
+        for name in results:
+            for key, value in summary[name].items():
+                if isinstance(value, (int, float)) and value is not None and np.isfinite(value):
+                    tb.add_scalar(f"{name}/{key}", value)
+        for key, img in images.items():
+            tb.add_image(key, img, dataformats="HWC")
+        if gt is None:
+            return
+        for name, r in results.items():
+            m = r["matches"]
+            has = m.reference >= 0
+            if not bool(has.any()):
+                continue
+            labels = torch.from_numpy(metrics.correct(m, gt))[has]
+            conf = m.confidence[has]
+            lo, hi = conf.min(), conf.max()
+            pred = (conf - lo) / (hi - lo) if hi > lo else torch.ones_like(conf)
+            tb.add_pr_curve(f"{name}/pr_curve", labels, pred.float())
+
+
+def run_engines(s: Settings, ref, query, device, notes: list, model=None) -> dict:
+    """Every engine the run asks for, by name (``model``: a loaded checkpoint)."""
+    names = ["seqslam", "neural"] if s.run.engine == "both" else [s.run.engine]
+    return {name: run_seqslam(s, ref, query, device, notes) if name == "seqslam" else
+            run_neural(s, ref, query, device, notes, model) for name in names}
+
+
+def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: list[str],
+          ref, query, gt, source, device, out: Path, notes: list, model=None) -> int:
+    """Run every grid point; write sweep.csv (one row per setting and engine) and sweep.json."""
+    rows = []
+    for point, flags in zip(points, grid):
+        setting = " ".join(flags)
+        print(f"sweep: {setting}", file=sys.stderr)
+        for name, r in run_engines(point, ref, query, device, notes, model).items():
+            m = engine_metrics(r, gt, point.run.target_precision)
+            op = m.get("operating_point") or {}
+            rows.append({"setting": setting, "engine": name,
+                         **{k: m.get(k) for k in ("recall_at_1", "recall_at_5", "recall_at_10",
+                                                  "auc", "recall_at_100_precision")},
+                         "operating_recall": op.get("recall"),
+                         "operating_threshold": op.get("score_threshold"),
+                         "seconds": m["seconds"]})
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    write_text(out / "sweep.csv", buf.getvalue())
+    write_json(out / "sweep.json", {"inputs": source, "rows": rows, "warnings": notes})
+    write_text(out / "config.json", config_text({**config_dict(base), "sweep": specs}) + "\n")
+    for row in rows:
+        r1 = "n/a" if row["recall_at_1"] is None else f"{row['recall_at_1']:.3f}"
+        print(f"{row['setting']}: {row['engine']} recall@1 {r1}")
+    print(f"wrote {out / 'sweep.csv'}")
+    return 0
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """Entry point; returns the exit code (errors raise, see :func:`torchseq.frontend.run_main`).
+
+    Args:
+        argv: the flags (None: ``sys.argv[1:]``).
+        prog: the command's name in messages (``eval.py``, ``torchseq eval``).
+    """
+    global PROG
+    PROG = prog or PROG
+    s, points, grid, specs = parse_args(argv)
+    cfg = s.run
+    device = resolve_device(cfg.device)
+    event_frame_options(cfg)  # checked before any work
+    frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
+    out = run_folder(cfg.out, "eval", cfg.overwrite)
+    torch.manual_seed(cfg.seed)
+    model = None
+    if cfg.checkpoint and cfg.engine in ("neural", "both"):
+        model = load_model(cfg.checkpoint, device)
+    notes: list[str] = []
+    ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes)
+    if grid:
+        return sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
+    results = run_engines(s, ref, query, device, notes, model)
+    summary = report(s, ref, query, gt, source, results, out, notes)
+    for name in results:
+        m = summary[name]
+        r1 = "n/a (no ground truth)" if m.get("recall_at_1") is None else \
+            f"{m['recall_at_1']:.3f}"
+        auc = "" if m.get("auc") is None else f", AUC {m['auc']:.3f}"
+        print(f"{name}: recall@1 {r1}{auc} over {m['n_queries']} queries "
+              f"({m['seconds']:.2f} s)")
+    print(f"wrote {out / 'metrics.json'}, {out / 'matches.csv'} and plots to {out}")
+    return 0
+
+
+def cli(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """Run as a command: expected failures become one ``prog: error:`` line and exit 2."""
+    prog = prog or PROG
+    return run_main(lambda a: main(a, prog), prog, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(cli())

@@ -1,0 +1,233 @@
+"""Learn a Neural SeqSLAM model from a reference traverse (one pass, local learning rules).
+
+With no arguments it trains on the built-in demo route. Each run writes into its own folder
+(``--out``, default a new ``runs/train-<time>``): ``model.pt`` (the checkpoint carries its
+config and a record of its reference), ``config.json`` (replay it with ``--config``), PNG
+plots and TensorBoard logs in ``tensorboard/``. ``--export`` then writes the deployment files
+to ``OUT/export``, validated as ``python -m torchseq.export`` does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from torchseq import plots
+from torchseq.atomic import write_text
+from torchseq.demo import make_demo
+from torchseq.frontend import (
+    Parser,
+    UsageError,
+    add_config_flags,
+    check_neural,
+    check_ranges,
+    config_file_defaults,
+    config_from_args,
+    config_text,
+    event_options,
+    frame_selection,
+    parse_size,
+    resolve_device,
+    run_folder,
+    run_main,
+    to_jsonable,
+)
+from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
+from torchseq.sources import FrameSelection, load_traverse_sizes
+
+PROG = "torchseq train"  # set by main() to the name the user ran
+
+
+@dataclass
+class TrainConfig:
+    """What a training run depends on besides the model's own :class:`NeuralConfig`."""
+
+    reference: str | None = None
+    out: str | None = None
+    overwrite: bool = False
+    window_ms: float = 10.0
+    event_count: int | None = None
+    frame_size: str | None = None
+    window_anchor: str = "first"
+    sensor_size: str | None = None
+    event_mode: str = "count"
+    evt3_time: str = "spec"
+    truncated: str = "error"
+    start: int = 0
+    stop: int | None = None
+    frame_step: int = 1
+    max_frames: int | None = None
+    demo_frames: int = 200
+    demo_seed: int = 0
+    device: str = "cpu"
+    tensorboard: bool = True
+    progress: bool = True
+    export: bool = False
+    export_query: str | None = None
+    export_ground_truth: str | None = None
+    export_frame_size: str | None = None
+
+
+HELP = {
+    "reference": "reference traverse: image folder, video, frame array (.npy/.npz) or event file; "
+                 "default: the built-in demo route",
+    "out": "output folder of this run (default: a new runs/train-<UTC time>)",
+    "overwrite": "replace a previous run's --out folder instead of refusing",
+    "window_ms": "event files: accumulation window in milliseconds",
+    "event_count": "event files: events per frame instead of a time window",
+    "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
+    "window_anchor": "event files: where the first window starts: 'first' (first event), "
+                     "'zero' (sensor time 0) or a sensor time in microseconds",
+    "demo_frames": "demo: reference frames",
+    "demo_seed": "demo: random seed of the route",
+    "device": "cpu, cuda or auto",
+    "tensorboard": "write TensorBoard logs",
+    "progress": "show progress bars",
+    "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
+    "event_mode": "event files: pixel value of a frame: count (events) or signed (|ON - OFF|)",
+    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
+                 "incomplete record",
+    "start": "first reference frame to use (0-based)",
+    "stop": "reference frame index to stop before",
+    "frame_step": "use every N-th reference frame from --start",
+    "max_frames": "use at most this many reference frames",
+    "export": "after training, export ONNX and integer files to OUT/export and validate them",
+    "export_query": "query traverse to validate the export on (default: the model's own "
+                    "reference, as python -m torchseq.export)",
+    "export_ground_truth": "ground truth of --export-query (CSV or .npy, see eval.py)",
+    "export_frame_size": "camera frame size HxW the integer device takes (default: the "
+                         "reference's frame size)",
+}
+LIMITS = {"demo_frames": (2, 20_000), "demo_seed": (0, 2 ** 32 - 1), "start": (0, 2 ** 40),
+          "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40), "max_frames": (1, 2 ** 40)}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The train.py flags: TrainConfig, then every NeuralConfig field."""
+    parser = Parser(prog=PROG, description=__doc__.split("\n")[0])
+    parser.add_argument("--config", help="replay a run: its config.json gives the defaults, "
+                        "flags override them")
+    add_config_flags(parser, TrainConfig, HELP)
+    add_config_flags(parser.add_argument_group("model (NeuralConfig)"), NeuralConfig, {})
+    return parser
+
+
+def parse_args(argv: list[str] | None) -> tuple[TrainConfig, NeuralConfig]:
+    """Flags -> (:class:`TrainConfig`, :class:`NeuralConfig`), every number range-checked."""
+    parser = build_parser()
+    pre, _ = parser.parse_known_args(argv)
+    if pre.config:
+        config_file_defaults(parser, pre.config, {"train": "", "model": ""})
+    args = parser.parse_args(argv)
+    cfg = config_from_args(TrainConfig, args)
+    check_ranges(cfg, LIMITS)
+    parse_size(cfg.export_frame_size)
+    ncfg = config_from_args(NeuralConfig, args)
+    check_neural(ncfg)
+    return cfg, ncfg.validate()
+
+
+def log_training(cfg: TrainConfig, ncfg: NeuralConfig, model: NeuralSeqSLAM,
+                 log: NeuralFitLog, out: Path) -> None:
+    """Figures as PNG and, with TensorBoard on, scalars, images, histograms and the config."""
+    activity = log.evidence
+    figures = {
+        "reference_activity": plots.plot_activity_raster(
+            activity, log.winners, "output activity over the reference (winners marked)"),
+        "ring_shift_matrix": plots.plot_matrix(model.ring.shift, "learnt ring shift matrix"),
+    }
+    images = {k: plots.figure_to_array(f) for k, f in figures.items()}
+    for k, f in figures.items():
+        plots.save_figure(f, out / f"{k}.png")
+    if not cfg.tensorboard:
+        return
+    from torch.utils.tensorboard import SummaryWriter
+
+    with SummaryWriter(log_dir=str(out / "tensorboard")) as tb:
+        text = config_text({"train": cfg, "model": ncfg})
+        tb.add_text("config", "```\n" + text + "\n```")
+        for k, img in images.items():
+            tb.add_image(k, img, dataformats="HWC")
+        for name, p in list(model.named_parameters()) + list(model.named_buffers()):
+            if p.is_floating_point() and p.numel() > 1:
+                tb.add_histogram(f"weights/{name}", p.detach().float().cpu())
+        tb.add_histogram("activity/reference", torch.as_tensor(activity).float())
+        tb.add_scalar("train/reference_frames", len(activity))
+        tb.add_scalar("train/model_bytes", model.model_bytes())
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """Entry point; returns the exit code (errors raise, see :func:`torchseq.frontend.run_main`).
+
+    Args:
+        argv: the flags (None: ``sys.argv[1:]``).
+        prog: the command's name in messages (``eval.py``, ``torchseq eval``).
+    """
+    global PROG
+    PROG = prog or PROG
+    cfg, ncfg = parse_args(argv)
+    device = resolve_device(cfg.device)
+    events = event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
+                           cfg.window_anchor, cfg.sensor_size, cfg.event_mode,
+                           cfg.evt3_time, cfg.truncated)
+    select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
+    out = run_folder(cfg.out, "train", cfg.overwrite)
+    if cfg.reference is None:
+        if select != FrameSelection():
+            raise UsageError("--start/--stop/--frame-step/--max-frames select frames of "
+                             "--reference, not of the demo route (use --demo-frames)")
+        source = make_demo(n_reference=cfg.demo_frames, seed=cfg.demo_seed).reference
+        reference = {"source": "demo", "demo_frames": cfg.demo_frames,
+                     "demo_seed": cfg.demo_seed}
+    else:
+        source = cfg.reference
+        reference = {"source": str(Path(cfg.reference).resolve()),
+                     "events": to_jsonable(events), "select": to_jsonable(select)}
+    try:  # shrunk frame by frame to the model's input size: long videos fit in memory
+        loaded, info = load_traverse_sizes(source, {"input": ncfg.input_size}, events,
+                                           cfg.progress, select)
+    except (ValueError, OSError) as err:
+        raise UsageError(f"reference traverse {cfg.reference}: {str(err).splitlines()[0]}"
+                         ) from err
+    frames = loaded["input"]
+    reference.update(n_frames=info["n_frames"], frame_size=info["frame_size"])
+    model = NeuralSeqSLAM(ncfg, device=device)
+    start = time.perf_counter()
+    log = model.fit(frames, progress=cfg.progress)
+    seconds = time.perf_counter() - start
+    model.save(out / "model.pt", extra={"train_config": to_jsonable(cfg),
+                                        "reference": reference})
+    write_text(out / "config.json", config_text({"train": cfg, "model": ncfg}) + "\n")
+    log_training(cfg, ncfg, model, log, out)
+    print(f"trained on {len(frames)} reference frames in {seconds:.2f} s "
+          f"({1e3 * seconds / len(frames):.2f} ms/frame); model {model.model_bytes()} bytes; "
+          f"wrote {out / 'model.pt'}")
+    if cfg.export:
+        from torchseq.export.cli import export_checkpoint, summary_lines
+
+        ok = export_checkpoint(out / "model.pt", out / "export", query=cfg.export_query,
+                               ground_truth=cfg.export_ground_truth,
+                               frame_size=parse_size(cfg.export_frame_size))
+        for line in summary_lines(out / "export"):
+            print(f"export: {line}")
+        if not ok:
+            print(f"{PROG}: export validation failed, see {out / 'export' / 'validation.json'}",
+                  file=sys.stderr)
+            return 1
+    return 0
+
+
+def cli(argv: list[str] | None = None, prog: str | None = None) -> int:
+    """Run as a command: expected failures become one ``prog: error:`` line and exit 2."""
+    prog = prog or PROG
+    return run_main(lambda a: main(a, prog), prog, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(cli())
