@@ -23,7 +23,13 @@ from torchseq.events.aedat2 import iter_aedat2
 from torchseq.events.aedat4 import iter_aedat4
 from torchseq.events.plain import iter_npy, read_csv, read_npz
 from torchseq.events.prophesee import iter_raw
-from torchseq.events.stream import EventFormatError, EventStream, order_events, validate_events
+from torchseq.events.stream import (
+    EventFormatError,
+    EventStream,
+    check_contents,
+    first_backward,
+    order_events,
+)
 
 DEFAULT_CHUNK = 1 << 20
 
@@ -33,8 +39,11 @@ def detect_format(path: str | Path) -> str:
     path = Path(path)
     if not path.is_file():
         raise EventFormatError(f"no such event file: {path}")
-    with open(path, "rb") as f:
-        head = f.read(16)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError as err:
+        raise EventFormatError(f"{path}: cannot read ({err.strerror})") from None
     if not head:
         raise EventFormatError(f"{path}: empty file")
     if head.startswith(b"#!AER-DAT2"):
@@ -68,13 +77,48 @@ def _chunks(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict)
     return iter([read_npz(path, sensor_size) if fmt == "npz" else read_csv(path, sensor_size)])
 
 
+def _checked(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict,
+             check_order: bool) -> Iterator[EventStream]:
+    """The chunks of ``path``, each checked (contents; time order within and across chunks).
+
+    Every failure is an :class:`EventFormatError` naming the file and, where the reader
+    knows it, the byte offset of the chunk (see :class:`~torchseq.events.stream.Chunk`).
+    """
+    if chunk_events < 1:
+        raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
+    last, seen = None, 0
+    for chunk in _chunks(path, fmt, chunk_events, sensor_size, options):
+        offset = getattr(chunk, "offset", None)
+        where = f" (in the chunk read from byte {offset})" if offset is not None else ""
+        try:
+            check_contents(chunk.events, chunk.sensor_size)
+        except EventFormatError as err:
+            raise EventFormatError(f"{path}: {err}{where}") from None
+        t = chunk.events["t"]
+        if check_order and len(t):
+            i = first_backward(t)
+            if i is not None:
+                raise EventFormatError(
+                    f"{path}: timestamps go backwards at event #{seen + i} ({t[i - 1]} -> {t[i]} "
+                    f"us){where}; use read_events(sort=True)")
+            if last is not None and t[0] < last:
+                raise EventFormatError(
+                    f"{path}: timestamps go backwards at event #{seen} ({last} -> {t[0]} us)"
+                    f"{where}; use read_events(sort=True)")
+        if len(t):
+            last = t[-1]
+        seen += len(t)
+        yield chunk
+
+
 def iter_events(path: str | Path, chunk_events: int = DEFAULT_CHUNK,
                 sensor_size: tuple[int, int] | None = None,
                 **options) -> Iterator[EventStream]:
     """Stream an event file in chunks without loading it whole (see the module table).
 
-    Every chunk is checked: coordinates inside the sensor and time never going backwards,
-    within and across chunks (reorder with ``read_events(..., sort=True)``).
+    Every chunk is checked by the same rules as :func:`read_events`: coordinates inside
+    the sensor, polarity 0/1, and time never going backwards, within and across chunks
+    (reorder with ``read_events(..., sort=True)``).
 
     Args:
         path: the event file.
@@ -88,23 +132,10 @@ def iter_events(path: str | Path, chunk_events: int = DEFAULT_CHUNK,
 
     Raises:
         EventFormatError: unknown or malformed file, events outside the sensor, time going
-            backwards.
+            backwards; the message names the file and, where known, the byte offset.
     """
-    if chunk_events < 1:
-        raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
     path = Path(path)
-    last = None
-    for chunk in _chunks(path, detect_format(path), chunk_events, sensor_size, options):
-        try:
-            validate_events(chunk.events, chunk.sensor_size)
-        except EventFormatError as err:
-            raise EventFormatError(f"{path}: {err}") from None
-        if len(chunk) and last is not None and chunk.events["t"][0] < last:
-            raise EventFormatError(f"{path}: timestamps go backwards between chunks ({last} -> "
-                                   f"{chunk.events['t'][0]} us); use read_events(sort=True)")
-        if len(chunk):
-            last = chunk.events["t"][-1]
-        yield chunk
+    yield from _checked(path, detect_format(path), chunk_events, sensor_size, options, True)
 
 
 def read_events(path: str | Path, sensor_size: tuple[int, int] | None = None,
@@ -124,10 +155,11 @@ def read_events(path: str | Path, sensor_size: tuple[int, int] | None = None,
         The events, time-ordered and checked against the sensor size.
     """
     path = Path(path)
-    chunks = list(_chunks(path, detect_format(path), chunk_events, sensor_size, options))
-    events = np.concatenate([c.events for c in chunks])
-    stream = EventStream(order_events(events, sort, str(path)), chunks[0].sensor_size)
-    try:
-        return stream.validate()
-    except EventFormatError as err:
-        raise EventFormatError(f"{path}: {err}") from None
+    chunks = list(_checked(path, detect_format(path), chunk_events, sensor_size, options,
+                           not sort))
+    events = chunks[0].events if len(chunks) == 1 else np.concatenate([c.events for c in chunks])
+    if sort:
+        events = order_events(events, True, str(path))
+    if not events.flags.writeable:
+        events = events.copy()
+    return EventStream(events, chunks[0].sensor_size)

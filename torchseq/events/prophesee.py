@@ -25,7 +25,16 @@ from pathlib import Path
 
 import numpy as np
 
-from torchseq.events.stream import EventFormatError, EventStream, iter_records, make_events
+from torchseq.events.stream import (
+    Chunk,
+    EventFormatError,
+    EventStream,
+    check_sensor_size,
+    check_truncated,
+    file_error,
+    iter_records,
+    make_events,
+)
 
 PLUGIN_SIZES = {"gen41": (1280, 720), "imx636": (1280, 720), "gen31": (640, 480),
                 "gen3": (640, 480), "imx646": (1280, 720), "genx320": (320, 320)}
@@ -172,14 +181,20 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
         :class:`EventStream` chunks, time order not yet checked.
     """
     path = Path(path)
+    check_truncated(truncated)
+    if evt3_time not in ("spec", "carry"):
+        raise EventFormatError(f"unknown EVT 3.0 time mode {evt3_time!r} ('spec' or 'carry')")
+    if sensor_size is not None:
+        sensor_size = check_sensor_size(sensor_size)
     with open(path, "rb") as f:
         try:
             fmt, size = read_header(f)
+            size = sensor_size if sensor_size is not None else (
+                check_sensor_size(size, "the header's geometry") if size is not None else None)
         except EventFormatError as err:
-            raise EventFormatError(f"{path}: {err}") from None
-        size = tuple(sensor_size) if sensor_size is not None else size
+            raise file_error(path, 0, str(err)) from None
         if size is None:
-            raise EventFormatError(f"{path}: header gives no sensor geometry; pass sensor_size=")
+            raise file_error(path, 0, "header gives no sensor geometry; pass sensor_size=")
         if fmt == "evt3":
             dtype = np.dtype("<u2")
             def decode(words, state):
@@ -188,5 +203,5 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
             dtype, decode = np.dtype("<u4"), decode_evt2
         body = path.stat().st_size - f.tell()
         state: dict = {}
-        for words in iter_records(f, path, dtype, body, chunk_events, truncated, "word"):
-            yield EventStream(decode(words, state), size)
+        for offset, words in iter_records(f, path, dtype, body, chunk_events, truncated, "word"):
+            yield Chunk(decode(words, state), size, offset)
