@@ -5,7 +5,7 @@ sensor size ``(W, H)``: an :class:`EventStream`. See ``docs/events.md``.
 """
 
 from torchseq.events.aedat2 import iter_aedat2, write_aedat2
-from torchseq.events.aedat4 import iter_aedat4
+from torchseq.events.aedat4 import iter_aedat4, write_aedat4
 from torchseq.events.filters import hot_pixel_mask, refractory_mask
 from torchseq.events.frames import accumulate
 from torchseq.events.io import detect_format, iter_events, read_events
@@ -44,5 +44,6 @@ __all__ = [
     "read_npz",
     "refractory_mask",
     "write_aedat2",
+    "write_aedat4",
     "write_npz",
 ]
