@@ -27,6 +27,7 @@ from torchseq.events.stream import (
     EventFormatError,
     EventStream,
     check_contents,
+    file_error,
     first_backward,
     order_events,
 )
@@ -45,13 +46,13 @@ def detect_format(path: str | Path) -> str:
     except OSError as err:
         raise EventFormatError(f"{path}: cannot read ({err.strerror})") from None
     if not head:
-        raise EventFormatError(f"{path}: empty file")
+        raise file_error(path, 0, "empty file")
     if head.startswith(b"#!AER-DAT2"):
         return "aedat2"
     if head.startswith(b"#!AER-DAT4"):
         return "aedat4"
     if head.startswith(b"#!AER-DAT"):
-        raise EventFormatError(f"{path}: unsupported AEDAT version {head[:13]!r}")
+        raise file_error(path, 0, f"unsupported AEDAT version {head[:13]!r}")
     if head.startswith(b"%"):
         return "raw"
     if head.startswith(b"\x93NUMPY"):
@@ -60,7 +61,7 @@ def detect_format(path: str | Path) -> str:
         return "npz"
     if path.suffix.lower() in (".csv", ".txt"):
         return "csv"
-    raise EventFormatError(f"{path}: unknown event file format (starts {head[:12]!r})")
+    raise file_error(path, 0, f"unknown event file format (starts {head[:12]!r})")
 
 
 def _chunks(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict):

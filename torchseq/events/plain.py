@@ -193,30 +193,40 @@ def read_npz(path: str | Path, sensor_size: tuple[int, int] | None = None) -> Ev
     path = Path(path)
     if sensor_size is not None:
         sensor_size = check_sensor_size(sensor_size)
+    # where a zip failure sits: the central directory (end of the file), then each member
+    where = [max(path.stat().st_size - 22, 0)]
+
+    def member(zf, name):
+        where[0] = zf.getinfo(name).header_offset
+        return _read_member(zf, name, path)
+
     try:
         with zipfile.ZipFile(path) as zf:
             files = {n[:-4] for n in zf.namelist() if n.endswith(".npy")}
             if "events" in files:
-                events = _convert(_read_member(zf, "events.npy", path), path, None)
+                events = _convert(member(zf, "events.npy"), path, where[0])
             elif {"t", "x", "y", "p"} <= files:
-                cols = [_read_member(zf, f"{k}.npy", path) for k in "txyp"]
+                cols = [member(zf, f"{k}.npy") for k in "txyp"]
                 try:
                     events = make_events(*cols)
-                except EventFormatError as err:
-                    raise file_error(path, None, str(err)) from None
+                except EventFormatError as err:  # point at the member the message names
+                    name = f"{str(err)[0]}.npy"
+                    at = zf.getinfo(name).header_offset if name in zf.namelist() else None
+                    raise file_error(path, at if at is not None else where[0], str(err)
+                                     ) from None
             else:
-                raise file_error(path, None, "no 'events' or 't, x, y, p' arrays in the .npz")
+                raise file_error(path, where[0], "no 'events' or 't, x, y, p' arrays in the "
+                                 ".npz's directory")
             if sensor_size is None and "sensor_size" in files:
-                stored = _read_member(zf, "sensor_size.npy", path)
+                stored = member(zf, "sensor_size.npy")
                 try:
                     sensor_size = check_sensor_size(stored.tolist(), "the stored sensor_size")
                 except EventFormatError as err:
-                    raise file_error(path, zf.getinfo("sensor_size.npy").header_offset,
-                                     str(err)) from None
+                    raise file_error(path, where[0], str(err)) from None
     except _ZIP_ERRORS as err:
         if isinstance(err, EventFormatError):
             raise
-        raise file_error(path, None, f"not a readable .npz file ({type(err).__name__}: "
+        raise file_error(path, where[0], f"not a readable .npz file ({type(err).__name__}: "
                          f"{err})") from None
     return _with_size(events, sensor_size, path)
 
