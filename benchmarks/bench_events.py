@@ -14,17 +14,29 @@ written to a temporary folder.
 from __future__ import annotations
 
 import argparse
+import importlib
 import importlib.util
+import os
 import sys
 import tempfile
 import time
+import tracemalloc
 import types
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from torchseq.events import EventStream, accumulate, make_events, read_events, write_aedat2
+from torchseq.events import (
+    EventStream,
+    accumulate,
+    iter_events,
+    make_events,
+    read_events,
+    write_aedat2,
+    write_aedat4,
+)
+from torchseq.events.prophesee import write_evt3
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "events"
@@ -121,7 +133,100 @@ def bench_accumulate(n_events: int) -> list[tuple[str, float, str]]:
     return rows
 
 
-def bench_readers() -> list[tuple[str, float, str]]:
+# ---------------------------------------------------------------- readers (events-readers)
+# Field readers compared when importable: `aedat` (MIT, Rust), `dv-processing` (Apache-2.0,
+# C++), `evlib` (MIT, Rust + polars). They are not torchseq dependencies; install them
+# anywhere and point TORCHSEQ_BENCH_LIBS at that folder (appended to sys.path, so this
+# environment's numpy stays first), e.g. `pip install --target /tmp/evlibs aedat
+# dv-processing evlib`.
+
+
+def _field_readers() -> dict:
+    extra = os.environ.get("TORCHSEQ_BENCH_LIBS")
+    if extra:
+        sys.path.append(extra)
+    libs = {}
+    for name in ("aedat", "dv_processing", "evlib"):
+        try:
+            libs[name] = importlib.import_module(name)
+        except Exception as err:  # noqa: BLE001 - any failure means "not available"
+            print(f"{name} not available: {type(err).__name__}", file=sys.stderr)
+    return libs
+
+
+def _aedat_pkg(mod, path):
+    parts = [pk["events"] for pk in mod.Decoder(str(path)) if "events" in pk]
+    ev = np.concatenate(parts)
+    return make_events(ev["t"], ev["x"], ev["y"], ev["on"])
+
+
+def _dv(mod, path):
+    rec, parts = mod.io.MonoCameraRecording(str(path)), []
+    while (batch := rec.getNextEventBatch()) is not None:
+        parts.append(batch.numpy())
+    ev = np.concatenate(parts)
+    return make_events(ev["timestamp"], ev["x"], ev["y"], ev["polarity"])
+
+
+def _evlib(mod, path):
+    df = mod.load_events(str(path))
+    df = df.collect() if hasattr(df, "collect") else df
+    return make_events(df["t"].cast(int).to_numpy(), df["x"].to_numpy(), df["y"].to_numpy(),
+                       df["polarity"].to_numpy() > 0)
+
+
+FIELD = {"aedat": ("aedat 2.3 (Rust)", _aedat_pkg, {".aedat4"}),
+         "dv_processing": ("dv-processing 2.0 (C++)", _dv, {".aedat4"}),
+         "evlib": ("evlib 0.13 (Rust, polars)", _evlib, {".aedat", ".aedat4", ".raw"})}
+
+
+def _compare_row(label, name, fn, path, ours, repeat):
+    """A row for a field reader: its rate and whether it gives our events."""
+    try:
+        t, ev = timed(lambda: fn(path), repeat)
+    except Exception as err:  # noqa: BLE001 - report any failure in the table
+        return (label, float("nan"), f"fails: {type(err).__name__}: {str(err)[:60]}")
+    if np.array_equal(ev, ours):
+        verdict = "same events"
+    elif len(ev) == len(ours) and all(np.array_equal(ev[f], ours[f]) for f in "xyp"):
+        verdict = "same x, y, p; t differs"
+    else:
+        verdict = f"different events ({len(ev):,} vs {len(ours):,})"
+    return (label, len(ev) / t, verdict)
+
+
+def _stream(path, chunk=1 << 20):
+    n = 0
+    for c in iter_events(path, chunk):
+        n += len(c)
+    return n
+
+
+def _stream_peak(path) -> float:
+    tracemalloc.start()
+    _stream(path)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak / 2**20
+
+
+def _bursts(n, w, h, seed=0, span_us=1_000_000):
+    """Edge-like events: horizontal runs of 1-8 pixels at one (t, y, p), time-ordered."""
+    rng = np.random.default_rng(seed)
+    lens = rng.integers(1, 9, n // 4 + 1)
+    lens = lens[: np.searchsorted(np.cumsum(lens), n) + 1]
+    m = len(lens)
+    owner = np.repeat(np.arange(m), lens)
+    off = np.arange(len(owner)) - np.repeat(np.cumsum(lens) - lens, lens)
+    t = np.sort(rng.integers(0, span_us, m))
+    ev = make_events(t[owner], rng.integers(0, w - 8, m)[owner] + off,
+                     rng.integers(0, h, m)[owner], rng.integers(0, 2, m)[owner])[:n]
+    return EventStream(ev, (w, h))
+
+
+def bench_readers(n_large: int = 10_000_000) -> list[tuple[str, float, str]]:
+    """Reader rows: the real files whole, then large written files streamed, + field readers."""
+    libs = _field_readers()
     rows = []
     files = [("IMU_translBoxes.aedat", "AEDAT 2.0 DAVIS", {}),
              ("alex_walking_again.aedat", "AEDAT 2.0 DVS128", {}),
@@ -131,18 +236,37 @@ def bench_readers() -> list[tuple[str, float, str]]:
         path = DATA / name
         if not path.exists():
             continue
-        t, s = timed(lambda: read_events(path, **kw), 3)
-        rows.append((f"{label}: {name}", len(s) / t, f"{path.stat().st_size / t / 1e6:.0f} MB/s"))
-    with tempfile.TemporaryDirectory() as tmp:
-        rng = np.random.default_rng(1)
-        n = 4_000_000
-        s = EventStream(make_events(np.sort(rng.integers(0, 10**8, n)), rng.integers(0, 128, n),
-                                    rng.integers(0, 128, n), rng.integers(0, 2, n)), (128, 128))
-        path = Path(tmp) / "big.aedat"
-        write_aedat2(path, s)
-        t, back = timed(lambda: read_events(path), 3)
-        rows.append(("AEDAT 2.0 DVS128, synthetic 4M events", n / t,
+        t, s = timed(lambda: read_events(path, **kw), 5)
+        rows.append((f"torchseq, {label}: {name}", len(s) / t,
                      f"{path.stat().st_size / t / 1e6:.0f} MB/s"))
+        for lib, mod in libs.items():
+            label2, fn, sfx = FIELD[lib]
+            if path.suffix in sfx:
+                rows.append(_compare_row(f"{label2}, same file", lib, lambda p: fn(mod, p),
+                                         path, s.events, 5))
+    with tempfile.TemporaryDirectory() as tmp:
+        s = _bursts(n_large, 1280, 720, span_us=n_large // 20)  # 20 M events/s of scene
+        ev = s.events
+        big = [("AEDAT 2.0 DAVIS346", Path(tmp) / "big.aedat", lambda p: write_aedat2(
+                   p, EventStream(make_events(ev["t"], ev["x"] % 346, ev["y"] % 260, ev["p"]),
+                                  (346, 260)), layout="davis")),
+               ("EVT 3.0 1280x720", Path(tmp) / "big.raw", lambda p: write_evt3(p, s)),
+               ("AEDAT 4.0 LZ4 1280x720", Path(tmp) / "big.aedat4",
+                lambda p: write_aedat4(p, s))]
+        for label, path, write in big:
+            write(path)
+            t, n = timed(lambda: _stream(path), 3)
+            peak = _stream_peak(path)
+            rows.append((f"torchseq, {label}, {n:,} events written by torchseq, streamed "
+                         f"(iter_events, 2^20 per chunk)", n / t,
+                         f"{path.stat().st_size / t / 1e6:.0f} MB/s, peak {peak:.0f} MiB"))
+            ours = read_events(path).events
+            for lib, mod in libs.items():
+                label2, fn, sfx = FIELD[lib]
+                if path.suffix in sfx:
+                    rows.append(_compare_row(f"{label2}, same file (whole read)", lib,
+                                             lambda p: fn(mod, p), path, ours, 3))
+            path.unlink()
     return rows
 
 
@@ -158,12 +282,15 @@ def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--events", type=int, default=2_000_000)
     p.add_argument("--write-docs", action="store_true")
+    p.add_argument("--reader-events", type=int, default=10_000_000)
     args = p.parse_args()
     torch.set_num_threads(1)
     text = (f"Accumulation of {args.events:,} random events (128x128, 10 ms windows over 2 s, "
             f"signed frames), one thread:\n\n"
-            + table("accumulation", bench_accumulate(args.events)) + "\n\nReaders (whole-file "
-            "read, best of 3):\n\n" + table("reader", bench_readers()))
+            + table("accumulation", bench_accumulate(args.events))
+            + "\n\nReaders, one thread (real files read whole, best of 5; large files "
+            "streamed, best of 3):\n\n"
+            + table("reader", bench_readers(args.reader_events)))
     print(text)
     if args.write_docs and DOC.exists():
         doc = DOC.read_text()

@@ -103,20 +103,41 @@ def parse_streams(info: str) -> dict[int, dict[str, str]]:
 
 
 def _lz4_package(payload: bytes, limit: int) -> bytes:
-    """LZ4 frames through the ``lz4`` package (C), at most ``limit`` bytes out."""
+    """LZ4 frames through the ``lz4`` package (C), at most ``limit`` bytes out.
+
+    A frame that states its content size (DV and torchseq write it) is decompressed in one
+    call into a buffer of that size, once the size is checked against ``limit``; otherwise
+    in pieces of at most 1 MiB, so the output never grows past what the frame holds.
+    """
     import lz4.frame
 
     out, data, total = [], payload, 0
     while data:
-        d = lz4.frame.LZ4FrameDecompressor()
-        out.append(d.decompress(data, max_length=limit - total + 1))
-        total += len(out[-1])
-        if total > limit:
+        size = lz4.frame.get_frame_info(data[:32])["content_size"]
+        if 0 < size <= limit - total:
+            d = lz4.frame.LZ4FrameDecompressor()
+            out.append(d.decompress(data, max_length=size + 1))
+            if len(out[-1]) != size or not d.eof:
+                raise LZ4Error(f"frame holds {len(out[-1])} bytes, its header says {size}")
+            total += size
+            data = d.unused_data
+            continue
+        if size > limit - total:
             raise LZ4Error(f"decompresses to more than {limit} bytes")
+        d = lz4.frame.LZ4FrameDecompressor()
+        piece = d.decompress(data, max_length=min(1 << 20, limit - total + 1))
+        while True:
+            out.append(piece)
+            total += len(piece)
+            if total > limit:
+                raise LZ4Error(f"decompresses to more than {limit} bytes")
+            if d.eof or d.needs_input:
+                break
+            piece = d.decompress(b"", max_length=min(1 << 20, limit - total + 1))
         if not d.eof:
             raise LZ4Error("truncated LZ4 frame")
         data = d.unused_data
-    return b"".join(out)
+    return b"".join(out) if len(out) != 1 else out[0]
 
 
 try:  # the LZ4 kernel, chosen once here: the C package when installed, else pure Python
