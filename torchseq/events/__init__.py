@@ -10,7 +10,7 @@ from torchseq.events.filters import hot_pixel_mask, refractory_mask
 from torchseq.events.frames import accumulate
 from torchseq.events.io import detect_format, iter_events, read_events
 from torchseq.events.plain import read_csv, read_npz, write_npz
-from torchseq.events.prophesee import iter_raw
+from torchseq.events.prophesee import iter_raw, write_evt3
 from torchseq.events.runs import EventRun, simulate_run
 from torchseq.events.simulator import frames_to_events
 from torchseq.events.stream import (
@@ -45,5 +45,6 @@ __all__ = [
     "refractory_mask",
     "write_aedat2",
     "write_aedat4",
+    "write_evt3",
     "write_npz",
 ]
