@@ -725,3 +725,23 @@ def test_evt3_writer_round_trip_of_the_real_recording(tmp_path):
     real = read_events(need("evt3_sample.raw"))
     write_evt3(tmp_path / "r.raw", real)
     assert np.array_equal(read_events(tmp_path / "r.raw").events, by_time_row_pol_x(real.events))
+
+
+def test_hot_pixel_mask_dense_and_sparse_paths_agree_and_stay_small():
+    import tracemalloc
+
+    from torchseq.events import hot_pixel_mask
+    rng = np.random.default_rng(2)
+    n = 3000
+    ev = make_events(np.arange(n), rng.integers(0, 20, n), rng.integers(0, 10, n),
+                     rng.integers(0, 2, n))
+    ev["x"][:400], ev["y"][:400] = 7, 3  # one hot pixel
+    dense = hot_pixel_mask(ev, (20, 10), 5.0)  # 200 pixels: the bincount path
+    assert np.array_equal(dense, (ev["x"] != 7) | (ev["y"] != 3))
+    big = ev.copy()
+    big["x"], big["y"] = ev["x"] * 1500, ev["y"] * 3000  # same pixels on a 32768^2 sensor
+    tracemalloc.start()
+    sparse = hot_pixel_mask(big, (32768, 32768), 5.0)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert np.array_equal(sparse, dense) and peak < 2_000_000  # not 8 GiB of counts
