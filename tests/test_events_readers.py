@@ -328,6 +328,7 @@ def test_aedat4_pure_python_path_equals_library_path(monkeypatch):
     fast = read_events(path)
     import torchseq.events.aedat4 as a4
 
+    assert a4.lz4_decompress is a4._lz4_package  # lz4 installed: the C kernel is the one used
     monkeypatch.setattr(a4, "lz4_decompress", decompress_frames)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
