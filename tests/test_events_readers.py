@@ -746,3 +746,12 @@ def test_hot_pixel_mask_dense_and_sparse_paths_agree_and_stay_small():
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert np.array_equal(sparse, dense) and peak < 2_000_000  # not 8 GiB of counts
+
+
+def test_options_for_another_format(tmp_path):
+    s = random_events(10, 16, 16)
+    write_npz(tmp_path / "e.aedat4", s)  # an .npz under an AEDAT 4 name
+    with pytest.raises(EventFormatError, match=r"is npz .* \['truncated'\] do not apply"):
+        read_events(tmp_path / "e.aedat4", truncated="drop")
+    with pytest.raises(TypeError, match="unknown event file option"):
+        read_events(tmp_path / "e.aedat4", truncatd="drop")

@@ -33,6 +33,27 @@ from torchseq.events.stream import (
 )
 
 DEFAULT_CHUNK = 1 << 20
+# the format options each format takes (a format not listed takes none); a new format
+# registers its options here beside its detect_format and _chunks lines
+FORMAT_OPTIONS = {"aedat2": {"layout", "flip_y", "truncated"}, "aedat4": {"truncated"},
+                  "raw": {"truncated", "evt3_time"},
+                  "hdf5": {"group", "columns", "time_unit"}, "parquet": {"columns", "time_unit"}}
+
+
+def _check_options(path: Path, fmt: str, options: dict) -> None:
+    """Check the format options against the file's format.
+
+    TypeError for options no format takes; EventFormatError when the file's format (found
+    from its first bytes, so perhaps not the one the caller expected) does not take them.
+    """
+    known = set().union(*FORMAT_OPTIONS.values())
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise TypeError(f"unknown event file option(s) {unknown} (known: {sorted(known)})")
+    foreign = sorted(set(options) - FORMAT_OPTIONS.get(fmt, set()))
+    if foreign:
+        raise file_error(path, 0, f"the file is {fmt} (by its first bytes); option(s) {foreign} "
+                         f"do not apply to it")
 
 
 def detect_format(path: str | Path) -> str:
@@ -87,6 +108,7 @@ def _checked(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict
     """
     if chunk_events < 1:
         raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
+    _check_options(path, fmt, options)
     last, seen = None, 0
     for chunk in _chunks(path, fmt, chunk_events, sensor_size, options):
         offset = getattr(chunk, "offset", None)
