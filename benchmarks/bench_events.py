@@ -7,8 +7,9 @@ Accumulation: torchseq's bincount ``accumulate`` against a straightforward NumPy
 (``np.add.at`` per window in a Python loop over windows), a plain Python per-event loop (on
 a slice, extrapolated per event) and tonic's ``to_frame_numpy`` when tonic is installed
 (benchmark only; loaded without its dataset dependencies). Readers: events per second on
-the real files (best of 3 passes, each a whole file read) and on a 4M-event AEDAT 2.0 file
-written to a temporary folder.
+the real files (best of 5 whole-file reads) and on large files written by torchseq's writers
+(AEDAT 2.0, AEDAT 4.0, EVT 3.0; streamed in bounded memory), with the field's readers
+(`aedat`, `dv-processing`, `evlib`) side by side when TORCHSEQ_BENCH_LIBS points at them.
 
 Accumulation rows also time the previous implementation (int64 flat index, one weighted
 bincount; kept here as ``previous_accumulate``) in the same run, a 20M-event stream, CUDA
@@ -26,18 +27,30 @@ CPU-time rates moved a few percent). Reader rows are wall time.
 from __future__ import annotations
 
 import argparse
+import importlib
 import importlib.util
+import os
 import sys
 import tempfile
 import time
+import tracemalloc
 import types
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from torchseq.events import EventStream, accumulate, make_events, read_events, write_aedat2
+from torchseq.events import (
+    EventStream,
+    accumulate,
+    iter_events,
+    make_events,
+    read_events,
+    write_aedat2,
+    write_aedat4,
+)
 from torchseq.events.ensemble import accumulate_ensemble
+from torchseq.events.prophesee import write_evt3
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "events"
@@ -252,7 +265,102 @@ def bench_experiment() -> list[tuple[str, float, str]]:
     return rows
 
 
-def bench_readers() -> list[tuple[str, float, str]]:
+# ---------------------------------------------------------------- readers (events-readers)
+# Field readers compared when importable: `aedat` (MIT, Rust), `dv-processing` (Apache-2.0,
+# C++), `evlib` (MIT, Rust + polars). They are not torchseq dependencies; install them
+# anywhere and point TORCHSEQ_BENCH_LIBS at that folder (appended to sys.path, so this
+# environment's numpy stays first), e.g. `pip install --target /tmp/evlibs aedat
+# dv-processing evlib`.
+
+
+def _field_readers() -> dict:
+    extra = os.environ.get("TORCHSEQ_BENCH_LIBS")
+    if extra:
+        sys.path.append(extra)
+    libs = {}
+    for name in ("aedat", "dv_processing", "evlib"):
+        try:
+            libs[name] = importlib.import_module(name)
+        except Exception as err:  # noqa: BLE001 - any failure means "not available"
+            print(f"{name} not available: {type(err).__name__}", file=sys.stderr)
+    return libs
+
+
+def _aedat_pkg(mod, path):
+    return np.concatenate([pk["events"] for pk in mod.Decoder(str(path)) if "events" in pk])
+
+
+def _dv(mod, path):
+    rec, parts = mod.io.MonoCameraRecording(str(path)), []
+    while (batch := rec.getNextEventBatch()) is not None:
+        parts.append(batch.numpy())
+    return np.concatenate(parts)
+
+
+def _evlib(mod, path):
+    df = mod.load_events(str(path))
+    df = df.collect() if hasattr(df, "collect") else df
+    return {"t": df["t"].cast(int).to_numpy(), "x": df["x"].to_numpy(),
+            "y": df["y"].to_numpy(), "p": df["polarity"].to_numpy() > 0}
+
+
+# each field reader's native output (timed) and its conversion to our events (not timed)
+FIELD = {"aedat": ("aedat 2.3 (Rust)", _aedat_pkg, {".aedat4"},
+                   lambda e: make_events(e["t"], e["x"], e["y"], e["on"])),
+         "dv_processing": ("dv-processing 2.0 (C++)", _dv, {".aedat4"},
+                           lambda e: make_events(e["timestamp"], e["x"], e["y"], e["polarity"])),
+         "evlib": ("evlib 0.13 (Rust, polars)", _evlib, {".aedat", ".aedat4", ".raw"},
+                   lambda e: make_events(e["t"], e["x"], e["y"], e["p"]))}
+
+
+def _compare_row(label, fn, convert, path, ours, repeat):
+    """A row for a field reader: its rate (native output) and whether it gives our events."""
+    try:
+        t, native = timed(lambda: fn(path), repeat)
+        ev = convert(native)
+    except Exception as err:  # noqa: BLE001 - report any failure in the table
+        return (label, float("nan"), f"fails: {type(err).__name__}: {str(err)[:60]}")
+    if np.array_equal(ev, ours):
+        verdict = "same events"
+    elif len(ev) == len(ours) and all(np.array_equal(ev[f], ours[f]) for f in "xyp"):
+        verdict = "same x, y, p; t differs"
+    else:
+        verdict = f"different events ({len(ev):,} vs {len(ours):,})"
+    return (label, len(ev) / t, verdict)
+
+
+def _stream(path, chunk=1 << 20):
+    n = 0
+    for c in iter_events(path, chunk):
+        n += len(c)
+    return n
+
+
+def _stream_peak(path) -> float:
+    tracemalloc.start()
+    _stream(path)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak / 2**20
+
+
+def _bursts(n, w, h, seed=0, span_us=1_000_000):
+    """Edge-like events: horizontal runs of 1-8 pixels at one (t, y, p), time-ordered."""
+    rng = np.random.default_rng(seed)
+    lens = rng.integers(1, 9, n // 4 + 1)
+    lens = lens[: np.searchsorted(np.cumsum(lens), n) + 1]
+    m = len(lens)
+    owner = np.repeat(np.arange(m), lens)
+    off = np.arange(len(owner)) - np.repeat(np.cumsum(lens) - lens, lens)
+    t = np.sort(rng.integers(0, span_us, m))
+    ev = make_events(t[owner], rng.integers(0, w - 8, m)[owner] + off,
+                     rng.integers(0, h, m)[owner], rng.integers(0, 2, m)[owner])[:n]
+    return EventStream(ev, (w, h))
+
+
+def bench_readers(n_large: int = 10_000_000) -> list[tuple[str, float, str]]:
+    """Reader rows: the real files whole, then large written files streamed, + field readers."""
+    libs = _field_readers()
     rows = []
     files = [("IMU_translBoxes.aedat", "AEDAT 2.0 DAVIS", {}),
              ("alex_walking_again.aedat", "AEDAT 2.0 DVS128", {}),
@@ -262,18 +370,39 @@ def bench_readers() -> list[tuple[str, float, str]]:
         path = DATA / name
         if not path.exists():
             continue
-        t, s = timed(lambda: read_events(path, **kw), 3)
-        rows.append((f"{label}: {name}", len(s) / t, f"{path.stat().st_size / t / 1e6:.0f} MB/s"))
-    with tempfile.TemporaryDirectory() as tmp:
-        rng = np.random.default_rng(1)
-        n = 4_000_000
-        s = EventStream(make_events(np.sort(rng.integers(0, 10**8, n)), rng.integers(0, 128, n),
-                                    rng.integers(0, 128, n), rng.integers(0, 2, n)), (128, 128))
-        path = Path(tmp) / "big.aedat"
-        write_aedat2(path, s)
-        t, back = timed(lambda: read_events(path), 3)
-        rows.append(("AEDAT 2.0 DVS128, synthetic 4M events", n / t,
+        t, s = timed(lambda: read_events(path, **kw), 5)
+        rows.append((f"torchseq, {label}: {name}", len(s) / t,
                      f"{path.stat().st_size / t / 1e6:.0f} MB/s"))
+        for lib, mod in libs.items():
+            label2, fn, sfx, convert = FIELD[lib]
+            if path.suffix in sfx:
+                rows.append(_compare_row(f"{label2}, same file", lambda p: fn(mod, p), convert,
+                                         path, s.events, 5))
+    with tempfile.TemporaryDirectory() as tmp:
+        s = _bursts(n_large, 1280, 720, span_us=n_large // 20)  # 20 M events/s of scene
+        ev = s.events
+        big = [("AEDAT 2.0 DAVIS346", Path(tmp) / "big.aedat", lambda p: write_aedat2(
+                   p, EventStream(make_events(ev["t"], ev["x"] % 346, ev["y"] % 260, ev["p"]),
+                                  (346, 260)), layout="davis")),
+               ("EVT 3.0 1280x720", Path(tmp) / "big.raw", lambda p: write_evt3(p, s)),
+               ("AEDAT 4.0 LZ4 1280x720", Path(tmp) / "big.aedat4",
+                lambda p: write_aedat4(p, s))]
+        for label, path, write in big:
+            write(path)
+            t, n = timed(lambda: _stream(path), 3)
+            peak = _stream_peak(path)
+            rows.append((f"torchseq, {label}, {n:,} events written by torchseq, streamed "
+                         f"(iter_events, 2^20 per chunk)", n / t,
+                         f"{path.stat().st_size / t / 1e6:.0f} MB/s, peak {peak:.0f} MiB"))
+            t, whole = timed(lambda: read_events(path), 3)
+            ours = whole.events
+            rows.append((f"torchseq, {label}, same file (whole read)", len(ours) / t, ""))
+            for lib, mod in libs.items():
+                label2, fn, sfx, convert = FIELD[lib]
+                if path.suffix in sfx:
+                    rows.append(_compare_row(f"{label2}, same file (whole read)",
+                                             lambda p: fn(mod, p), convert, path, ours, 3))
+            path.unlink()
     return rows
 
 
@@ -289,6 +418,7 @@ def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--events", type=int, default=2_000_000)
     p.add_argument("--write-docs", action="store_true")
+    p.add_argument("--reader-events", type=int, default=10_000_000)
     args = p.parse_args()
     torch.set_num_threads(1)
     text = (f"Accumulation of {args.events:,} random events (128x128, 10 ms windows over 2 s, "
@@ -296,8 +426,9 @@ def main() -> None:
             + table("accumulation", bench_accumulate(args.events)) + "\n\nAccumulation "
             "against the previous implementation (same frames, one run, events per second of "
             "process CPU time, best of 7):\n\n"
-            + table("accumulation", bench_accumulate_kernels()) + "\n\nReaders (whole-file "
-            "read, best of 3):\n\n" + table("reader", bench_readers())
+            + table("accumulation", bench_accumulate_kernels()) + "\n\nReaders, one thread "
+            "(real files read whole, best of 5; large files streamed, best of 3; wall time):\n\n"
+            + table("reader", bench_readers(args.reader_events))
             + "\n\nThe seed's speed experiment end to end (read, accumulate, match; one "
             "run, CPU time):\n\n" + table("pipeline", bench_experiment()))
     print(text)

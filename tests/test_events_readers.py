@@ -1,6 +1,7 @@
 import base64
 import struct
 import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +15,11 @@ from torchseq.events import (
     make_events,
     read_events,
     write_aedat2,
+    write_aedat4,
     write_npz,
 )
 from torchseq.events.lz4frame import LZ4Error, decompress_frames
+from torchseq.events.prophesee import write_evt3
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "events"
 
@@ -325,6 +328,7 @@ def test_aedat4_pure_python_path_equals_library_path(monkeypatch):
     fast = read_events(path)
     import torchseq.events.aedat4 as a4
 
+    assert a4.lz4_decompress is a4._lz4_package  # lz4 installed: the C kernel is the one used
     monkeypatch.setattr(a4, "lz4_decompress", decompress_frames)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -346,3 +350,408 @@ def test_evt2_hand_made_words(tmp_path):
     s = read_events(tmp_path / "e.raw")
     assert s.sensor_size == (16, 8)
     assert as_tuples(s.events) == [(1000, 3, 2, 1), (1010, 15, 7, 0), (5000, 0, 0, 1)]
+
+
+# ---------------------------------------------------------------- AEDAT 4 writer
+
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd", "none"])
+def test_aedat4_round_trip(tmp_path, compression):
+    s = random_events(3000, 640, 480, seed=3, t0=1_600_000_000_000_000)
+    write_aedat4(tmp_path / "e.aedat4", s, compression=compression, packet_events=700)
+    back = read_events(tmp_path / "e.aedat4")
+    assert back.sensor_size == (640, 480) and np.array_equal(back.events, s.events)
+    chunks = list(iter_events(tmp_path / "e.aedat4", chunk_events=1000))
+    assert [len(c) for c in chunks] == [1400, 1400, 200]  # whole packets of 700
+    assert np.array_equal(np.concatenate([c.events for c in chunks]), s.events)
+
+
+def test_aedat4_writer_layout_matches_the_real_file():
+    # the writer's packet flatbuffer decodes like the real DV packets: same header fields
+    from torchseq.events.aedat4 import _events_packet, decode_events_packet
+    ev = random_events(5, 320, 240).events
+    assert np.array_equal(decode_events_packet(_events_packet(ev)), ev)
+    raw = _events_packet(ev)
+    assert struct.unpack_from("<I", raw)[0] == len(raw) - 4 and raw[8:12] == b"EVTS"
+    assert (len(raw) - 16 * 5) % 8 == 0  # the struct vector is 8-byte aligned in the buffer
+
+
+# ---------------------------------------------------------------- regressions (fuzzer finds)
+# each of these failed on the reader before this change with a foreign exception or garbage
+
+
+def a4_bytes():
+    return need("sample.aedat4").read_bytes()
+
+
+def a4_info_span(data):
+    start = data.index(b"<dv version")
+    return start, data.index(b"</dv>") + 5
+
+
+@pytest.mark.parametrize("mutate,match", [
+    (lambda d: d[:18] + struct.pack("<I", 60_000) + d[22:], "IOHeader: offset"),  # root offset
+    (lambda d: d[:14] + struct.pack("<i", -5) + d[18:], "truncated AEDAT4 header"),
+    (lambda d: d.replace(b'"int">320<', b'"int">3x0<'), "bad sizeX"),
+    (lambda d: d.replace(b'"int">320<', b'"int">9e9<'), "bad sizeX"),
+])
+def test_aedat4_header_damage(tmp_path, mutate, match):
+    path = tmp_path / "bad.aedat4"
+    path.write_bytes(mutate(a4_bytes()))
+    with pytest.raises(EventFormatError, match=match) as err:
+        read_events(path)
+    assert str(path) in str(err.value) and "byte" in str(err.value)
+
+
+def first_packet(data):
+    start = 18 + struct.unpack_from("<i", data, 14)[0]
+    return start, struct.unpack_from("<ii", data, start)
+
+
+def test_aedat4_negative_packet_size(tmp_path):
+    data = a4_bytes()
+    start, (sid, size) = first_packet(data)
+    path = tmp_path / "neg.aedat4"
+    path.write_bytes(data[:start + 4] + struct.pack("<i", -7) + data[start + 8:])
+    with pytest.raises(EventFormatError, match=f"negative size -7 \\(at byte {start}\\)"):
+        read_events(path)
+
+
+def test_aedat4_packet_flatbuffer_offsets_checked(tmp_path):
+    s = random_events(50, 32, 32)
+    write_aedat4(tmp_path / "e.aedat4", s, compression="none")
+    data = bytearray((tmp_path / "e.aedat4").read_bytes())
+    start, _ = first_packet(bytes(data))
+    data[start + 8 + 4: start + 8 + 8] = struct.pack("<I", 0x7FFFFFF0)  # root offset
+    (tmp_path / "e.aedat4").write_bytes(bytes(data))
+    with pytest.raises(EventFormatError, match="events packet: offset"):
+        read_events(tmp_path / "e.aedat4")
+
+
+def test_aedat4_corrupt_zstd_packet(tmp_path):
+    write_aedat4(tmp_path / "z.aedat4", random_events(2000, 64, 64), compression="zstd")
+    data = bytearray((tmp_path / "z.aedat4").read_bytes())
+    start, (_, size) = first_packet(bytes(data))
+    for i in range(start + 8 + 6, start + 8 + size, 7):
+        data[i] ^= 0x5A
+    (tmp_path / "z.aedat4").write_bytes(bytes(data))
+    with pytest.raises(EventFormatError, match="Zstd packet") as err:
+        read_events(tmp_path / "z.aedat4")
+    assert f"byte {start}" in str(err.value)
+
+
+def test_aedat4_decompression_is_capped(tmp_path, monkeypatch):
+    import torchseq.events.aedat4 as a4
+    write_aedat4(tmp_path / "e.aedat4", random_events(5000, 64, 64), compression="lz4")
+    monkeypatch.setattr(a4, "PACKET_LIMIT", 1000)
+    monkeypatch.setattr(a4._decompress, "__defaults__", (1000,))
+    with pytest.raises(EventFormatError, match="more than 1000 bytes"):
+        read_events(tmp_path / "e.aedat4")
+
+
+def npz_with_member(path, name, npy_bytes, compression=zipfile.ZIP_STORED):
+    with zipfile.ZipFile(path, "w", compression) as z:
+        z.writestr(name, npy_bytes)
+
+
+def npy_bytes(header: str, body: bytes = b"", version=1) -> bytes:
+    text = header.encode("latin1")
+    pad = (-(len(text) + 11) % 64) if version == 1 else (-(len(text) + 13) % 64)
+    text = text + b" " * pad + b"\n"
+    if version == 1:
+        return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text + body
+    return b"\x93NUMPY\x02\x00" + struct.pack("<I", len(text)) + text + body
+
+
+EV_DESCR = str(EVENT_DTYPE.descr)
+
+
+def test_npz_declaring_ten_billion_events_allocates_nothing_big(tmp_path):
+    import tracemalloc
+    path = tmp_path / "bomb.npz"
+    npz_with_member(path, "events.npy", npy_bytes(
+        f"{{'descr': {EV_DESCR}, 'fortran_order': False, 'shape': (10000000000,), }}", bytes(64)))
+    assert path.stat().st_size < 400
+    tracemalloc.start()
+    with pytest.raises(EventFormatError, match="declares 10000000000 elements") as err:
+        read_events(path)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 5_000_000 and str(path) in str(err.value)
+
+
+def test_damaged_npz_files(tmp_path):
+    s = random_events(100, 16, 16)
+    write_npz(tmp_path / "ok.npz", s)
+    data = (tmp_path / "ok.npz").read_bytes()
+    method = bytearray(data)  # compression method 99 (unknown) in every header
+    for sig, at in ((b"PK\x03\x04", 8), (b"PK\x01\x02", 10)):
+        i = data.find(sig)
+        while i >= 0:
+            method[i + at: i + at + 2] = struct.pack("<H", 99)
+            i = data.find(sig, i + 4)
+    cases = {"cut.npz": data[:len(data) // 2], "method.npz": bytes(method)}
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(EventFormatError, match="not a readable .npz") as err:
+            read_events(tmp_path / name)
+        assert name in str(err.value)
+
+
+def test_npz_malformed_sensor_size(tmp_path):
+    s = random_events(20, 16, 16)
+    for bad in ([1, 2, 3], [[16, 16]], [16.5, 16], [70000, 16], [0, 16]):
+        np.savez(tmp_path / "e.npz", events=s.events, sensor_size=np.asarray(bad))
+        with pytest.raises(EventFormatError, match="sensor_size"):
+            read_events(tmp_path / "e.npz")
+    with pytest.raises(EventFormatError, match="sensor_size"):
+        read_events(tmp_path / "e.npz", sensor_size=(16,))
+
+
+@pytest.mark.parametrize("arr,match", [
+    (np.zeros((), EVENT_DTYPE), "1-D"),                                       # 0-d
+    (np.zeros(3, [("t", "<i8"), ("x", "<i2")]), "fields t, x, y, p"),         # missing fields
+    (np.array([(1, np.inf, 0, 1)], [("t", "<i8"), ("x", "<f8"), ("y", "<f8"), ("p", "u1")]),
+     r"x\[0\] = np.float64\(inf\)"),                                          # OverflowError
+    (np.array([(2**63, 1, 1, 1)], [("t", "<u8"), ("x", "<i2"), ("y", "<i2"), ("p", "u1")]),
+     "not an integer in"),                                                    # t >= 2**63
+    (np.array([(1e400, 1, 1, 1)], [("t", "<f8"), ("x", "<i2"), ("y", "<i2"), ("p", "u1")]),
+     "not an integer in"),                                                    # t = inf
+])
+def test_npy_foreign_arrays(tmp_path, arr, match):
+    np.save(tmp_path / "e.npy", arr)
+    for read in (lambda: read_events(tmp_path / "e.npy"),
+                 lambda: list(iter_events(tmp_path / "e.npy", 1, sensor_size=(8, 8)))):
+        with pytest.raises(EventFormatError, match=match) as err:
+            read()
+        assert "e.npy" in str(err.value)
+
+
+def test_corrupt_npy_header(tmp_path):
+    for i, header in enumerate([f"{{'descr': {EV_DESCR[:-3]}", "{'descr': '<i8', 'fortran_",
+                                "not python at all (", "{'descr': 'O', 'fortran_order': "
+                                "False, 'shape': (3,), }"]):
+        (tmp_path / f"h{i}.npy").write_bytes(npy_bytes(header, bytes(48)))
+        with pytest.raises(EventFormatError, match="at byte 0") as err:
+            read_events(tmp_path / f"h{i}.npy", sensor_size=(4, 4))
+        assert f"h{i}.npy" in str(err.value)
+
+
+def test_npy_declaring_more_than_the_file_holds(tmp_path):
+    (tmp_path / "e.npy").write_bytes(npy_bytes(
+        f"{{'descr': {EV_DESCR}, 'fortran_order': False, 'shape': (1000,), }}", bytes(160)))
+    with pytest.raises(EventFormatError, match="declares 1000 elements"):
+        read_events(tmp_path / "e.npy", sensor_size=(4, 4))
+
+
+def test_csv_coordinates_beyond_int16_do_not_wrap(tmp_path):
+    (tmp_path / "e.csv").write_text("t,x,y,p\n10,65541,2,1\n")
+    with pytest.raises(EventFormatError, match="x"):
+        read_events(tmp_path / "e.csv", sensor_size=(8, 8))
+    with pytest.raises(EventFormatError, match="x"):
+        read_events(tmp_path / "e.csv")
+
+
+@pytest.mark.parametrize("t", ["inf", "1e400", "9" * 40, str(2**63), "nan", "1.5"])
+def test_csv_hostile_timestamps(tmp_path, t):
+    (tmp_path / "e.csv").write_text(f"5,1,1,1\n{t},1,1,1\n")
+    with pytest.raises(EventFormatError, match="line 2|t") as err:
+        read_events(tmp_path / "e.csv", sensor_size=(4, 4))
+    assert "e.csv" in str(err.value)
+
+
+def test_csv_times_are_exact_integers(tmp_path):
+    (tmp_path / "e.csv").write_text("9007199254740993,1,2,1\n9007199254740995,1,2,-1\n"
+                                    "9007199254740996.0,0,0,0\n")
+    s = read_events(tmp_path / "e.csv", sensor_size=(4, 4))
+    assert s.events["t"].tolist() == [9007199254740993, 9007199254740995, 9007199254740996]
+    assert s.events["p"].tolist() == [1, 0, 0]
+
+
+def test_aedat2_header_sensor_beyond_int16(tmp_path):
+    s = random_events(10, 240, 180)
+    write_aedat2(tmp_path / "e.aedat", s, layout="davis")
+    data = (tmp_path / "e.aedat").read_bytes().replace(b"sensor_size: 240x180",
+                                                       b"sensor_size: 70000x180")
+    (tmp_path / "e.aedat").write_bytes(data)
+    with pytest.raises(EventFormatError, match="at most 32768") as err:
+        read_events(tmp_path / "e.aedat")
+    assert "e.aedat" in str(err.value) and "byte 0" in str(err.value)
+
+
+def test_backwards_check_does_not_overflow(tmp_path):
+    big = np.iinfo(np.int64)
+    # a jump from near +2**63 to near -2**63 goes backwards (np.diff wraps it to +1)
+    back = make_events([big.max, big.min], [0, 1], [0, 0], [1, 0])
+    np.savez(tmp_path / "b.npz", events=back, sensor_size=[4, 4])
+    with pytest.raises(EventFormatError, match="backwards"):
+        read_events(tmp_path / "b.npz")
+    with pytest.raises(EventFormatError, match="backwards"):
+        EventStream(back, (4, 4)).validate()
+    # ... and the forward jump from -2**63 to +2**63 - 1 is in order (np.diff wraps to -1)
+    fwd = make_events([big.min, big.max], [0, 1], [0, 0], [1, 0])
+    np.save(tmp_path / "f.npy", fwd)
+    assert np.array_equal(read_events(tmp_path / "f.npy", sensor_size=(4, 4)).events, fwd)
+    assert len(list(iter_events(tmp_path / "f.npy", 1, sensor_size=(4, 4)))) == 2
+    np.save(tmp_path / "b.npy", back)
+    with pytest.raises(EventFormatError, match="backwards at event #1"):
+        list(iter_events(tmp_path / "b.npy", 1, sensor_size=(4, 4)))
+
+
+def test_polarity_rule_is_the_same_whole_and_chunked(tmp_path):
+    ev = np.zeros(3, [("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "<i2")])
+    ev["t"], ev["p"] = [1, 2, 3], [-1, 1, 255]
+    np.save(tmp_path / "e.npy", ev)
+    for chunk in (1, 2, 100):
+        with pytest.raises(EventFormatError, match=r"p\[\d\] = np.int16\(255\)"):
+            read_events(tmp_path / "e.npy", sensor_size=(2, 2), chunk_events=chunk)
+        with pytest.raises(EventFormatError, match=r"p\[\d\] = np.int16\(255\)"):
+            list(iter_events(tmp_path / "e.npy", chunk, sensor_size=(2, 2)))
+    ev["p"][2] = 0
+    np.save(tmp_path / "e.npy", ev)
+    for chunk in (1, 2, 100):
+        got = np.concatenate([c.events["p"] for c in iter_events(tmp_path / "e.npy", chunk,
+                                                                 sensor_size=(2, 2))])
+        assert got.tolist() == [0, 1, 0]
+
+
+def test_make_events_is_exact():
+    with pytest.raises(EventFormatError, match="x"):
+        make_events([1], [40000], [0], [1])
+    with pytest.raises(EventFormatError, match="t"):
+        make_events([2.0**63], [0], [0], [1])
+    with pytest.raises(EventFormatError, match="p"):
+        make_events([1], [0], [0], [2])
+    ev = make_events(np.array([2**62 + 1], np.uint64), [32767], [-32768], [True])
+    assert ev["t"][0] == 2**62 + 1 and ev["x"][0] == 32767 and ev["p"][0] == 1
+
+
+# ---------------------------------------------------------------- EVT 3.0 writer and decoder
+
+
+def evt3_loop(words, carry=False):
+    """Independent EVT 3.0 decoder: a plain state machine over the words (format rules)."""
+    y = high = low = None
+    base, pol, loops, carries, out = 0, 0, 0, 0, []
+    for w in (int(v) for v in words):
+        typ, val = w >> 12, w & 0xFFF
+        if typ == 0x0:
+            y = val & 0x7FF
+        elif typ == 0x8:
+            if high is not None and val < high:
+                loops += 1
+            high = val
+        elif typ == 0x6:
+            if carry and low is not None and val < low:
+                carries += 1
+            low = val
+        elif typ == 0x3:
+            base, pol = val & 0x7FF, val >> 11
+        elif typ in (0x2, 0x4, 0x5):
+            ok = high is not None and y is not None
+            t = ((high + (loops << 12) + carries) << 12) + (low or 0) if ok else None
+            if typ == 0x2:
+                if ok:
+                    out.append((t, val & 0x7FF, y, val >> 11))
+            else:
+                n = 12 if typ == 0x4 else 8
+                for b in range(n):
+                    if ok and (val >> b) & 1:
+                        out.append((t, base + b, y, pol))
+                base += n
+    return out
+
+
+def test_evt3_decoder_against_a_plain_loop_on_random_words():
+    from torchseq.events.prophesee import decode_evt3
+    rng = np.random.default_rng(11)
+    for trial in range(40):
+        n = int(rng.integers(0, 1500))
+        typ = rng.choice([0, 2, 3, 4, 5, 6, 8, 0xA, 0xE, 1], n,
+                         p=[.15, .2, .1, .1, .05, .15, .1, .05, .05, .05])
+        words = ((typ << 12) | rng.integers(0, 4096, n)).astype(np.uint16)
+        for carry in (False, True):
+            state, chunk = {}, int(rng.integers(1, 400))
+            got = np.concatenate([decode_evt3(words[i:i + chunk], state,
+                                              "carry" if carry else "spec")
+                                  for i in range(0, max(n, 1), chunk)])
+            assert as_tuples(got) == evt3_loop(words, carry), (trial, carry)
+
+
+def test_evt3_loop_reproduces_the_reference_npy():
+    # the plain loop with the carry rule gives the shared decoded reference: the oracle is sound
+    raw = need("evt3_sample.raw").read_bytes()
+    pos = 0
+    while raw[pos:pos + 1] == b"%":
+        pos = raw.index(b"\n", pos) + 1
+    words = np.frombuffer(raw[pos:pos + 2 * 40_000], "<u2")
+    ref = np.load(need("evt3_sample.npy"))
+    got = evt3_loop(words, carry=True)
+    assert got == as_tuples(ref[:len(got)]) and len(got) > 20_000
+
+
+def bursts(n, w, h, seed, span_us):
+    """Edge-like events: horizontal runs of 1-24 pixels at one (t, y, p), some duplicated."""
+    rng = np.random.default_rng(seed)
+    lens = rng.integers(1, 25, n)
+    lens = lens[:np.searchsorted(np.cumsum(lens), n) + 1]
+    m = len(lens)
+    t0 = np.sort(rng.integers(0, span_us, m))
+    owner = np.repeat(np.arange(m), lens)
+    off = np.arange(len(owner)) - np.repeat(np.cumsum(lens) - lens, lens)
+    x0, y0, p0 = rng.integers(0, w - 24, m), rng.integers(0, h, m), rng.integers(0, 2, m)
+    ev = make_events(t0[owner], x0[owner] + off, y0[owner], p0[owner])
+    ev = np.concatenate([ev, ev[rng.random(len(ev)) < 0.02]])  # duplicate events
+    return EventStream(ev[np.argsort(ev["t"], kind="stable")], (w, h))
+
+
+def by_time_row_pol_x(ev):
+    return ev[np.lexsort((ev["x"], ev["p"], ev["y"], ev["t"]))]
+
+
+def test_evt3_writer_round_trip_across_time_wraps(tmp_path):
+    s = bursts(20_000, 1280, 720, seed=5, span_us=60_000_000)  # 3.6 wraps of 2**24 us
+    write_evt3(tmp_path / "e.raw", s)
+    ref = by_time_row_pol_x(s.events)
+    back = read_events(tmp_path / "e.raw")
+    assert back.sensor_size == (1280, 720) and np.array_equal(back.events, ref)
+    for chunk in (3, 1000):
+        parts = np.concatenate([c.events for c in iter_events(tmp_path / "e.raw", chunk)])
+        assert np.array_equal(parts, ref)
+    words = np.frombuffer((tmp_path / "e.raw").read_bytes()[-2 * 3000:], "<u2")
+    assert {0x3, 0x4, 0x2} <= set((words >> 12).tolist())  # vectors and singles written
+
+
+def test_evt3_writer_round_trip_of_the_real_recording(tmp_path):
+    real = read_events(need("evt3_sample.raw"))
+    write_evt3(tmp_path / "r.raw", real)
+    assert np.array_equal(read_events(tmp_path / "r.raw").events, by_time_row_pol_x(real.events))
+
+
+def test_hot_pixel_mask_dense_and_sparse_paths_agree_and_stay_small():
+    import tracemalloc
+
+    from torchseq.events import hot_pixel_mask
+    rng = np.random.default_rng(2)
+    n = 3000
+    ev = make_events(np.arange(n), rng.integers(0, 20, n), rng.integers(0, 10, n),
+                     rng.integers(0, 2, n))
+    ev["x"][:400], ev["y"][:400] = 7, 3  # one hot pixel
+    dense = hot_pixel_mask(ev, (20, 10), 5.0)  # 200 pixels: the bincount path
+    assert np.array_equal(dense, (ev["x"] != 7) | (ev["y"] != 3))
+    big = ev.copy()
+    big["x"], big["y"] = ev["x"] * 1500, ev["y"] * 3000  # same pixels on a 32768^2 sensor
+    tracemalloc.start()
+    sparse = hot_pixel_mask(big, (32768, 32768), 5.0)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert np.array_equal(sparse, dense) and peak < 2_000_000  # not 8 GiB of counts
+
+
+def test_options_for_another_format(tmp_path):
+    s = random_events(10, 16, 16)
+    write_npz(tmp_path / "e.aedat4", s)  # an .npz under an AEDAT 4 name
+    with pytest.raises(EventFormatError, match=r"is npz .* \['truncated'\] do not apply"):
+        read_events(tmp_path / "e.aedat4", truncated="drop")
+    with pytest.raises(TypeError, match="unknown event file option"):
+        read_events(tmp_path / "e.aedat4", truncatd="drop")

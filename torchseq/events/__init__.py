@@ -5,7 +5,7 @@ sensor size ``(W, H)``: an :class:`EventStream`. See ``docs/events.md``.
 """
 
 from torchseq.events.aedat2 import iter_aedat2, write_aedat2
-from torchseq.events.aedat4 import iter_aedat4
+from torchseq.events.aedat4 import iter_aedat4, write_aedat4
 from torchseq.events.filters import hot_pixel_mask, refractory_mask
 from torchseq.events.frames import accumulate, window_origin
 from torchseq.events.hdf5 import iter_hdf5, read_hdf5_positions, write_hdf5
@@ -18,7 +18,7 @@ from torchseq.events.positions import (
     positions_at,
     window_times,
 )
-from torchseq.events.prophesee import iter_raw
+from torchseq.events.prophesee import iter_raw, write_evt3
 from torchseq.events.runs import EventRun, simulate_run
 from torchseq.events.simulator import frames_to_events
 from torchseq.events.stream import (
@@ -52,6 +52,8 @@ __all__ = [
     "read_npz",
     "refractory_mask",
     "write_aedat2",
+    "write_aedat4",
+    "write_evt3",
     "write_npz",
     "iter_hdf5",
     "read_hdf5_positions",

@@ -22,7 +22,15 @@ from pathlib import Path
 import numpy as np
 
 from torchseq.atomic import atomic_open
-from torchseq.events.stream import EventFormatError, EventStream, iter_records, make_events
+from torchseq.events.stream import (
+    EVENT_DTYPE,
+    Chunk,
+    EventFormatError,
+    EventStream,
+    check_sensor_size,
+    file_error,
+    iter_records,
+)
 
 MAGIC = b"#!AER-DAT2.0"
 RECORD = np.dtype([("a", ">u4"), ("t", ">u4")])
@@ -52,12 +60,17 @@ def read_header(f) -> tuple[int, list[str]]:
         size += len(line)
 
 
-def detect_chip(lines: list[str]) -> tuple[str, tuple[int, int]] | None:
+def detect_chip(lines: list[str], path=None) -> tuple[str, tuple[int, int]] | None:
     """``(layout, (W, H))`` from the header's torchseq/AEChip/HardwareInterface lines."""
     for line in lines:
         m = re.match(r"#\s*torchseq layout: (\w+) sensor_size: (\d+)x(\d+)", line)
         if m:
-            return m.group(1), (int(m.group(2)), int(m.group(3)))
+            try:
+                size = check_sensor_size((int(m.group(2)), int(m.group(3))),
+                                         "the header's sensor_size")
+            except EventFormatError as err:
+                raise file_error(path, 0, str(err)) from None
+            return m.group(1), size
     for key in ("AEChip", "HardwareInterface"):
         for line in lines:
             if re.match(rf"#\s*{key}\s*:", line):
@@ -69,26 +82,50 @@ def detect_chip(lines: list[str]) -> tuple[str, tuple[int, int]] | None:
 
 def decode(records: np.ndarray, layout: str, sensor_size: tuple[int, int],
            flip_y: bool, state: dict) -> np.ndarray:
-    """Decode ``(N,)`` :data:`RECORD` rows to events; ``state`` carries the time unwrap."""
-    a = records["a"].astype(np.int64)
-    t = records["t"].astype(np.int64)
-    if len(t):
-        prev = np.r_[state.get("last", t[0]), t[:-1]]
-        wraps = np.cumsum(t - prev < -(1 << 31)) + state.get("wraps", 0)
-        state["last"], state["wraps"] = int(t[-1]), int(wraps[-1])
-        t = t + wraps * WRAP
-    w, h = sensor_size
-    if layout == "dvs128":
-        keep = (a & 0xFFFF8000) == 0
-        x_raw, y_raw, p = (a >> 1) & 0x7F, (a >> 8) & 0x7F, 1 - (a & 1)
-    elif layout == "davis":
-        keep = (a & ((1 << 31) | (1 << 10))) == 0
-        x_raw, y_raw, p = (a >> 12) & 0x3FF, (a >> 22) & 0x1FF, (a >> 11) & 1
-    else:
+    """Decode ``(N,)`` :data:`RECORD` rows to events; ``state`` carries the time unwrap.
+
+    Works on uint32 columns and writes straight into the output fields (one byte swap per
+    column, no int64 temporaries unless the 32-bit time actually wraps).
+    """
+    if layout not in ("dvs128", "davis"):
         raise EventFormatError(f"unknown AEDAT 2.0 layout {layout!r} (use 'dvs128' or 'davis')")
-    x_raw, y_raw = x_raw[keep], y_raw[keep]
-    y = h - 1 - y_raw if flip_y else y_raw
-    return make_events(t[keep], w - 1 - x_raw, y, p[keep])
+    a = records["a"].astype(np.uint32)
+    t = records["t"].astype(np.uint32)
+    if layout == "dvs128":
+        keep = a < 0x8000
+        x_raw = (a >> 1) & 0x7F
+        y_raw = (a >> 8) & 0x7F
+        p = ~a & 1
+    else:
+        keep = (a & ((1 << 31) | (1 << 10))) == 0
+        x_raw = (a >> 12) & 0x3FF
+        y_raw = (a >> 22) & 0x1FF
+        p = (a >> 11) & 1
+    if not keep.all():
+        t, x_raw, y_raw, p = t[keep], x_raw[keep], y_raw[keep], p[keep]
+    w, h = sensor_size
+    out = np.empty(len(t), EVENT_DTYPE)
+    if len(t):
+        last = state.get("last", int(t[0]))
+        wraps0 = state.get("wraps", 0)
+        state["last"] = int(t[-1])
+        if (last - int(t[0]) > (1 << 31)) or (t[1:] < t[:-1]).any():
+            t64 = t.astype(np.int64)
+            prev = np.empty_like(t64)
+            prev[0], prev[1:] = last, t64[:-1]
+            wraps = np.cumsum(t64 - prev < -(1 << 31)) + wraps0
+            state["wraps"] = int(wraps[-1])
+            out["t"] = t64 + wraps * WRAP
+        else:
+            out["t"] = t
+            if wraps0:
+                out["t"] += wraps0 * WRAP
+    # W - 1 - x_raw in int32: a raw column beyond the sensor gives a negative x (an error
+    # later), never a wrapped one; |values| < 2**15 because W <= 32768 and x_raw < 1024
+    out["x"] = np.subtract(w - 1, x_raw, dtype=np.int32)
+    out["y"] = np.subtract(h - 1, y_raw, dtype=np.int32) if flip_y else y_raw
+    out["p"] = p
+    return out
 
 
 def iter_aedat2(path: str | Path, chunk_events: int = 1 << 20,
@@ -105,31 +142,37 @@ def iter_aedat2(path: str | Path, chunk_events: int = 1 << 20,
         truncated: a partial last record: ``"error"`` (default) or ``"drop"`` with a warning.
 
     Yields:
-        :class:`EventStream` chunks, time order not yet checked (see ``read_events``).
+        :class:`~torchseq.events.stream.Chunk` pieces (EventStreams carrying the byte
+        offset they were read from), time order not yet checked (see ``read_events``).
     """
     path = Path(path)
+    if sensor_size is not None:
+        sensor_size = check_sensor_size(sensor_size)
+    if layout is not None and layout not in ("dvs128", "davis"):
+        raise EventFormatError(f"unknown AEDAT 2.0 layout {layout!r} (use 'dvs128' or 'davis')")
     with open(path, "rb") as f:
         head = f.read(len(MAGIC))
         if head != MAGIC:
-            raise EventFormatError(f"{path}: not an AEDAT 2.0 file (starts {head!r})")
+            raise file_error(path, 0, f"not an AEDAT 2.0 file (starts {head!r})")
         f.seek(0)
         header_len, lines = read_header(f)
-        chip = detect_chip(lines)
+        chip = detect_chip(lines, path)
         if layout is None:
             if chip is None and sensor_size is None:
-                raise EventFormatError(f"{path}: header names no known chip; pass layout= "
-                                       f"('dvs128' or 'davis') and sensor_size=")
-            layout = chip[0] if chip else ("dvs128" if tuple(sensor_size) == (128, 128)
-                                           else "davis")
-        size = tuple(sensor_size) if sensor_size is not None else (
+                raise file_error(path, 0, "header names no known chip; pass layout= "
+                                 "('dvs128' or 'davis') and sensor_size=")
+            layout = chip[0] if chip else ("dvs128" if sensor_size == (128, 128) else "davis")
+            if layout not in ("dvs128", "davis"):
+                raise file_error(path, 0, f"the header names an unknown layout {layout!r}")
+        size = sensor_size if sensor_size is not None else (
             chip[1] if chip else (128, 128) if layout == "dvs128" else None)
         if size is None:
-            raise EventFormatError(f"{path}: pass sensor_size= for a DAVIS file of unknown chip")
+            raise file_error(path, 0, "pass sensor_size= for a DAVIS file of unknown chip")
         body = path.stat().st_size - header_len
         state: dict = {}
-        for records in iter_records(f, path, RECORD, body, chunk_events, truncated,
-                                    "8-byte record"):
-            yield EventStream(decode(records, layout, size, flip_y, state), size)
+        for offset, records in iter_records(f, path, RECORD, body, chunk_events, truncated,
+                                            "8-byte record"):
+            yield Chunk(decode(records, layout, size, flip_y, state), size, offset)
 
 
 def write_aedat2(path: str | Path, stream: EventStream, layout: str = "dvs128",

@@ -12,17 +12,23 @@ def hot_pixel_mask(events: np.ndarray, sensor_size: tuple[int, int],
     """``(N,)`` bool, True for events of pixels that are not hot.
 
     A pixel is hot when its event count exceeds ``factor`` times the median count of the
-    pixels that fired at all.
+    pixels that fired at all. Memory follows the events, not the sensor: a dense count per
+    pixel only when the sensor has at most about four pixels per event.
     """
     if factor <= 0:
         raise ValueError(f"hot pixel factor must be > 0, got {factor}")
     w, h = sensor_size
     pix = events["y"].astype(np.int64) * w + events["x"]
-    counts = np.bincount(pix, minlength=w * h)
-    active = counts[counts > 0]
+    if w * h <= 4 * len(events) + (1 << 16):  # dense per-pixel counts: one bincount
+        counts = np.bincount(pix, minlength=w * h)
+        active = counts[counts > 0]
+        per_event = counts[pix]
+    else:  # a large sensor with few events: counts of the pixels that fired only
+        _, inverse, active = np.unique(pix, return_inverse=True, return_counts=True)
+        per_event = active[inverse]
     if not len(active):
         return np.ones(len(events), bool)
-    return counts[pix] <= factor * np.median(active)
+    return per_event <= factor * np.median(active)
 
 
 def refractory_mask(events: np.ndarray, sensor_size: tuple[int, int],

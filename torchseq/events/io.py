@@ -25,9 +25,37 @@ from torchseq.events.aedat2 import iter_aedat2
 from torchseq.events.aedat4 import iter_aedat4
 from torchseq.events.plain import iter_npy, read_csv, read_npz
 from torchseq.events.prophesee import iter_raw
-from torchseq.events.stream import EventFormatError, EventStream, order_events, validate_events
+from torchseq.events.stream import (
+    EventFormatError,
+    EventStream,
+    check_contents,
+    file_error,
+    first_backward,
+    order_events,
+)
 
 DEFAULT_CHUNK = 1 << 20
+# the format options each format takes (a format not listed takes none); a new format
+# registers its options here beside its detect_format and _chunks lines
+FORMAT_OPTIONS = {"aedat2": {"layout", "flip_y", "truncated"}, "aedat4": {"truncated"},
+                  "raw": {"truncated", "evt3_time"},
+                  "hdf5": {"group", "columns", "time_unit"}, "parquet": {"columns", "time_unit"}}
+
+
+def _check_options(path: Path, fmt: str, options: dict) -> None:
+    """Check the format options against the file's format.
+
+    TypeError for options no format takes; EventFormatError when the file's format (found
+    from its first bytes, so perhaps not the one the caller expected) does not take them.
+    """
+    known = set().union(*FORMAT_OPTIONS.values())
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise TypeError(f"unknown event file option(s) {unknown} (known: {sorted(known)})")
+    foreign = sorted(set(options) - FORMAT_OPTIONS.get(fmt, set()))
+    if foreign:
+        raise file_error(path, 0, f"the file is {fmt} (by its first bytes); option(s) {foreign} "
+                         f"do not apply to it")
 
 
 def detect_format(path: str | Path) -> str:
@@ -35,16 +63,19 @@ def detect_format(path: str | Path) -> str:
     path = Path(path)
     if not path.is_file():
         raise EventFormatError(f"no such event file: {path}")
-    with open(path, "rb") as f:
-        head = f.read(16)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError as err:
+        raise EventFormatError(f"{path}: cannot read ({err.strerror})") from None
     if not head:
-        raise EventFormatError(f"{path}: empty file")
+        raise file_error(path, 0, "empty file")
     if head.startswith(b"#!AER-DAT2"):
         return "aedat2"
     if head.startswith(b"#!AER-DAT4"):
         return "aedat4"
     if head.startswith(b"#!AER-DAT"):
-        raise EventFormatError(f"{path}: unsupported AEDAT version {head[:13]!r}")
+        raise file_error(path, 0, f"unsupported AEDAT version {head[:13]!r}")
     if head.startswith(b"%"):
         return "raw"
     if head.startswith(b"\x93NUMPY"):
@@ -57,7 +88,7 @@ def detect_format(path: str | Path) -> str:
         return "parquet"
     if path.suffix.lower() in (".csv", ".txt"):
         return "csv"
-    raise EventFormatError(f"{path}: unknown event file format (starts {head[:12]!r})")
+    raise file_error(path, 0, f"unknown event file format (starts {head[:12]!r})")
 
 
 def _chunks(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict):
@@ -82,13 +113,49 @@ def _chunks(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict)
     return iter([read_npz(path, sensor_size) if fmt == "npz" else read_csv(path, sensor_size)])
 
 
+def _checked(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict,
+             check_order: bool) -> Iterator[EventStream]:
+    """The chunks of ``path``, each checked (contents; time order within and across chunks).
+
+    Every failure is an :class:`EventFormatError` naming the file and, where the reader
+    knows it, the byte offset of the chunk (see :class:`~torchseq.events.stream.Chunk`).
+    """
+    if chunk_events < 1:
+        raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
+    _check_options(path, fmt, options)
+    last, seen = None, 0
+    for chunk in _chunks(path, fmt, chunk_events, sensor_size, options):
+        offset = getattr(chunk, "offset", None)
+        where = f" (in the chunk read from byte {offset})" if offset is not None else ""
+        try:
+            check_contents(chunk.events, chunk.sensor_size)
+        except EventFormatError as err:
+            raise EventFormatError(f"{path}: {err}{where}") from None
+        t = chunk.events["t"]
+        if check_order and len(t):
+            i = first_backward(t)
+            if i is not None:
+                raise EventFormatError(
+                    f"{path}: timestamps go backwards at event #{seen + i} ({t[i - 1]} -> {t[i]} "
+                    f"us){where}; use read_events(sort=True)")
+            if last is not None and t[0] < last:
+                raise EventFormatError(
+                    f"{path}: timestamps go backwards at event #{seen} ({last} -> {t[0]} us)"
+                    f"{where}; use read_events(sort=True)")
+        if len(t):
+            last = t[-1]
+        seen += len(t)
+        yield chunk
+
+
 def iter_events(path: str | Path, chunk_events: int = DEFAULT_CHUNK,
                 sensor_size: tuple[int, int] | None = None,
                 **options) -> Iterator[EventStream]:
     """Stream an event file in chunks without loading it whole (see the module table).
 
-    Every chunk is checked: coordinates inside the sensor and time never going backwards,
-    within and across chunks (reorder with ``read_events(..., sort=True)``).
+    Every chunk is checked by the same rules as :func:`read_events`: coordinates inside
+    the sensor, polarity 0/1, and time never going backwards, within and across chunks
+    (reorder with ``read_events(..., sort=True)``).
 
     Args:
         path: the event file.
@@ -102,23 +169,10 @@ def iter_events(path: str | Path, chunk_events: int = DEFAULT_CHUNK,
 
     Raises:
         EventFormatError: unknown or malformed file, events outside the sensor, time going
-            backwards.
+            backwards; the message names the file and, where known, the byte offset.
     """
-    if chunk_events < 1:
-        raise ValueError(f"chunk_events must be >= 1, got {chunk_events}")
     path = Path(path)
-    last = None
-    for chunk in _chunks(path, detect_format(path), chunk_events, sensor_size, options):
-        try:
-            validate_events(chunk.events, chunk.sensor_size)
-        except EventFormatError as err:
-            raise EventFormatError(f"{path}: {err}") from None
-        if len(chunk) and last is not None and chunk.events["t"][0] < last:
-            raise EventFormatError(f"{path}: timestamps go backwards between chunks ({last} -> "
-                                   f"{chunk.events['t'][0]} us); use read_events(sort=True)")
-        if len(chunk):
-            last = chunk.events["t"][-1]
-        yield chunk
+    yield from _checked(path, detect_format(path), chunk_events, sensor_size, options, True)
 
 
 def read_events(path: str | Path, sensor_size: tuple[int, int] | None = None,
@@ -138,10 +192,11 @@ def read_events(path: str | Path, sensor_size: tuple[int, int] | None = None,
         The events, time-ordered and checked against the sensor size.
     """
     path = Path(path)
-    chunks = list(_chunks(path, detect_format(path), chunk_events, sensor_size, options))
-    events = np.concatenate([c.events for c in chunks])
-    stream = EventStream(order_events(events, sort, str(path)), chunks[0].sensor_size)
-    try:
-        return stream.validate()
-    except EventFormatError as err:
-        raise EventFormatError(f"{path}: {err}") from None
+    chunks = list(_checked(path, detect_format(path), chunk_events, sensor_size, options,
+                           not sort))
+    events = chunks[0].events if len(chunks) == 1 else np.concatenate([c.events for c in chunks])
+    if sort:
+        events = order_events(events, True, str(path))
+    if not events.flags.writeable:
+        events = events.copy()
+    return EventStream(events, chunks[0].sensor_size)

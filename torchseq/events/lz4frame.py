@@ -16,8 +16,12 @@ class LZ4Error(ValueError):
     """Malformed LZ4 data."""
 
 
-def decompress_block(src: bytes | memoryview, out: bytearray) -> None:
-    """Append the decoded LZ4 block ``src`` to ``out`` (matches may reach into earlier data)."""
+def decompress_block(src: bytes | memoryview, out: bytearray, limit: int | None = None) -> None:
+    """Append the decoded LZ4 block ``src`` to ``out`` (matches may reach into earlier data).
+
+    Raises :class:`LZ4Error` before ``out`` would grow beyond ``limit`` bytes.
+    """
+    limit = float("inf") if limit is None else limit
     i, n = 0, len(src)
     while i < n:
         token = src[i]
@@ -30,6 +34,8 @@ def decompress_block(src: bytes | memoryview, out: bytearray) -> None:
                 lit += b
                 if b != 255:
                     break
+        if len(out) + lit > limit:
+            raise LZ4Error(f"decompresses to more than {limit} bytes")
         out += src[i : i + lit]
         i += lit
         if i >= n:  # the last sequence has literals only
@@ -44,6 +50,8 @@ def decompress_block(src: bytes | memoryview, out: bytearray) -> None:
                 mlen += b
                 if b != 255:
                     break
+        if len(out) + mlen > limit:
+            raise LZ4Error(f"decompresses to more than {limit} bytes")
         if offset == 0 or offset > len(out):
             raise LZ4Error(f"bad LZ4 match offset {offset} at output byte {len(out)}")
         start = len(out) - offset
@@ -55,8 +63,8 @@ def decompress_block(src: bytes | memoryview, out: bytearray) -> None:
             out += pattern * reps + pattern[:rest]
 
 
-def decompress_frames(data: bytes) -> bytes:
-    """Decompress one or more concatenated LZ4 frames (pure Python)."""
+def decompress_frames(data: bytes, limit: int | None = None) -> bytes:
+    """Decompress one or more concatenated LZ4 frames (pure Python), to at most ``limit`` bytes."""
     out = bytearray()
     mv, i = memoryview(data), 0
     while i < len(data):
@@ -64,6 +72,8 @@ def decompress_frames(data: bytes) -> bytes:
             raise LZ4Error("truncated LZ4 frame header")
         (magic,) = struct.unpack_from("<I", data, i)
         if 0x184D2A50 <= magic <= 0x184D2A5F:  # skippable frame
+            if len(data) - i < 8:
+                raise LZ4Error("truncated skippable LZ4 frame")
             (size,) = struct.unpack_from("<I", data, i + 4)
             i += 8 + size
             continue
@@ -86,10 +96,12 @@ def decompress_frames(data: bytes) -> bytes:
             if i + size > len(data):
                 raise LZ4Error("truncated LZ4 block")
             if raw:
+                if limit is not None and len(out) + size > limit:
+                    raise LZ4Error(f"decompresses to more than {limit} bytes")
                 out += mv[i : i + size]
             else:
                 try:
-                    decompress_block(mv[i : i + size], out)
+                    decompress_block(mv[i : i + size], out, limit)
                 except IndexError:
                     raise LZ4Error("malformed LZ4 block (reads past its end)") from None
             i += size + (4 if block_checksum else 0)

@@ -4,34 +4,128 @@
 ``sensor_size`` ``(W, H)``; ``.npz`` files with separate ``t``, ``x``, ``y``, ``p`` arrays
 are read too. CSV/text: one event per line, ``t,x,y,p`` (commas or whitespace), an optional
 header line naming the columns in any order; polarity -1/+1 becomes 0/1.
+
+NumPy headers are parsed here (not by ``np.load``) so that a damaged or hostile header is a
+clear error: the declared shape must fit in the bytes that follow (a 300-byte file cannot
+make the reader allocate gigabytes), object dtypes are refused, and ``.npz`` members are
+read in bounded pieces, so memory never exceeds what the archive really decompresses to.
+Values are converted exactly (:func:`~torchseq.events.stream.make_events`): CSV integers
+are parsed as int64, never through float64.
 """
 
 from __future__ import annotations
 
+import ast
 import io
+import lzma
 import re
+import struct
 import warnings
+import zipfile
+import zlib
 from collections.abc import Iterator
+from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
 
 from torchseq.atomic import atomic_open
 from torchseq.events.stream import (
+    Chunk,
     EventFormatError,
     EventStream,
     as_event_array,
-    infer_sensor_size,
+    check_sensor_size,
+    file_error,
     make_events,
 )
+
+NPY_MAGIC = b"\x93NUMPY"
+MAX_NPY_HEADER = 1 << 16
+_PIECE = 1 << 24  # bytes read per piece from a compressed .npz member
+_ZIP_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, NotImplementedError,
+               RuntimeError, ValueError, struct.error, zlib.error, lzma.LZMAError)
+
+
+def read_npy_header(f, path, where: int = 0) -> tuple[np.dtype, tuple[int, ...], int]:
+    """Parse a ``.npy`` header from ``f``'s position: ``(dtype, shape, header bytes)``.
+
+    Every failure (bad magic, version, length, dict literal, descr, shape) is an
+    :class:`EventFormatError` naming ``path`` and the byte offset ``where`` of the header.
+    """
+    head = f.read(8)
+    if len(head) < 8 or head[:6] != NPY_MAGIC:
+        raise file_error(path, where, "not a .npy array (bad magic)")
+    major = head[6]
+    if major == 1:
+        raw = f.read(2)
+        n = struct.unpack("<H", raw)[0] if len(raw) == 2 else -1
+        start = 10
+    elif major in (2, 3):
+        raw = f.read(4)
+        n = struct.unpack("<I", raw)[0] if len(raw) == 4 else -1
+        start = 12
+    else:
+        raise file_error(path, where, f"unsupported .npy version {major}.{head[7]}")
+    if not 0 <= n <= MAX_NPY_HEADER:
+        raise file_error(path, where, "truncated or oversized .npy header")
+    text = f.read(n)
+    if len(text) < n:
+        raise file_error(path, where, "truncated .npy header")
+    try:
+        d = ast.literal_eval(text.decode("utf-8" if major == 3 else "latin1"))
+    except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError) as err:
+        raise file_error(path, where, f"unreadable .npy header ({type(err).__name__})") from None
+    if not isinstance(d, dict) or set(d) != {"descr", "fortran_order", "shape"}:
+        raise file_error(path, where, "the .npy header is not a dict of descr, fortran_order, "
+                         "shape")
+    shape = d["shape"]
+    if (not isinstance(shape, tuple) or not all(type(v) is int and v >= 0 for v in shape)
+            or not isinstance(d["fortran_order"], bool)):
+        raise file_error(path, where, f"bad .npy shape/fortran_order {shape!r}")
+    try:
+        dtype = np.lib.format.descr_to_dtype(d["descr"])
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError, RecursionError,
+            SyntaxError, OverflowError, MemoryError) as err:
+        raise file_error(path, where, f"bad .npy dtype ({type(err).__name__})") from None
+    if dtype.hasobject:
+        raise file_error(path, where, "the .npy array holds Python objects (refused)")
+    if dtype.itemsize == 0:
+        raise file_error(path, where, f"the .npy dtype {dtype} has no size")
+    return dtype, shape, start + n
+
+
+def _count(shape, dtype, available: int, path, where: int, what: str) -> int:
+    """Elements of a 1-D ``shape``, checked against the ``available`` bytes."""
+    if len(shape) != 1:
+        raise file_error(path, where, f"{what} must be a 1-D array, got shape {shape}")
+    n = shape[0]
+    if n * dtype.itemsize > available:
+        raise file_error(path, where, f"{what} declares {n} elements ({n * dtype.itemsize} "
+                         f"bytes) but only {available} bytes follow the header")
+    return n
 
 
 def _with_size(events: np.ndarray, sensor_size, path: Path) -> EventStream:
     if sensor_size is None:
-        sensor_size = infer_sensor_size(events)
+        if len(events) == 0:
+            raise file_error(path, None, "no events and no sensor size; pass sensor_size=")
+        try:
+            sensor_size = check_sensor_size(
+                (int(events["x"].max()) + 1, int(events["y"].max()) + 1),
+                "the sensor size implied by the largest coordinates")
+        except EventFormatError as err:
+            raise file_error(path, None, str(err)) from None
         warnings.warn(f"{path}: no sensor size stored; using {sensor_size[0]}x{sensor_size[1]} "
                       f"from the largest coordinates (pass sensor_size= to set it)", stacklevel=3)
-    return EventStream(events, tuple(sensor_size))
+    return EventStream(events, sensor_size)
+
+
+def _convert(arr: np.ndarray, path, offset: int | None) -> np.ndarray:
+    try:
+        return as_event_array(arr, "the array")
+    except EventFormatError as err:
+        raise file_error(path, offset, str(err)) from None
 
 
 def iter_npy(path: str | Path, chunk_events: int = 1 << 20,
@@ -42,43 +136,98 @@ def iter_npy(path: str | Path, chunk_events: int = 1 << 20,
     memory-mapped) so that every chunk carries the same size.
     """
     path = Path(path)
-    try:
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except ValueError as err:
-        raise EventFormatError(f"{path}: not a readable .npy file ({err})") from None
-    if arr.dtype.names is None:
-        raise EventFormatError(f"{path}: not a structured event array (dtype {arr.dtype})")
+    if sensor_size is not None:
+        sensor_size = check_sensor_size(sensor_size)
+    with open(path, "rb") as f:
+        dtype, shape, data = read_npy_header(f, path)
+    if dtype.names is None or any(k not in dtype.names for k in "txyp"):
+        raise file_error(path, 0, f"not a structured event array with fields t, x, y, p "
+                         f"(dtype {dtype})")
+    n = _count(shape, dtype, path.stat().st_size - data, path, 0, "the event array")
+    arr = (np.memmap(path, dtype, "r", offset=data, shape=(n,)) if n
+           else np.empty(0, dtype))
+
+    def pieces():
+        for i in range(0, max(n, 1), chunk_events):
+            yield data + i * dtype.itemsize, _convert(np.array(arr[i : i + chunk_events]),
+                                                      path, data + i * dtype.itemsize)
+
     if sensor_size is None:
-        if len(arr) == 0:
-            raise EventFormatError(f"{path}: no events and no sensor size; pass sensor_size=")
-        w = max(int(arr["x"][i : i + chunk_events].max()) for i in range(0, len(arr), chunk_events))
-        h = max(int(arr["y"][i : i + chunk_events].max()) for i in range(0, len(arr), chunk_events))
+        if n == 0:
+            raise file_error(path, None, "no events and no sensor size; pass sensor_size=")
+        w = h = -1
+        for _, ev in pieces():
+            w, h = max(w, int(ev["x"].max())), max(h, int(ev["y"].max()))
+        try:
+            sensor_size = check_sensor_size((w + 1, h + 1), "the sensor size implied by the "
+                                            "largest coordinates")
+        except EventFormatError as err:
+            raise file_error(path, None, str(err)) from None
         warnings.warn(f"{path}: no sensor size stored; using {w + 1}x{h + 1} from the largest "
                       f"coordinates (pass sensor_size= to set it)", stacklevel=2)
-        sensor_size = (w + 1, h + 1)
-    for i in range(0, max(len(arr), 1), chunk_events):
-        yield EventStream(as_event_array(np.array(arr[i : i + chunk_events]), str(path)),
-                          sensor_size)
+    for offset, ev in pieces():
+        yield Chunk(ev, sensor_size, offset)
+
+
+def _read_member(zf: zipfile.ZipFile, name: str, path) -> np.ndarray:
+    """One ``.npy`` member of an archive, read in bounded pieces."""
+    info = zf.getinfo(name)
+    where = info.header_offset
+    if info.compress_type == zipfile.ZIP_STORED and info.file_size != info.compress_size:
+        raise file_error(path, where, f"member {name} declares {info.file_size} bytes but "
+                         f"stores {info.compress_size}")
+    with zf.open(info) as f:
+        dtype, shape, head = read_npy_header(f, path, where)
+        n = _count(shape, dtype, info.file_size - head, path, where, f"member {name}")
+        need, parts = n * dtype.itemsize, []
+        while need:
+            parts.append(f.read(min(need, _PIECE)))
+            if not parts[-1]:
+                raise file_error(path, where, f"member {name} ends early")
+            need -= len(parts[-1])
+    return np.frombuffer(b"".join(parts), dtype, n)
 
 
 def read_npz(path: str | Path, sensor_size: tuple[int, int] | None = None) -> EventStream:
     """Read events from a ``.npz`` (``events`` + ``sensor_size``, or ``t, x, y, p`` arrays)."""
     path = Path(path)
+    if sensor_size is not None:
+        sensor_size = check_sensor_size(sensor_size)
+    # where a zip failure sits: the central directory (end of the file), then each member
+    where = [max(path.stat().st_size - 22, 0)]
+
+    def member(zf, name):
+        where[0] = zf.getinfo(name).header_offset
+        return _read_member(zf, name, path)
+
     try:
-        with np.load(path, allow_pickle=False) as z:
-            files = set(z.files)
+        with zipfile.ZipFile(path) as zf:
+            files = {n[:-4] for n in zf.namelist() if n.endswith(".npy")}
             if "events" in files:
-                events = as_event_array(z["events"], str(path))
+                events = _convert(member(zf, "events.npy"), path, where[0])
             elif {"t", "x", "y", "p"} <= files:
-                events = as_event_array(np.rec.fromarrays([z[k] for k in "txyp"], names="t,x,y,p"))
+                cols = [member(zf, f"{k}.npy") for k in "txyp"]
+                try:
+                    events = make_events(*cols)
+                except EventFormatError as err:  # point at the member the message names
+                    name = f"{str(err)[0]}.npy"
+                    at = zf.getinfo(name).header_offset if name in zf.namelist() else None
+                    raise file_error(path, at if at is not None else where[0], str(err)
+                                     ) from None
             else:
-                raise EventFormatError(f"{path}: no 'events' or 't, x, y, p' arrays in the .npz")
+                raise file_error(path, where[0], "no 'events' or 't, x, y, p' arrays in the "
+                                 ".npz's directory")
             if sensor_size is None and "sensor_size" in files:
-                sensor_size = tuple(int(v) for v in z["sensor_size"])
-    except (ValueError, OSError) as err:
+                stored = member(zf, "sensor_size.npy")
+                try:
+                    sensor_size = check_sensor_size(stored.tolist(), "the stored sensor_size")
+                except EventFormatError as err:
+                    raise file_error(path, where[0], str(err)) from None
+    except _ZIP_ERRORS as err:
         if isinstance(err, EventFormatError):
             raise
-        raise EventFormatError(f"{path}: not a readable .npz file ({err})") from None
+        raise file_error(path, where[0], f"not a readable .npz file ({type(err).__name__}: "
+                         f"{err})") from None
     return _with_size(events, sensor_size, path)
 
 
@@ -89,32 +238,58 @@ def write_npz(path: str | Path, stream: EventStream) -> None:
         np.savez(f, events=stream.events, sensor_size=np.asarray(stream.sensor_size, np.int64))
 
 
+def _exact_ints(rows: list[list[str]], first_line: list[int], path) -> np.ndarray:
+    """Slow path: every token an exact integer (``1.0``, ``1e3`` allowed when integral)."""
+    out = np.empty((len(rows), 4), np.int64)
+    for r, row in enumerate(rows):
+        for c, tok in enumerate(row):
+            try:
+                v = int(tok)
+            except ValueError:
+                try:
+                    d = Decimal(tok)
+                    v = int(d) if d.is_finite() and d == d.to_integral_value() else None
+                except (InvalidOperation, ValueError):
+                    v = None
+            if v is None or not -(1 << 63) <= v < (1 << 63):
+                raise file_error(path, None, f"line {first_line[r]}: {tok!r} is not an integer "
+                                 f"in the int64 range")
+            out[r, c] = v
+    return out
+
+
 def read_csv(path: str | Path, sensor_size: tuple[int, int] | None = None) -> EventStream:
     """Read ``t,x,y,p`` text (comma/whitespace separated, optional header naming the columns)."""
     path = Path(path)
+    if sensor_size is not None:
+        sensor_size = check_sensor_size(sensor_size)
     text = path.read_text(encoding="utf-8", errors="replace")
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines:
-        raise EventFormatError(f"{path}: empty event text file")
+    numbered = [(i + 1, ln) for i, ln in enumerate(text.splitlines())
+                if ln.strip() and not ln.lstrip().startswith("#")]
+    if not numbered:
+        raise file_error(path, None, "empty event text file")
     order = list("txyp")
-    first = [c.strip().lower() for c in re.split(r"[,\s;]+", lines[0].strip())]
-    if not re.match(r"^-?\d", first[0]):  # a header line
+    first = [c.strip().lower() for c in re.split(r"[,\s;]+", numbered[0][1].strip())]
+    if not re.match(r"^[-+]?\d", first[0]):  # a header line
         alias = {"timestamp": "t", "time": "t", "ts": "t", "polarity": "p", "pol": "p", "on": "p"}
         first = [alias.get(c, c) for c in first]
         if sorted(first) != sorted(order):
-            raise EventFormatError(f"{path}: header must name t, x, y, p, got {lines[0]!r}")
-        order, lines = first, lines[1:]
+            raise file_error(path, None, f"line {numbered[0][0]}: header must name t, x, y, p, "
+                             f"got {numbered[0][1]!r}")
+        order, numbered = first, numbered[1:]
+    rows = [re.split(r"[,;\s]+", ln.strip()) for _, ln in numbered]
+    for (k, ln), row in zip(numbered, rows):
+        if len(row) != 4:
+            raise file_error(path, None, f"line {k}: need 4 columns t, x, y, p, found "
+                             f"{len(row)}: {ln[:60]!r}")
     try:
-        data = np.loadtxt(io.StringIO("\n".join(re.sub(r"[,;]", " ", ln) for ln in lines)),
-                          dtype=np.float64, ndmin=2)
-    except ValueError as err:
-        raise EventFormatError(f"{path}: malformed event line ({err})") from None
-    if data.shape[1] != 4:
-        raise EventFormatError(f"{path}: need 4 columns t, x, y, p, found {data.shape[1]}")
+        data = np.loadtxt(io.StringIO("\n".join(" ".join(r) for r in rows)), dtype=np.int64,
+                          ndmin=2) if rows else np.empty((0, 4), np.int64)
+    except ValueError:
+        data = _exact_ints(rows, [k for k, _ in numbered], path)
     cols = {name: data[:, i] for i, name in enumerate(order)}
-    if any((np.round(v) != v).any() for v in cols.values()):
-        raise EventFormatError(f"{path}: t, x, y, p must be integers (t in microseconds)")
-    p = cols["p"] > 0
-    events = make_events(cols["t"].astype(np.int64), cols["x"], cols["y"], p)
+    try:
+        events = make_events(cols["t"], cols["x"], cols["y"], cols["p"])
+    except EventFormatError as err:
+        raise file_error(path, None, str(err)) from None
     return _with_size(events, sensor_size, path)
-

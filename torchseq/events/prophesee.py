@@ -25,7 +25,18 @@ from pathlib import Path
 
 import numpy as np
 
-from torchseq.events.stream import EventFormatError, EventStream, iter_records, make_events
+from torchseq.atomic import atomic_open
+from torchseq.events.stream import (
+    EVENT_DTYPE,
+    Chunk,
+    EventFormatError,
+    EventStream,
+    check_sensor_size,
+    check_truncated,
+    file_error,
+    iter_records,
+    make_events,
+)
 
 PLUGIN_SIZES = {"gen41": (1280, 720), "imx636": (1280, 720), "gen31": (640, 480),
                 "gen3": (640, 480), "imx646": (1280, 720), "genx320": (320, 320)}
@@ -74,64 +85,136 @@ def _ffill(mask: np.ndarray, values: np.ndarray, init: int) -> tuple[np.ndarray,
     return np.where(last >= 0, values[np.maximum(last, 0)], init), last
 
 
+_EVENT_WORD = np.zeros(16, bool)
+_EVENT_WORD[[0x2, 0x4, 0x5]] = True  # ADDR_X, VECT_12, VECT_8
+_VECTOR_STEP = np.zeros(16, np.int32)
+_VECTOR_STEP[0x4], _VECTOR_STEP[0x5] = 12, 8
+
+
+def _latest(is_kind: np.ndarray, values: np.ndarray, at: np.ndarray, init) -> np.ndarray:
+    """Value of the latest word of one kind at or before each word index in ``at``.
+
+    Args:
+        is_kind: ``(N,)`` bool, the words of that kind.
+        values: ``(K,)`` their values, in word order.
+        at: ``(E,)`` word indices asking.
+        init: the value carried in from before the chunk.
+    """
+    ext = np.empty(len(values) + 1, values.dtype if len(values) else np.int64)
+    ext[0], ext[1:] = init, values
+    return ext[np.cumsum(is_kind, dtype=np.int32)[at]]
+
+
+def _rising(values: np.ndarray, before) -> np.ndarray:
+    """``(K,)`` bool: each value smaller than the one before it (``before`` for the first)."""
+    back = np.empty(len(values), bool)
+    if len(values):
+        back[0] = values[0] < before
+        np.less(values[1:], values[:-1], out=back[1:])
+    return back
+
+
 def decode_evt3(words: np.ndarray, state: dict, time_mode: str = "spec") -> np.ndarray:
     """Decode ``(N,)`` uint16 EVT 3.0 words; ``state`` (row, time, base, wraps) carries over.
+
+    Only the event words (ADDR_X, VECT_12, VECT_8) are decoded in full: each takes its row,
+    time and vector base from the latest word of that kind before it (a cumulative count of
+    that kind indexes its values), events are built once per word as records and repeated
+    for the bits of a vector (bit positions from ``np.unpackbits``), so there is no sort.
 
     ``time_mode="carry"`` also adds 4096 us at every decrease of TIME_LOW, as some third-party
     decoders do (it reproduces ``evt3_sample.npy``); ``"spec"`` follows the format.
     """
     if time_mode not in ("spec", "carry"):
         raise EventFormatError(f"unknown EVT 3.0 time mode {time_mode!r} ('spec' or 'carry')")
-    w = words.astype(np.int64)
-    typ, val = w >> 12, w & 0xFFF
-    # time: TIME_HIGH words with wrap counting, TIME_LOW words
-    is_high = typ == 0x8
-    high = val[is_high]
-    prev = np.r_[state.get("high", high[0] if len(high) else 0), high[:-1]]
-    loops = np.cumsum(high < prev) + state.get("loops", 0)
-    high_full = np.zeros(len(w), np.int64)
-    high_full[is_high] = high + (loops << 12)
-    high_t, _ = _ffill(is_high, high_full, state.get("high_full", -1))
-    high_raw = high_t
-    low_t, _ = _ffill(typ == 0x6, val, state.get("low", 0))
+    w = np.asarray(words, np.uint16)
+    typ = w >> 12
+    e = np.flatnonzero(_EVENT_WORD[typ])  # event words, in order
+    ew = w[e]
+    # time: TIME_HIGH words with wrap counting (a decrease is a 2**24 us wrap), TIME_LOW
+    is_th = typ == 0x8
+    high = (w[is_th] & 0xFFF).astype(np.int64)
+    loops = np.cumsum(_rising(high, state.get("high", 0))) + state.get("loops", 0)
+    high_full = high + (loops << 12)
+    hf = _latest(is_th, high_full, e, state.get("high_full", -1))
+    is_tl = typ == 0x6
+    low = (w[is_tl] & 0xFFF).astype(np.int64)
+    t_e = _latest(is_tl, low, e, state.get("low", 0))
+    carry_last = state.get("carry", 0)
     if time_mode == "carry":
-        is_low = typ == 0x6
-        low = val[is_low]
-        prev_low = np.r_[state.get("low", low[0] if len(low) else 0), low[:-1]]
-        carry = np.zeros(len(w), np.int64)
-        carry[is_low] = np.cumsum(low < prev_low) + state.get("carry", 0)
-        carry, _ = _ffill(is_low, carry, state.get("carry", 0))
-        if len(w):
-            state["carry"] = int(carry[-1])
-        high_t = np.where(high_t >= 0, high_t + carry, high_t)
-    t = high_t * 4096 + low_t
-    row, _ = _ffill(typ == 0x0, val & 0x7FF, state.get("y", -1))
-    # vector base: VECT_BASE_X value plus the 12/8 steps of the vectors since it
-    is_base = typ == 0x3
-    step = np.where(typ == 0x4, 12, np.where(typ == 0x5, 8, 0))
-    done = np.cumsum(step) - step  # steps taken before each word
-    base0, last = _ffill(is_base, val & 0x7FF, -1)
-    pol, _ = _ffill(is_base, val >> 11, state.get("pol", 0))
-    base = np.where(last >= 0, base0 + done - done[np.maximum(last, 0)],
-                    state.get("base", 0) + done)
-    # events: single (ADDR_X) and vectors (VECT_12 / VECT_8), in word then bit order
-    single = np.nonzero(typ == 0x2)[0]
-    vec = np.nonzero((typ == 0x4) | (typ == 0x5))[0]
-    mask = np.where(typ[vec] == 0x4, val[vec], val[vec] & 0xFF)
-    k, bit = np.nonzero((mask[:, None] >> np.arange(12)) & 1)
-    k = vec[k]
-    word = np.r_[single, k]
-    order = np.argsort(word * 16 + np.r_[np.zeros(len(single), np.int64), bit], kind="stable")
-    word = word[order]
-    x = np.r_[val[single] & 0x7FF, base[k] + bit][order]
-    p = np.r_[val[single] >> 11, pol[k]][order]
-    ok = (high_t[word] >= 0) & (row[word] >= 0)  # nothing before the first time and row
+        carries = np.cumsum(_rising(low, state.get("low", 0))) + carry_last
+        carry_e = _latest(is_tl, carries, e, carry_last)
+        if len(carries):
+            carry_last = int(carries[-1])
+        hf = np.where(hf >= 0, hf + carry_e, hf)
+    t_e += hf << 12
+    is_y = typ == 0x0
+    rows = (w[is_y] & 0x7FF).astype(np.int16)
+    row = _latest(is_y, rows, e, state.get("y", -1))
+    ok = (hf >= 0) & (row >= 0)  # nothing before the first time and row
+    # vectors: base = the latest VECT_BASE_X plus the 12/8 steps of the vectors since it
+    i_s = np.flatnonzero((typ - np.uint16(3)) <= 2)  # VECT_BASE_X, VECT_12, VECT_8
+    ws = w[i_s]
+    ts = ws >> 12
+    is_base = ts == 0x3
+    step = _VECTOR_STEP[ts]
+    done = np.cumsum(step, dtype=np.int32)
+    done -= step  # steps taken before each word
+    nb = np.cumsum(is_base, dtype=np.int32)
+    i_base = np.flatnonzero(is_base)
+    bval = np.empty(len(i_base) + 1, np.int32)  # base value minus the steps before it
+    bval[0] = state.get("base", 0)
+    bval[1:] = (ws[i_base] & 0x7FF) - done[i_base]
+    bpol = np.empty(len(i_base) + 1, np.uint8)
+    bpol[0] = state.get("pol", 0)
+    bpol[1:] = (ws[i_base] >> 11) & 1
+    jv = np.flatnonzero(~is_base)  # the vector words among i_s
+    is_vec = ew >= 0x3000  # event words that are vectors (types 4, 5 > type 2)
+    out_e = np.empty(len(e), EVENT_DTYPE)
+    out_e["t"], out_e["y"] = t_e, row
+    x = ew & 0x7FF
+    p = (ew >> 11) & 1
+    x[is_vec] = bval[nb[jv]] + done[jv]
+    p[is_vec] = bpol[nb[jv]]
+    out_e["x"], out_e["p"] = x, p
     if len(w):
-        state.update(y=int(row[-1]), low=int(low_t[-1]), high_full=int(high_raw[-1]),
-                     pol=int(pol[-1]), base=int(base[-1] + step[-1]))
+        state.update(y=int(rows[-1]) if len(rows) else state.get("y", -1),
+                     low=int(low[-1]) if len(low) else state.get("low", 0),
+                     high_full=int(high_full[-1]) if len(high) else state.get("high_full", -1),
+                     carry=carry_last)
+        if len(ws):
+            state.update(pol=int(bpol[nb[-1]]), base=int(bval[nb[-1]] + done[-1] + step[-1]))
         if len(high):
             state.update(high=int(high[-1]), loops=int(loops[-1]))
-    return make_events(t[word][ok], x[ok], row[word][ok], p[ok])
+    if not ok.all():
+        out_e, is_vec, ew, keep_v = out_e[ok], is_vec[ok], ew[ok], ok[is_vec]
+        jv = jv[keep_v]
+    if not is_vec.any():
+        return out_e
+    # every event word as a bit mask (a single ADDR_X is bit 0 of its own column), so the
+    # bit offsets of all events come out in order from one unpackbits
+    masks = np.ones(len(out_e), "<u2")
+    masks[is_vec] = np.where(ts[jv] == 0x4, ws[jv] & 0xFFF, ws[jv] & 0xFF)
+    out = np.repeat(out_e, np.bitwise_count(masks))
+    out["x"] += _set_bits(masks)
+    return out
+
+
+_BLOCK = 1 << 16
+_POSITIONS = np.tile(np.arange(16, dtype=np.int16), _BLOCK)  # 2 MB, bit positions 0..15
+
+
+def _set_bits(masks: np.ndarray) -> np.ndarray:
+    """Positions of the set bits of ``(E,)`` little-endian uint16 masks, mask by mask.
+
+    Returns:
+        ``(sum of popcounts,)`` int16: for each mask its set bits in increasing order.
+    """
+    parts = []
+    for i in range(0, len(masks), _BLOCK):
+        bits = np.unpackbits(masks[i : i + _BLOCK].view(np.uint8), bitorder="little")
+        parts.append(_POSITIONS[: len(bits)][bits.view(bool)])
+    return np.concatenate(parts) if len(parts) != 1 else parts[0]
 
 
 def decode_evt2(words: np.ndarray, state: dict) -> np.ndarray:
@@ -172,14 +255,20 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
         :class:`EventStream` chunks, time order not yet checked.
     """
     path = Path(path)
+    check_truncated(truncated)
+    if evt3_time not in ("spec", "carry"):
+        raise EventFormatError(f"unknown EVT 3.0 time mode {evt3_time!r} ('spec' or 'carry')")
+    if sensor_size is not None:
+        sensor_size = check_sensor_size(sensor_size)
     with open(path, "rb") as f:
         try:
             fmt, size = read_header(f)
+            size = sensor_size if sensor_size is not None else (
+                check_sensor_size(size, "the header's geometry") if size is not None else None)
         except EventFormatError as err:
-            raise EventFormatError(f"{path}: {err}") from None
-        size = tuple(sensor_size) if sensor_size is not None else size
+            raise file_error(path, 0, str(err)) from None
         if size is None:
-            raise EventFormatError(f"{path}: header gives no sensor geometry; pass sensor_size=")
+            raise file_error(path, 0, "header gives no sensor geometry; pass sensor_size=")
         if fmt == "evt3":
             dtype = np.dtype("<u2")
             def decode(words, state):
@@ -188,5 +277,96 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
             dtype, decode = np.dtype("<u4"), decode_evt2
         body = path.stat().st_size - f.tell()
         state: dict = {}
-        for words in iter_records(f, path, dtype, body, chunk_events, truncated, "word"):
-            yield EventStream(decode(words, state), size)
+        for offset, words in iter_records(f, path, dtype, body, chunk_events, truncated, "word"):
+            yield Chunk(decode(words, state), size, offset)
+
+
+def _runs(new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start index of each run (``new`` marks run starts) and, per element, its run start."""
+    starts = np.flatnonzero(new)
+    return starts, starts[np.cumsum(new) - 1]
+
+
+def encode_evt3(events: np.ndarray) -> np.ndarray:
+    """EVT 3.0 words for time-ordered events with ``0 <= t[0] < 2**24`` (see :func:`write_evt3`).
+
+    Events sharing ``(t, y, p)`` become VECT_BASE_X + VECT_12 pairs for each 12-column block
+    holding two or more of them, ADDR_X words otherwise; TIME_HIGH / TIME_LOW / ADDR_Y words
+    are written when their value changes (TIME_HIGH also every 2**23 us across long gaps, so
+    the 24-bit time unwraps). Vectorised: every word's position comes from a cumulative sum
+    of the words each event needs.
+    """
+    n = len(events)
+    if n == 0:
+        return np.empty(0, np.uint16)
+    t = events["t"].astype(np.int64)
+    x, y, p = (events[f].astype(np.int64) for f in "xyp")
+    new_t = np.r_[True, t[1:] != t[:-1]]
+    th = t >> 12
+    gap = np.r_[th[0], th[1:] - th[:-1]]  # TIME_HIGH steps between events
+    extra = np.where(np.r_[False, gap[1:] > 2048], (gap - 1) // 2048, 0)  # long gaps
+    new_th = np.r_[True, gap[1:] != 0]
+    new_y = np.r_[True, y[1:] != y[:-1]]
+    new_g = new_t | new_y | np.r_[True, p[1:] != p[:-1]]
+    _, g_start = _runs(new_g)
+    blk = (x - x[g_start]) // 12
+    new_run = new_g | np.r_[True, (blk[1:] != blk[:-1]) | (x[1:] <= x[:-1])]
+    r_starts, r_of = _runs(new_run)
+    r_len = np.diff(np.r_[r_starts, n])
+    vec_run = r_len > 1
+    base = x[g_start] + 12 * blk  # block base column
+    bits = np.add.reduceat(np.left_shift(1, x - base), r_starts)  # unique bits per run
+    lead = new_run
+    is_vec_lead = lead & vec_run[np.cumsum(new_run) - 1]
+    is_single = lead & ~is_vec_lead
+    # words each event needs: [extra TIME_HIGHs][TIME_HIGH][TIME_LOW][ADDR_Y][event words]
+    need = (extra + new_th + new_t + new_y + is_single + 2 * is_vec_lead).astype(np.int64)
+    end = np.cumsum(need)
+    pos = end - need  # first word of each event
+    words = np.empty(int(end[-1]), np.uint16)
+    k = np.flatnonzero(extra)
+    if len(k):  # intermediate TIME_HIGHs every 2048 periods across long gaps
+        reps = extra[k]
+        owner = np.repeat(k, reps)
+        j = np.arange(len(owner)) - np.repeat(np.cumsum(reps) - reps, reps) + 1
+        words[np.repeat(pos[k], reps) + j - 1] = 0x8000 | ((th[owner] - gap[owner] + 2048 * j)
+                                                           & 0xFFF)
+    pos = pos + extra
+    i = np.flatnonzero(new_th)
+    words[pos[i]] = 0x8000 | (th[i] & 0xFFF)
+    pos = pos + new_th
+    i = np.flatnonzero(new_t)
+    words[pos[i]] = 0x6000 | (t[i] & 0xFFF)
+    pos = pos + new_t
+    i = np.flatnonzero(new_y)
+    words[pos[i]] = y[i]  # ADDR_Y (type 0), master camera
+    pos = pos + new_y
+    i = np.flatnonzero(is_single)
+    words[pos[i]] = 0x2000 | (p[i] << 11) | x[i]
+    i = np.flatnonzero(is_vec_lead)
+    words[pos[i]] = 0x3000 | (p[i] << 11) | base[i]
+    words[pos[i] + 1] = 0x4000 | bits[np.cumsum(new_run)[i] - 1]
+    return words
+
+
+def write_evt3(path: str | Path, stream: EventStream) -> None:
+    """Write events as a Prophesee EVT 3.0 ``.raw`` file (atomically), read by :func:`iter_raw`.
+
+    Events sharing a timestamp are stored (and read back) ordered by ``(y, p, x)``.
+
+    Args:
+        path: output ``.raw`` file.
+        stream: time-ordered events with ``0 <= t[0] < 2**24`` us (EVT 3.0 holds 24-bit
+            time; later times are unwrapped by the reader) on a sensor of at most 2048x2048.
+    """
+    stream.validate()
+    ev, (w, h) = stream.events, stream.sensor_size
+    if w > 2048 or h > 2048:
+        raise EventFormatError(f"EVT 3.0 holds at most 2048x2048 pixels, got {w}x{h}")
+    if len(ev) and not 0 <= ev["t"][0] < 1 << 24:
+        raise EventFormatError("EVT 3.0 times must start in [0, 2**24) us; shift them")
+    ev = ev[np.lexsort((ev["x"], ev["p"], ev["y"], ev["t"]))]
+    header = f"% evt 3.0\n% format EVT3;height={h};width={w}\n% geometry {w}x{h}\n% end\n"
+    with atomic_open(path) as f:
+        f.write(header.encode("ascii"))
+        f.write(encode_evt3(ev).astype("<u2").tobytes())
