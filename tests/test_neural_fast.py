@@ -78,24 +78,6 @@ def test_ring_scan_blocks_equal_frame_by_frame(t_len, block, wrap):
     torch.testing.assert_close(got, torch.stack(want), atol=1e-12, rtol=1e-12)
 
 
-def test_decide_equals_loop():
-    from torchseq.neural.learning import decide
-
-    g = torch.Generator().manual_seed(5)
-    act = torch.rand(50, 40, generator=g)
-    act[3] = 1.0  # all tied: first index wins
-    centre = torch.arange(40) * 3
-    for window, n in ((5, 40), (2, 40), (30, 40), (39, 40), (0, 40), (5, 6)):
-        a = act[:, :n]
-        ref, conf = decide(a, centre[:n], window)
-        for b in range(a.shape[0]):
-            u = max(range(n), key=lambda i: (float(a[b, i]), -i))
-            rivals = [float(a[b, v]) for v in range(n) if abs(v - u) > window]
-            second = max(rivals) if rivals else float(a[b].min())
-            assert int(ref[b]) == int(centre[u])
-            assert float(conf[b]) == pytest.approx(float(a[b, u]) - second, abs=1e-7)
-
-
 @pytest.mark.parametrize("wrap", [False, True])
 def test_ring_scan_tensor_path_equals_numpy_path(wrap):
     """The block steps run in NumPy on the CPU and as tensor operations elsewhere (CUDA, or
