@@ -30,7 +30,7 @@ from torchseq.demo import make_demo  # noqa: E402
 from torchseq.layers import cohort_normalise, kwta  # noqa: E402
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
 from torchseq.neural.fixed_point import block_order  # noqa: E402
-from torchseq.neural.learning import decide  # noqa: E402
+from torchseq.neural.readout import decide  # noqa: E402
 from torchseq.preprocess import resize  # noqa: E402
 
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"

@@ -11,7 +11,8 @@ import torch
 from torchseq.demo import make_demo
 from torchseq.layers import cohort_normalise
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
-from torchseq.neural.learning import cohort_membership, decide, hebbian_weights, recruit_units
+from torchseq.neural.learning import cohort_membership, hebbian_weights, recruit_units
+from torchseq.neural.readout import decide
 
 
 def cohort_loop(evidence, cohort_of_unit, eps):

@@ -11,7 +11,7 @@ import torch
 from torchseq.demo import make_demo
 from torchseq.layers import cohort_normalise
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
-from torchseq.neural.learning import decide
+from torchseq.neural.readout import decide
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,7 @@
-"""Local learning rules and read-out of Neural SeqSLAM (pure functions)."""
+"""Local learning rules of Neural SeqSLAM: recruitment, Hebbian weights, cohorts.
+
+Pure functions. The read-out is in :mod:`torchseq.neural.readout`.
+"""
 
 from __future__ import annotations
 
@@ -64,36 +67,3 @@ def cohort_membership(n_units: int, n_cohorts: int) -> torch.Tensor:
     c = max(1, min(int(n_cohorts), n_units))
     which = torch.arange(n_units) * c // n_units
     return torch.nn.functional.one_hot(which, c).to(torch.float32)
-
-
-def decide(activity: torch.Tensor, unit_centre: torch.Tensor,
-           window: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Read the place out of the ring: the most active unit, and a margin as confidence.
-
-    ``u* = argmax_u a_u`` (first index on ties); ``reference = unit_centre[u*]``;
-    ``confidence = a_{u*} - max_{|v - u*| > window} a_v`` (minus ``min_v a_v`` when every
-    unit is inside the window).
-
-    Args:
-        activity: ``(B, N)``.
-        unit_centre: ``(N,)`` int64 reference frame each unit stands for.
-        window: units on each side of the winner that are not rivals.
-
-    Returns:
-        ``(reference (B,) int64, confidence (B,) float)``.
-    """
-    tracing = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()  # no data-dependence
-    if activity.device.type == "cpu" and not tracing:
-        # NumPy's argmax (first index on ties, like torch's) is ~10x torch.max(dim)'s speed
-        unit = torch.from_numpy(activity.detach().numpy().argmax(axis=1))  # (B,)
-    else:
-        unit = activity.argmax(dim=1)
-    best = activity.gather(1, unit[:, None])[:, 0]
-    n = activity.shape[1]
-    near = (unit[:, None] + torch.arange(-window, window + 1, device=activity.device))
-    masked = activity.scatter(1, near.clamp(0, n - 1), float("-inf"))  # (B, N)
-    second = masked.amax(dim=1)  # -inf: every unit is inside the window
-    inside = torch.isinf(second)
-    if tracing or bool(inside.any()):
-        second = torch.where(inside, activity.amin(dim=1), second)
-    return unit_centre[unit], best - second
