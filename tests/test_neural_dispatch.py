@@ -15,9 +15,8 @@ from conftest import DEVICES
 from torchseq.demo import make_demo
 from torchseq.layers import kernels as K
 from torchseq.layers import ring as R
-from torchseq.neural import NeuralConfig, NeuralError, NeuralSeqSLAM
+from torchseq.neural import NeuralConfig, NeuralError, NeuralSeqSLAM, readout
 from torchseq.neural import inference as I
-from torchseq.neural import readout
 
 
 @pytest.fixture(scope="module")

@@ -44,27 +44,36 @@ def fitted(route, rectify, n_cohorts):
     return _MODELS[key]
 
 
-def streams(route, t):
-    """Three independent streams: the query, the reference backwards, a shifted query."""
+def streams(route, t, batch=3):
+    """Independent streams: the query, the reference backwards, then shifted queries."""
     q, r = route.query, route.reference
-    return torch.stack([q[t % len(q)], r[len(r) - 1 - t], q[(t + 7) % len(q)]])
+    frames = [q[t % len(q)], r[len(r) - 1 - t]] + [q[(t + 7 * i) % len(q)]
+                                                   for i in range(1, batch - 1)]
+    return torch.stack(frames[:batch])
 
 
 @pytest.mark.parametrize("rectify", [True, False])
 @pytest.mark.parametrize("n_cohorts", [1, 4])
-def test_step_after_run_under_inference_mode_equals_eager(route, rectify, n_cohorts):
+@pytest.mark.parametrize("prepared,batch", [(False, 3), (True, 1), (True, 3), (True, 20)])
+def test_step_after_run_under_inference_mode_equals_eager(route, rectify, n_cohorts, prepared,
+                                                          batch):
     model = fitted(route, rectify, n_cohorts)
     model.run(route.query[:5])  # whatever run leaves behind must not change step's numbers
-    state, a_ref = None, torch.zeros(3, model.n_units)
-    for t in range(12):
-        frames = streams(route, t)
-        with torch.inference_mode():
-            out, state = model.step(frames, state)
-        ref, conf, a_ref = eager_step(model, frames, a_ref)
-        torch.testing.assert_close(out.activity, a_ref, atol=1e-5, rtol=1e-5)
-        torch.testing.assert_close(out.confidence, conf, atol=1e-5, rtol=1e-5)
-        assert torch.equal(out.reference, ref)
-        assert float(out.activity.abs().max()) > 0  # the evidence reached the ring
+    if prepared:  # the inference module with its auto kernels runs the step
+        assert model.fold().kernels == model.kernels
+    try:
+        state, a_ref = None, torch.zeros(batch, model.n_units)
+        for t in range(12):
+            frames = streams(route, t, batch)
+            with torch.inference_mode():
+                out, state = model.step(frames, state)
+            ref, conf, a_ref = eager_step(model, frames, a_ref)
+            torch.testing.assert_close(out.activity, a_ref, atol=1e-5, rtol=1e-5)
+            torch.testing.assert_close(out.confidence, conf, atol=1e-5, rtol=1e-5)
+            assert torch.equal(out.reference, ref)
+            assert float(out.activity.abs().max()) > 0  # the evidence reached the ring
+    finally:
+        model.unfold()
 
 
 @pytest.mark.parametrize("rectify", [True, False])
@@ -82,6 +91,7 @@ def test_step_with_gradients_on_equals_eager(route, rectify, n_cohorts):
 
 @pytest.mark.parametrize("n_cohorts", [1, 4])
 def test_run_equals_step_frame_by_frame(route, n_cohorts):
+    """run (inference module, blocked ring scan) against the eager step, frame by frame."""
     model = fitted(route, True, n_cohorts)
     q = route.query
     res = model.run(q)
