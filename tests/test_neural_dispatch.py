@@ -57,6 +57,8 @@ def recording(module):
     patches = [
         mock.patch.object(K.Int8Linear, "__call__", int8_call),
         wrap(K, "kwta_partition", "kwta:partition"),
+        wrap(K, "kwta_partition_indices", "kwta:partition"),
+        wrap(K, "cohort_normalise_numpy", "cohorts:numpy"),
         wrap(K, "topk_indices", "kwta:topk"),
         wrap(K, "sum_rows", "l3:embedding_bag"),
         wrap(R, "_ring_step_banded", "ring:banded"),
@@ -90,7 +92,7 @@ def test_auto_cpu_step_dispatch(grid_model, route, batch):
     int8 = inf.kernels["l1"] == "int8_gemm"
     l3 = ("l3:int8_gemm" if int8 and batch >= I.SMALL_BATCH else "l3:embedding_bag")
     want = ["input:numpy", "l1:int8_gemm" if int8 else None, "kwta:partition", l3,
-            "ring:banded", "decide:numpy"]
+            "cohorts:numpy", "ring:banded", "decide:numpy"]
     assert ran == [w for w in want if w]
 
 
@@ -124,13 +126,13 @@ def test_float_model_falls_back_to_float_kernels(route):
     assert inf.kernels["l1"] == "float32_gemm" and inf.kernels["l3"] == "embedding_bag"
     with recording(inf) as ran:
         inf(route.query[:20])
-    assert ran == ["input:numpy", "kwta:partition", "l3:embedding_bag", "ring:banded",
-                   "decide:numpy"]
+    assert ran == ["input:numpy", "kwta:partition", "l3:embedding_bag", "cohorts:numpy",
+                   "ring:banded", "decide:numpy"]
 
 
 def test_explicit_kernels_and_wrapped_ring(grid_model, route):
     inf = grid_model.inference({"kwta": "topk", "l3": "embedding_bag", "ring": "dense",
-                                "decide": "torch", "input": "torch"})
+                                "decide": "torch", "input": "torch", "cohorts": "torch"})
     with recording(inf) as ran:
         inf(route.query[:2])
     assert ran[0] == "input:torch" and ran[-2:] == ["kwta:topk", "l3:embedding_bag"]
@@ -176,8 +178,8 @@ def test_device_dispatch(route, device):
         assert inf.kernels["input"] == "numpy" and inf.kernels["scan"] == "numpy"
         return
     assert inf.kernels == {"input": "torch", "l1": "float32_gemm", "kwta": "topk",
-                           "l3": "embedding_bag", "ring": "banded", "scan": "torch",
-                           "decide": "torch"}
+                           "l3": "embedding_bag", "cohorts": "torch", "ring": "banded",
+                           "scan": "torch", "decide": "torch"}
     with recording(inf) as ran:
         out, _ = inf(route.query[:3])
     assert ran == ["input:torch", "kwta:topk", "l3:embedding_bag", "ring:banded"]

@@ -3,6 +3,7 @@
 The loops use Python floats and lists only, so they share no code with the library.
 """
 
+import itertools
 import math
 
 import pytest
@@ -41,11 +42,47 @@ def one_hot(cohort_of_unit):
     [0, 0, 1, 2, 2, 2],  # a cohort of one unit
 ])
 @pytest.mark.parametrize("eps", [1e-6, 0.5])
-def test_cohort_normalise_equals_loop(cohort_of_unit, eps):
+@pytest.mark.parametrize("kernel", ["torch", "numpy"])
+def test_cohort_normalise_equals_loop(cohort_of_unit, eps, kernel):
     g = torch.Generator().manual_seed(len(cohort_of_unit))
     e = torch.randn(5, len(cohort_of_unit), generator=g, dtype=torch.float64) * 3 + 1
-    got = cohort_normalise(e, one_hot(cohort_of_unit), eps)
-    torch.testing.assert_close(got, cohort_loop(e, cohort_of_unit, eps), atol=1e-12, rtol=1e-12)
+    want = cohort_loop(e, cohort_of_unit, eps)
+    got = cohort_normalise(e, one_hot(cohort_of_unit), eps, kernel=kernel)
+    torch.testing.assert_close(got, want, atol=1e-12, rtol=1e-12)
+    rect = cohort_normalise(e, one_hot(cohort_of_unit), eps, rectify=True, kernel=kernel)
+    torch.testing.assert_close(rect, want.clamp_min(0.0), atol=1e-12, rtol=1e-12)
+
+
+def zscore_loop(frame, patch):
+    """Patch z-scores of one (H, W) frame: sample std, a flat block gives 0."""
+    rows = frame.tolist()
+    out = [[0.0] * len(rows[0]) for _ in rows]
+    for r0 in range(0, len(rows), patch):
+        for c0 in range(0, len(rows[0]), patch):
+            px = [rows[r][c] for r in range(r0, r0 + patch) for c in range(c0, c0 + patch)]
+            mean = sum(px) / len(px)
+            std = math.sqrt(sum((p - mean) ** 2 for p in px) / (len(px) - 1))
+            for r in range(r0, r0 + patch):
+                for c in range(c0, c0 + patch):
+                    out[r][c] = 0.0 if std == 0 else (rows[r][c] - mean) / std
+    return torch.tensor(out, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("patch", [2, 4])
+def test_patch_zscore_equals_loop_and_its_kernels_agree_bit_for_bit(patch):
+    from torchseq.preprocess import patch_normalise, zscore_pixel_major
+
+    g = torch.Generator().manual_seed(patch)
+    frames = torch.rand(3, 8, 12, generator=g) * 255
+    frames[1, :patch, :patch] = 7.0  # a flat block
+    z = patch_normalise(frames, patch, "zscore")
+    for t in range(3):
+        torch.testing.assert_close(z[t].double(), zscore_loop(frames[t], patch),
+                                   atol=1e-5, rtol=1e-5)
+    assert torch.equal(z[1, :patch, :patch], torch.zeros(patch, patch))
+    a = zscore_pixel_major(frames, patch, "torch")
+    b = zscore_pixel_major(frames, patch, "numpy")
+    assert torch.equal(a, b)  # the same element-wise operations in the same order
 
 
 def test_cohort_normalise_flat_cohorts_give_zero_and_eps_bounds_the_scale():
@@ -152,9 +189,10 @@ def test_decide_equals_loop():
     act[3] = 1.0  # all tied: first index wins
     act[4, 10] = act[4, 30] = 2.0  # a tie between two far units: the first one
     centre = torch.arange(40) * 3
-    for window, n in ((5, 40), (2, 40), (30, 40), (39, 40), (0, 40), (5, 6)):
-        a = act[:, :n]
-        ref, conf = decide(a, centre[:n], window)
+    for (window, n), kernel in itertools.product(
+            ((5, 40), (2, 40), (30, 40), (39, 40), (0, 40), (5, 6)), ("torch", "numpy")):
+        a = act[:, :n] if kernel == "torch" or window != 2 else act[:1, :n]  # (B = 1 too)
+        ref, conf = decide(a, centre[:n], window, kernel)
         for b in range(a.shape[0]):
             row = a[b].tolist()
             u = max(range(n), key=lambda i: (row[i], -i))

@@ -137,8 +137,8 @@ def zscore_pixel_major(frames: torch.Tensor, patch: int, kernel: str = "torch") 
     strided block axes of an image).
 
     Kernels: ``"torch"`` (any device, differentiable, exportable) and ``"numpy"`` (CPU, no
-    gradients: the same element-wise operations in the same order, so the same bits, with a
-    fraction of the per-call overhead on small batches).
+    gradients: the same element-wise operations in the same order, the square root still
+    torch's, so the same bits, with a fraction of the per-call overhead on small batches).
 
     Args:
         frames: ``(T, H, W)`` float, ``H`` and ``W`` multiples of ``patch``.
@@ -156,7 +156,8 @@ def zscore_pixel_major(frames: torch.Tensor, patch: int, kernel: str = "torch") 
         pixels = (frames.numpy().reshape(t, h // patch, patch, w // patch, patch)
                   .transpose(2, 4, 0, 1, 3).reshape(n, t, -1))
         dev = pixels - in_order_sum(pixels) / n
-        std = np.sqrt(in_order_sum(dev * dev) / (n - 1))
+        # torch's sqrt, not NumPy's: the two differ in the last bit for some float32 inputs
+        std = torch.from_numpy(in_order_sum(dev * dev) / (n - 1)).sqrt_().numpy()
         return torch.from_numpy(dev / np.where(std > 0, std, std.dtype.type(1)))
     if kernel != "torch":
         raise ValueError(f"kernel must be 'torch' or 'numpy', got {kernel!r}")

@@ -195,19 +195,36 @@ def learn_shift_matrix(
 
 
 def cohort_normalise(
-    evidence: torch.Tensor, membership: torch.Tensor, eps: float = 1e-6
+    evidence: torch.Tensor, membership: torch.Tensor, eps: float = 1e-6, rectify: bool = False,
+    kernel: str = "torch",
 ) -> torch.Tensor:
     """Z-score evidence within cohorts of units (one cohort = global normalisation).
+
+    Kernels: ``"torch"`` (any device, differentiable, exportable) and ``"numpy"`` (CPU, no
+    gradients, one cohort: the same statistics in NumPy with a fraction of the per-call
+    overhead; several cohorts take the torch kernel). Equal up to float rounding.
 
     Args:
         evidence: ``(B, N)``.
         membership: ``(N, C)`` one-hot: unit ``i`` belongs to cohort ``c``.
         eps: added to the std.
+        rectify: clamp the result at 0 (only above-average evidence passes).
+        kernel: ``"torch"`` or ``"numpy"``.
 
     Returns:
         ``(B, N)``: ``(e - mean_c) / (std_c + eps)`` with the mean and (population) std of
-        each unit's cohort.
+        each unit's cohort (then ``max(., 0)`` with ``rectify``).
     """
+    if kernel == "numpy" and membership.shape[1] == 1:
+        return kernels.cohort_normalise_numpy(evidence, eps, rectify)
+    if kernel not in ("torch", "numpy"):
+        raise ValueError(f"kernel must be 'torch' or 'numpy', got {kernel!r}")
+    z = _cohort_normalise(evidence, membership, eps)
+    return z.clamp_min(0.0) if rectify else z
+
+
+def _cohort_normalise(evidence: torch.Tensor, membership: torch.Tensor,
+                      eps: float) -> torch.Tensor:
     if membership.shape[1] == 1:  # one cohort: plain row statistics (fewer passes)
         dev = evidence - evidence.mean(dim=1, keepdim=True)
         return dev / ((dev * dev).mean(dim=1, keepdim=True).sqrt() + eps)

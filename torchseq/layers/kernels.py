@@ -66,6 +66,24 @@ def kwta_partition(x: torch.Tensor, k: int) -> torch.Tensor:
     return torch.from_numpy(win).reshape(x.shape)
 
 
+def kwta_partition_indices(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Winners' indices ``(B, k)`` (ascending) of ``kwta``'s partition kernel, rows ``(B, N)``."""
+    win = kwta_numpy(x.detach().numpy(), k)
+    return torch.from_numpy(np.nonzero(win)[1].reshape(x.shape[0], k))
+
+
+def cohort_normalise_numpy(evidence: torch.Tensor, eps: float, rectify: bool) -> torch.Tensor:
+    """One cohort of :func:`torchseq.layers.functional.cohort_normalise` in NumPy (CPU)."""
+    if evidence.device.type != "cpu" or evidence.requires_grad:
+        raise ValueError("cohort_normalise's numpy kernel needs a CPU tensor without gradients")
+    e = evidence.numpy()
+    dev = e - e.mean(axis=1, keepdims=True)
+    z = dev / (np.sqrt((dev * dev).mean(axis=1, keepdims=True)) + e.dtype.type(eps))
+    if rectify:
+        np.maximum(z, 0, out=z)
+    return torch.from_numpy(z)
+
+
 def sum_rows(idx: torch.Tensor, w_t: torch.Tensor) -> torch.Tensor:
     """``code @ w_t`` for binary codes given by their ones' indices ``idx`` ``(B, k)``.
 

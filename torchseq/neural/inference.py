@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 import platform
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -52,19 +53,20 @@ from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralStep
 from torchseq.preprocess import block_order, zscore_pixel_major
 
-STAGES = ("input", "l1", "kwta", "l3", "ring", "scan", "decide")
+STAGES = ("input", "l1", "kwta", "l3", "cohorts", "ring", "scan", "decide")
 CHOICES = {
     "input": ("torch", "numpy", "encode"),
     "l1": ("float32_gemm", "int8_gemm", "bfloat16_gemm"),
     "kwta": ("topk", "partition"),
     "l3": ("embedding_bag", "int8_gemm", "int8_gemm_or_embedding_bag", "dense"),
+    "cohorts": ("torch", "numpy"),
     "ring": ("banded", "dense"),
     "scan": ("numpy", "torch"),
     "decide": ("numpy", "torch"),
 }
 SMALL_BATCH = 16  # below: the embedding-bag L3 beats the int8 GEMM (bench_neural.py)
 PORTABLE = {"input": "torch", "l1": "float32_gemm", "kwta": "topk", "l3": "dense",
-            "ring": "dense", "scan": "torch", "decide": "torch"}
+            "cohorts": "torch", "ring": "dense", "scan": "torch", "decide": "torch"}
 
 
 def int8_expected() -> bool:
@@ -156,7 +158,7 @@ class NeuralInference(nn.Module):
             "kwta": "partition" if cpu else "topk",
             "l3": ("int8_gemm_or_embedding_bag" if self.l3_int8 is not None
                    else "embedding_bag"),
-            "ring": "banded" if self.diagonals is not None else "dense",
+            "cohorts": numpy, "ring": "banded" if self.diagonals is not None else "dense",
             "scan": numpy, "decide": numpy,
         }
         out.update(asked)
@@ -166,7 +168,7 @@ class NeuralInference(nn.Module):
 
     def _check(self, out: dict, cpu: bool) -> dict:
         if not cpu:
-            bad = [s for s in ("input", "scan", "decide") if out[s] == "numpy"]
+            bad = [s for s in ("input", "cohorts", "scan", "decide") if out[s] == "numpy"]
             bad += ["kwta"] if out["kwta"] == "partition" else []
             bad += [s for s in ("l1", "l3") if out[s].startswith("int8_gemm")]
             if bad:
@@ -217,7 +219,12 @@ class NeuralInference(nn.Module):
             if grey is None:
                 grey = self._grey(frames)
             z = zscore_pixel_major(grey, cfg.patch_size, k["input"])  # (p*p, B, blocks)
-            if k["l1"] == "int8_gemm":  # straight to uint8: x * steps + 128
+            if k["l1"] == "int8_gemm" and k["input"] == "numpy":  # uint8 x * steps + 128
+                q = np.rint(z.numpy() * np.float32(cfg.input_steps))  # half to even
+                q += 128
+                x = torch.from_numpy(q.astype(np.uint8).transpose(1, 2, 0).reshape(
+                    z.shape[1], -1))
+            elif k["l1"] == "int8_gemm":
                 xq = z.mul_(cfg.input_steps).round_().add_(128.0).to(torch.uint8)
                 x = xq.permute(1, 2, 0).reshape(z.shape[1], -1)
             else:
@@ -226,8 +233,7 @@ class NeuralInference(nn.Module):
                     x = torch.round(x * cfg.input_steps) / cfg.input_steps
         h = self._l1(x)  # (B, M)
         e = self._l3(h)  # (B, N)
-        z = cohort_normalise(e, self.cohorts, cfg.eps)
-        return z.clamp_min(0.0) if cfg.rectify else z
+        return cohort_normalise(e, self.cohorts, cfg.eps, cfg.rectify, k["cohorts"])
 
     def _grey(self, frames: torch.Tensor) -> torch.Tensor:
         from torchseq.neural.model import checked_grey
@@ -254,7 +260,7 @@ class NeuralInference(nn.Module):
         if name == "dense":
             return kwta(h, n, True, kernel=k["kwta"]) @ self.w3_t
         if k["kwta"] == "partition":
-            idx = K.kwta_partition(h, n).nonzero()[:, 1].reshape(h.shape[0], n)
+            idx = K.kwta_partition_indices(h, n)
         else:
             idx = K.topk_indices(h, n)
         return K.sum_rows(idx, self.w3_t)
