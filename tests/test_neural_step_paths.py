@@ -101,3 +101,22 @@ def test_run_equals_step_frame_by_frame(route, n_cohorts):
         refs.append(int(ref[0]))
         torch.testing.assert_close(res.activity[t], a_ref[0], atol=1e-5, rtol=1e-5)
     assert res.matches.reference.tolist() == refs
+
+
+def test_prepared_step_checks_frames_at_the_input_size(route):
+    from torchseq.neural import NeuralError
+
+    model = fitted(route, True, 1)
+    model.fold()
+    try:
+        frame = torch.rand(1, *model.config.input_size) * 255  # the online fast path
+        for bad in (float("nan"), float("inf")):
+            broken = frame.clone()
+            broken[0, 3, 4] = bad
+            with pytest.raises(NeuralError, match="NaN"):
+                model.step(broken)
+        big = torch.full((1, *model.config.input_size), 3e38)  # finite, the sum overflows
+        out, _ = model.step(big)
+        assert out.reference.shape == (1,)
+    finally:
+        model.unfold()

@@ -155,9 +155,11 @@ def zscore_pixel_major(frames: torch.Tensor, patch: int, kernel: str = "torch") 
             raise ValueError("the numpy z-score kernel needs a CPU tensor without gradients")
         pixels = (frames.numpy().reshape(t, h // patch, patch, w // patch, patch)
                   .transpose(2, 4, 0, 1, 3).reshape(n, t, -1))
-        dev = pixels - in_order_sum(pixels) / n
+        # np.add.reduce over the first axis of a C-contiguous array adds row after row, first
+        # to last: in_order_sum's order (the bit-for-bit test against "torch" checks it)
+        dev = pixels - np.add.reduce(pixels, axis=0) / n
         # torch's sqrt, not NumPy's: the two differ in the last bit for some float32 inputs
-        std = torch.from_numpy(in_order_sum(dev * dev) / (n - 1)).sqrt_().numpy()
+        std = torch.from_numpy(np.add.reduce(dev * dev, axis=0) / (n - 1)).sqrt_().numpy()
         return torch.from_numpy(dev / np.where(std > 0, std, std.dtype.type(1)))
     if kernel != "torch":
         raise ValueError(f"kernel must be 'torch' or 'numpy', got {kernel!r}")

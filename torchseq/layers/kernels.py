@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 # Tie-break step for a low-precision L1 product: far below a bfloat16 ulp at the k-WTA
 # threshold (|h| ~ 1, ulp 2^-7), so it only orders values that rounded to the same number.
@@ -77,8 +76,9 @@ def cohort_normalise_numpy(evidence: torch.Tensor, eps: float, rectify: bool) ->
     if evidence.device.type != "cpu" or evidence.requires_grad:
         raise ValueError("cohort_normalise's numpy kernel needs a CPU tensor without gradients")
     e = evidence.numpy()
-    dev = e - e.mean(axis=1, keepdims=True)
-    z = dev / (np.sqrt((dev * dev).mean(axis=1, keepdims=True)) + e.dtype.type(eps))
+    n = e.dtype.type(e.shape[1])
+    dev = e - np.add.reduce(e, axis=1, keepdims=True) / n
+    z = dev / (np.sqrt(np.add.reduce(dev * dev, axis=1, keepdims=True) / n) + e.dtype.type(eps))
     if rectify:
         np.maximum(z, 0, out=z)
     return torch.from_numpy(z)
@@ -94,7 +94,10 @@ def sum_rows(idx: torch.Tensor, w_t: torch.Tensor) -> torch.Tensor:
     Returns:
         ``(B, N)`` sum of the ``k`` rows of ``w_t`` picked by each row of ``idx``.
     """
-    return F.embedding_bag(idx, w_t, mode="sum")
+    b, k = idx.shape
+    offsets = torch.arange(0, b * k, k, device=idx.device)
+    # torch.embedding_bag without F.embedding_bag's argument handling (mode 0 = sum)
+    return torch.embedding_bag(w_t, idx.reshape(-1), offsets, False, 0)[0]
 
 
 def topk_indices(h: torch.Tensor, k: int) -> torch.Tensor:

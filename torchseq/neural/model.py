@@ -12,6 +12,7 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -336,6 +337,13 @@ def checked_grey(frames: torch.Tensor, size: tuple[int, int], device) -> torch.T
                           f"{tuple(frames.shape)}")
     if frames.shape[0] == 0:
         raise NeuralError("frames are empty (no frame in the batch)")
+    if (frames.dim() == 3 and frames.dtype == torch.float32 and frames.device.type == "cpu"
+            and torch.device(device).type == "cpu" and tuple(frames.shape[1:]) == tuple(size)):
+        # the online case (one float32 frame at the input size): one NumPy sum
+        flat = frames.detach().numpy().reshape(-1)
+        if not math.isfinite(float(np.add.reduce(flat))) and not np.isfinite(flat).all():
+            raise NeuralError("frames hold NaN or infinite values")
+        return frames
     x = to_grey(frames.to(device)).to(torch.float32)
     # one sum first (NaN and inf propagate), the element-wise test only when it fails
     if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):

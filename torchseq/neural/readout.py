@@ -53,19 +53,24 @@ def _decide_numpy(activity: torch.Tensor, unit_centre: torch.Tensor,
         raise ValueError("decide's numpy kernel needs a CPU tensor without gradients")
     a = activity.numpy()
     b, n = a.shape
+    if b == 1:  # one stream: scalar work on slices, no masked copy
+        row = a[0]
+        u = int(row.argmax())
+        lo, hi = max(u - window, 0), min(u + window + 1, n)
+        if lo == 0 and hi == n:
+            second = row.min()
+        else:
+            second = max(row[:lo].max() if lo else -np.inf, row[hi:].max() if hi < n else -np.inf)
+        conf = np.array([row[u] - second], a.dtype)
+        return unit_centre[u:u + 1], torch.from_numpy(conf)
     unit = a.argmax(axis=1)  # (B,)
     rows = np.arange(b)
     best = a[rows, unit]
     lo, hi = np.maximum(unit - window, 0), np.minimum(unit + window + 1, n)
-    if b == 1:  # one stream: two slices instead of a masked copy
-        left, right = a[0, :lo[0]], a[0, hi[0]:]
-        rivals = np.concatenate([left, right])
-        second = np.array([rivals.max() if rivals.size else a[0].min()], a.dtype)
-    else:
-        col = np.arange(n)
-        inside = (col >= lo[:, None]) & (col < hi[:, None])
-        second = np.where(inside, -np.inf, a).max(axis=1).astype(a.dtype)
-        empty = (hi - lo) == n
-        if empty.any():
-            second[empty] = a[empty].min(axis=1)
+    col = np.arange(n)
+    inside = (col >= lo[:, None]) & (col < hi[:, None])
+    second = np.where(inside, -np.inf, a).max(axis=1).astype(a.dtype)
+    empty = (hi - lo) == n
+    if empty.any():
+        second[empty] = a[empty].min(axis=1)
     return unit_centre[torch.from_numpy(unit)], torch.from_numpy(best - second)
