@@ -341,7 +341,9 @@ def checked_grey(frames: torch.Tensor, size: tuple[int, int], device) -> torch.T
             and torch.device(device).type == "cpu" and tuple(frames.shape[1:]) == tuple(size)):
         # the online case (one float32 frame at the input size): one NumPy sum
         flat = frames.detach().numpy().reshape(-1)
-        if not math.isfinite(float(np.add.reduce(flat))) and not np.isfinite(flat).all():
+        with np.errstate(over="ignore", invalid="ignore"):
+            total = float(np.add.reduce(flat))
+        if not math.isfinite(total) and not np.isfinite(flat).all():
             raise NeuralError("frames hold NaN or infinite values")
         return frames
     x = to_grey(frames.to(device)).to(torch.float32)
