@@ -11,7 +11,7 @@ numbers sit on integer grids by definition, not as an approximation of a float m
 
 Every L1 product is then a small integer times a power of two, and every L1 sum (below
 ``2**24`` in magnitude) is exact in float32 whatever the summation order: float32 GEMMs,
-int8 GEMMs (:mod:`torchseq.neural.fast`) and the integer export all give the same L2 code.
+int8 GEMMs (:mod:`torchseq.layers.kernels`) and the integer export all give the same L2 code.
 """
 
 from __future__ import annotations

@@ -80,7 +80,8 @@ class NeuralInference(nn.Module):
 
     Build it with :meth:`NeuralSeqSLAM.inference` (or ``NeuralInference(model, kernels)``).
     It copies what it needs (folded weights, the shift matrix, cohorts, unit centres) as
-    buffers: later changes to the model do not reach it. No autograd.
+    buffers: later changes to the model's tensors do not reach it (with a patch mode other
+    than ``"zscore"`` its input stage is the model's own ``encode``). No autograd.
 
     Args:
         model: a fitted :class:`~torchseq.neural.NeuralSeqSLAM`.

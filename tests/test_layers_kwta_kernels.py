@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from torchseq.layers import kwta
-from torchseq.neural.fast import has_tie, winners
+from torchseq.layers.kernels import has_tie
+from torchseq.layers.kernels import topk_indices as winners
 
 
 def tie_loop(h: torch.Tensor, v: torch.Tensor, k: int) -> bool:
