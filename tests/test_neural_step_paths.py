@@ -115,7 +115,7 @@ def test_prepared_step_checks_frames_at_the_input_size(route):
             broken[0, 3, 4] = bad
             with pytest.raises(NeuralError, match="NaN"):
                 model.step(broken)
-        big = torch.full((1, *model.config.input_size), 1e37)  # finite; the sum overflows
+        big = torch.full((1, *model.config.input_size), 2.0**120)  # finite; the sum overflows
         out, _ = model.step(big)
         assert out.reference.shape == (1,)
     finally:

@@ -116,10 +116,9 @@ def topk_indices(h: torch.Tensor, k: int) -> torch.Tensor:
     v = vals.amin(dim=1, keepdim=True)  # (B, 1)
     if not has_tie(h, v, k):
         return idx
-    greater, equal = h > v, h == v
-    room = k - greater.sum(1, keepdim=True)
-    win = greater | (equal & (equal.to(torch.int64).cumsum(1) <= room))
-    return win.nonzero()[:, 1].reshape(h.shape[0], k)
+    from torchseq.layers.functional import kwta  # the definition settles the ties
+
+    return kwta(h, k, binary=True).nonzero()[:, 1].reshape(h.shape[0], k)
 
 
 def has_tie(h: torch.Tensor, v: torch.Tensor, k: int) -> bool:
