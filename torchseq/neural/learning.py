@@ -5,7 +5,11 @@ Pure functions. The read-out is in :mod:`torchseq.neural.readout`.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import torch
+
+from torchseq.neural.fixed_point import round_rows
 
 
 def recruit_units(n_frames: int, n_units: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -67,3 +71,37 @@ def cohort_membership(n_units: int, n_cohorts: int) -> torch.Tensor:
     c = max(1, min(int(n_cohorts), n_units))
     which = torch.arange(n_units) * c // n_units
     return torch.nn.functional.one_hot(which, c).to(torch.float32)
+
+
+def learn_readout(codes: Iterable[tuple[int, int, torch.Tensor]], unit_of_frame: torch.Tensor,
+                  spans: torch.Tensor, mask: torch.Tensor, rule: str = "centred",
+                  eps: float = 1e-6, levels: int = 0) -> torch.Tensor:
+    """L2 -> L3 weights from one pass over a route's binary codes.
+
+    Accumulates each unit's codes and the route's, then applies :func:`hebbian_weights`
+    and, with ``levels``, rounds each row to its integer grid
+    (:func:`torchseq.neural.fixed_point.round_rows`).
+
+    Args:
+        codes: ``(lo, hi, code (hi - lo, M))`` for consecutive stretches of frames
+            covering the route ``0..T`` once.
+        unit_of_frame: ``(T,)`` int64 unit of each frame (:func:`recruit_units`).
+        spans: ``(N, 2)`` each unit's first and one-past-last frame.
+        mask: ``(N, M)`` L2 -> L3 connection mask (its device is used).
+        rule: ``"mean"`` or ``"centred"``.
+        eps: floor of the row norm.
+        levels: integer levels per row (0: float weights).
+
+    Returns:
+        ``(N, M)`` float32 weights.
+    """
+    n_units, hidden = mask.shape
+    dev = mask.device
+    sums = torch.zeros(n_units, hidden, device=dev)
+    total = torch.zeros(hidden, device=dev)
+    for lo, hi, c in codes:
+        sums.index_add_(0, unit_of_frame[lo:hi].to(dev), c)
+        total += c.sum(0)
+    counts = (spans[:, 1] - spans[:, 0]).to(dev, torch.float32)
+    w = hebbian_weights(sums, counts, total / unit_of_frame.numel(), mask, rule, eps)
+    return round_rows(w, levels) if levels else w

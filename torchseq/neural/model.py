@@ -22,9 +22,9 @@ from torchseq.matches import Matches
 from torchseq.neural import memory
 from torchseq.neural.checkpoint import load_checkpoint, save_checkpoint
 from torchseq.neural.config import NeuralConfig, NeuralError
-from torchseq.neural.fixed_point import integer_weights, round_rows
+from torchseq.neural.fixed_point import integer_weights
 from torchseq.neural.inference import NeuralInference
-from torchseq.neural.learning import cohort_membership, hebbian_weights, recruit_units
+from torchseq.neural.learning import cohort_membership, learn_readout, recruit_units
 from torchseq.neural.memory import seqslam_bytes
 from torchseq.neural.progress import Progress, as_progress
 from torchseq.neural.readout import decide
@@ -181,17 +181,10 @@ class NeuralSeqSLAM(nn.Module):
         self._build_output(n_units)
         unit_of_frame, spans = recruit_units(t_len, n_units)
         dev = self.l1.weight.device
-        sums = torch.zeros(n_units, cfg.hidden, device=dev)
-        total = torch.zeros(cfg.hidden, device=dev)
-        for lo, hi in _chunks(t_len, cfg.chunk, as_progress(progress, "fit")):
-            c = self.code(self.encode(reference[lo:hi]))
-            sums.index_add_(0, unit_of_frame[lo:hi].to(dev), c)
-            total += c.sum(0)
-        counts = (spans[:, 1] - spans[:, 0]).to(dev, torch.float32)
-        w = hebbian_weights(sums, counts, total / t_len, self.l3.mask, cfg.hebbian, cfg.eps)
-        if cfg.l3_levels:
-            w = round_rows(w, cfg.l3_levels)
-        self.l3.weight.copy_(w)
+        codes = ((lo, hi, self.code(self.encode(reference[lo:hi])))
+                 for lo, hi in _chunks(t_len, cfg.chunk, as_progress(progress, "fit")))
+        self.l3.weight.copy_(learn_readout(codes, unit_of_frame, spans, self.l3.mask,
+                                           cfg.hebbian, cfg.eps, cfg.l3_levels))
         self.ring.learn(unit_of_frame)
         self.unit_to_reference.copy_(spans.to(dev))
         self.unit_centre.copy_(((spans[:, 0] + spans[:, 1] - 1) // 2).to(dev))
