@@ -53,7 +53,9 @@ class StreamingStep(NeuralInference):
             ``activity (B, N)``, ``new_state (B, N)`` (the same values), ``reference (B,)``
             int64, ``confidence (B,)``.
         """
-        out, _ = super().forward(frames.to(self.w3_t.dtype), RingState(state))
+        if frames.dtype != self.w3_t.dtype:  # static: no Cast node in the graph
+            frames = frames.to(self.w3_t.dtype)
+        out, _ = super().forward(frames, RingState(state))
         return out.activity, out.activity.clone(), out.reference, out.confidence
 
 

@@ -64,13 +64,12 @@ def _decide_numpy(activity: torch.Tensor, unit_centre: torch.Tensor,
         conf = np.array([row[u] - second], a.dtype)
         return unit_centre[u:u + 1], torch.from_numpy(conf)
     unit = a.argmax(axis=1)  # (B,)
-    rows = np.arange(b)
-    best = a[rows, unit]
-    lo, hi = np.maximum(unit - window, 0), np.minimum(unit + window + 1, n)
-    col = np.arange(n)
-    inside = (col >= lo[:, None]) & (col < hi[:, None])
-    second = np.where(inside, -np.inf, a).max(axis=1).astype(a.dtype)
-    empty = (hi - lo) == n
-    if empty.any():
-        second[empty] = a[empty].min(axis=1)
+    best = a[np.arange(b), unit]
+    near = np.clip(unit[:, None] + np.arange(-window, window + 1), 0, n - 1)  # (B, 2w + 1)
+    masked = a.copy()
+    np.put_along_axis(masked, near, -np.inf, axis=1)
+    second = masked.max(axis=1)  # -inf: every unit is inside the window
+    inside = np.isinf(second)
+    if inside.any():
+        second[inside] = a[inside].min(axis=1)
     return unit_centre[torch.from_numpy(unit)], torch.from_numpy(best - second)
