@@ -67,7 +67,16 @@ def kwta_partition(x: torch.Tensor, k: int) -> torch.Tensor:
 
 def kwta_partition_indices(x: torch.Tensor, k: int) -> torch.Tensor:
     """Winners' indices ``(B, k)`` (ascending) of ``kwta``'s partition kernel, rows ``(B, N)``."""
-    win = kwta_numpy(x.detach().numpy(), k)
+    values = x.detach().numpy()
+    if values.shape[0] == 1 and values.dtype == np.float32:  # one row: no per-row bookkeeping
+        row = values[0]
+        keys = row.view(np.int32)  # positive floats sort like their bits (see kwta_numpy)
+        v = np.partition(keys, row.size - k)[row.size - k]
+        if v > 0:
+            idx = np.flatnonzero(keys >= v)
+            if idx.size == k:  # no tie at the threshold
+                return torch.from_numpy(idx[None])
+    win = kwta_numpy(values, k)
     return torch.from_numpy(np.nonzero(win)[1].reshape(x.shape[0], k))
 
 
