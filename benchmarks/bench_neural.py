@@ -1,190 +1,253 @@
-"""Neural SeqSLAM speed on one CPU thread: step latency, batched throughput, fit time.
+"""Neural SeqSLAM speed on one CPU thread: the online step, its stages, streams, run, ONNX.
 
-    .venv/bin/python benchmarks/bench_neural.py [--no-docs] [--repeats 5]
+    .venv/bin/python benchmarks/bench_neural.py [--no-docs] [--repeats 5] [--compare DIR]
 
-Compares, side by side in one run: the eager step (masks multiplied in on every call), the
-step with masks folded into dense weights, the step with torch.sparse CSR weights, batched
-streams, the single-stream ``run`` on its float32 path and on its int8 fast path, and the
-cost of each stage. Frames are given at the model's input size
-(24x32) unless the row says otherwise. Prints a Markdown table and writes it into
-docs/neural.md between the ``bench`` markers.
+Two parts, printed as Markdown tables and written into docs/neural.md between the
+``bench`` markers:
+
+1. **This tree beside another checkout** (``--compare``, default ``../main`` when it exists):
+   the same measurements run in worker processes, one per tree (``PYTHONPATH`` set to it),
+   alternated for ``--rounds`` rounds in this one run; the best of each is kept and the
+   ratio printed. Measured: the online step (one frame in, one decision out, batch 1,
+   default model, ``step(frame[None], state)`` under ``torch.inference_mode()`` once the
+   model is prepared: ``fold()`` here; on older trees ``run`` prepared it), 256 streams
+   through ``step``, ``run`` on one stream, the float ONNX graph at batch 1 and 256.
+2. **The online step by stage** (this tree only): each stage's kernels, the one chosen
+   marked, and whether the prepared step makes exactly the eager step's decisions.
+
+Frames are given at the model's input size (24x32).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import platform
+import subprocess
 import sys
 import time
 from pathlib import Path
 
-import torch
-import torch.nn.functional as F
-
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import torchseq.neural.fast as fast  # noqa: E402
-from torchseq.atomic import write_text  # noqa: E402
-from torchseq.demo import make_demo  # noqa: E402
-from torchseq.layers import cohort_normalise, kwta  # noqa: E402
-from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
-from torchseq.neural.fixed_point import block_order  # noqa: E402
-from torchseq.neural.learning import decide  # noqa: E402
-from torchseq.preprocess import resize  # noqa: E402
-
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
 
 
-def best_time(fn, repeats: int, number: int) -> float:
-    """Best mean seconds per call over ``repeats`` rounds of ``number`` calls."""
+def best_time(fn, repeats: int, number: int, clock=time.perf_counter) -> float:
+    """Best mean seconds per call over ``repeats`` rounds of ``number`` calls.
+
+    ``clock=time.process_time`` counts this process's CPU time only (on a shared host, the
+    time it was not descheduled; cache misses caused by other jobs still count).
+    """
     fn()
     best = float("inf")
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = clock()
         for _ in range(number):
             fn()
-        best = min(best, (time.perf_counter() - t0) / number)
+        best = min(best, (clock() - t0) / number)
     return best
 
 
-def sparse_step(model: NeuralSeqSLAM, w1, w3, frames, state):
-    """The step with CSR weights (``torch.sparse``) in both masked layers."""
-    x = model.encode(frames)
-    c = kwta((w1 @ x.T).T, model.config.k, binary=True)
-    e = cohort_normalise((w3 @ c.T).T, model.cohorts, model.config.eps)
-    a, state = model.ring(e, state)
-    return decide(a, model.unit_centre, model.config.uniqueness_window), state
+def setup():
+    """The default model fitted on the 555-frame demo route, the query at the input size."""
+    import torch
+
+    from torchseq.demo import make_demo
+    from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+    from torchseq.preprocess import resize
+
+    torch.set_num_threads(1)
+    demo = make_demo(n_reference=555, speed=0.8)
+    model = NeuralSeqSLAM(NeuralConfig())
+    model.fit(demo.reference, log=False)
+    return model, resize(demo.query, model.config.input_size)
 
 
-def ring_loop(drive, a0, shift, decay, diagonals):
-    """The ring frame by frame on the diagonals (the scan before blocks), for a side-by-side row."""
-    d = diagonals * decay
-    out, a = torch.empty_like(drive), a0
-    for t in range(drive.shape[0]):
-        m = torch.addcmul(drive[t], d[0], a)
-        for lag in range(1, d.shape[0]):
-            m[lag:].addcmul_(d[lag, lag:], a[:-lag])
-        a = m
-        out[t] = a
+def prepare(model, small):
+    """Prepare for inference with whatever API the imported tree has."""
+    if hasattr(model, "kernels"):
+        model.fold()
+    else:  # before the inference module: run folded the weights and step took them
+        model.run(small[:5])
+
+
+def worker(repeats: int) -> dict:
+    """The measurements of part 1 for the tree on ``sys.path``: microseconds per frame."""
+    import numpy as np
+    import torch
+
+    model, small = setup()
+    prepare(model, small)
+    out = {}
+    with torch.inference_mode():
+        f1 = small[:1]
+        _, st = model.step(f1)
+        out["online step, batch 1"] = best_time(lambda: model.step(f1, st), repeats, 200) * 1e6
+        out["online step, batch 1, CPU time"] = best_time(
+            lambda: model.step(f1, st), repeats, 500, time.process_time) * 1e6
+        fb = small[:256]
+        _, sb = model.step(fb)
+        out["step, 256 streams"] = best_time(lambda: model.step(fb, sb), repeats, 3) * 1e6 / 256
+        q = small.shape[0]
+        out[f"run, one stream of {q} frames"] = best_time(
+            lambda: model.run(small), repeats, 1) * 1e6 / q
+    try:
+        import onnxruntime as ort
+
+        from torchseq.export.onnx_float import build_float_onnx
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+        sess = ort.InferenceSession(build_float_onnx(model).SerializeToString(), opts,
+                                    providers=["CPUExecutionProvider"])
+        for b in (1, 256):
+            feed = {"frames": small[:b].numpy(),
+                    "state": np.zeros((b, model.n_units), np.float32)}
+            out[f"float ONNX step, batch {b}"] = best_time(
+                lambda: sess.run(None, feed), repeats, 100 if b == 1 else 3) * 1e6 / b
+    except ImportError:
+        pass
     return out
 
 
-def stage_rows(row, model, small, repeats):
-    """Per-stage cost of the feed-forward over one ``chunk`` of frames, and of the ring."""
-    f, cfg = model._folded, model.config
-    k = cfg.k
-    x = model.encode(small[:cfg.chunk])
-    b = x.shape[0]
-    h = x @ f["w1_t"]
-    idx = torch.topk(h, k, dim=1, sorted=False).indices
-    code = fast.kwta_code(h, k)
-    stages = [
-        ("encode (grey, patch normalisation, 1/32 grid)", lambda: model.encode(small[:b])),
-        ("L1 float32 GEMM", lambda: x @ f["w1_t"]),
-        ("k-WTA torch.topk(k, sorted=False)", lambda: torch.topk(h, k, dim=1, sorted=False)),
-        ("k-WTA NumPy partition + tie fix (used)", lambda: fast.kwta_code(h, k)),
-        ("L3 embedding_bag over winners (float path)",
-         lambda: F.embedding_bag(idx, f["w3_t"], mode="sum")),
-        ("cohort normalisation", lambda: cohort_normalise(h[:, :model.n_units], model.cohorts,
-                                                          cfg.eps)),
-    ]
-    if f["l1_int8"] is not None:
-        xq = (x * cfg.input_steps + 128).to(torch.uint8)[:, block_order(*cfg.input_size,
-                                                                         cfg.patch_size)]
-        stages[2:2] = [("L1 int8 GEMM, oneDNN (used)", lambda: f["l1_int8"](xq))]
-        stages.insert(5, ("L3 int8 GEMM, oneDNN (used)", lambda: f["l3_int8"](code)))
-    for name, fn in stages:
-        row(f"stage: {name}, chunk of {b}", b, best_time(fn, repeats, 3))
-    q = small.shape[0]
-    drive = model._feedforward(small) * model.ring.params.gain
-    a0 = torch.zeros(model.n_units)
-    decay = model.ring.params.decay
-    row(f"stage: ring frame by frame, {q} frames", q, best_time(
-        lambda: ring_loop(drive, a0, model.ring.shift, decay, f["diagonals"]), repeats, 1))
-    row(f"stage: ring in blocks of {fast.RING_BLOCK} (used), {q} frames", q, best_time(
-        lambda: fast.ring_scan(drive, a0, model.ring.shift, decay, f["diagonals"],
-                               power=f["ring_power"]), repeats, 1))
-    act = fast.ring_scan(drive, a0, model.ring.shift, decay, f["diagonals"])
-    row(f"stage: decide, {q} frames", q, best_time(
-        lambda: decide(act, model.unit_centre, cfg.uniqueness_window), repeats, 1))
+def compare(other: Path, rounds: int, repeats: int) -> list[str]:
+    """Part 1: worker runs alternated between the two trees, best of each kept."""
+    trees = {"this tree": ROOT, other.name: other}
+    best: dict[str, dict[str, float]] = {name: {} for name in trees}
+    for _ in range(rounds):
+        for name, tree in trees.items():
+            env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
+            res = subprocess.run([sys.executable, __file__, "--worker", "--repeats",
+                                  str(repeats)], env=env, cwd=tree, capture_output=True,
+                                 text=True, check=True)
+            for key, us in json.loads(res.stdout.strip().splitlines()[-1]).items():
+                best[name][key] = min(best[name].get(key, float("inf")), us)
+    mine, theirs = best["this tree"], best[other.name]
+    lines = [f"| measurement (us per frame, best of {rounds} alternated rounds) | this tree | "
+             f"{other.name} | {other.name} / this |", "|---|---|---|---|"]
+    for key in mine:
+        if key in theirs:
+            lines.append(f"| {key} | {mine[key]:.1f} | {theirs[key]:.1f} | "
+                         f"{theirs[key] / mine[key]:.2f}x |")
+    return lines
+
+
+def stages(repeats: int) -> list[str]:
+    """Part 2: the online step of this tree by stage, kernels side by side."""
+    import numpy as np
+    import torch
+
+    from torchseq.layers import cohort_normalise, kwta, ring_step
+    from torchseq.layers import kernels as K
+    from torchseq.neural.inference import int8_expected
+    from torchseq.neural.readout import decide
+    from torchseq.preprocess import zscore_pixel_major
+
+    model, small = setup()
+    inf = model.fold()
+    kern, cfg = inf.kernels, model.config
+    rows = []
+
+    used = {**kern, "l3": "embedding_bag"}  # batch 1 < SMALL_BATCH: the embedding-bag
+
+    def row(stage, kernel, fn, number=300, key=None):
+        us = best_time(fn, repeats, number) * 1e6
+        chosen = "**yes**" if key is None or used[key] == kernel else ""
+        rows.append(f"| {stage} | `{kernel}` | {chosen} | {us:.1f} |")
+
+    with torch.inference_mode():
+        f1 = small[:1]
+        grey = inf._grey(f1)
+        row("frame checks, grey", "-", lambda: inf._grey(f1))
+        row("patch z-score", "numpy",
+            lambda: zscore_pixel_major(grey, cfg.patch_size, "numpy"), key="input")
+        row("patch z-score", "torch",
+            lambda: zscore_pixel_major(grey, cfg.patch_size, "torch"), key="input")
+        z = zscore_pixel_major(grey, cfg.patch_size, "numpy")
+
+        def grid():
+            q = np.rint(z.numpy() * np.float32(cfg.input_steps))
+            q += 128
+            return torch.from_numpy(q.astype(np.uint8).transpose(1, 2, 0).reshape(1, -1))
+
+        xq = grid()
+        x = (xq.float() - 128) / cfg.input_steps
+        row("input grid (uint8)", "-", grid)
+        if inf.l1_int8 is not None:
+            row("L1 product", "int8_gemm", lambda: inf.l1_int8(xq), key="l1")
+        row("L1 product", "float32_gemm", lambda: x @ inf.w1_t, key="l1")
+        h = x @ inf.w1_t
+        row("k-WTA (winners' indices)", "partition", lambda: K.kwta_partition_indices(h, cfg.k),
+            key="kwta")
+        row("k-WTA (winners' indices)", "topk", lambda: K.topk_indices(h, cfg.k), key="kwta")
+        code = K.kwta_partition(h, cfg.k)
+        idx = K.kwta_partition_indices(h, cfg.k)
+        row("L3 product", "embedding_bag", lambda: K.sum_rows(idx, inf.w3_t), key="l3")
+        if inf.l3_int8 is not None:
+            row("L3 product (from the uint8 code)", "int8_gemm",
+                lambda: inf.l3_int8(code.view(torch.uint8)), key="l3")
+        row("L3 product (from the 0/1 code)", "dense", lambda: kwta(h, cfg.k, True) @ inf.w3_t,
+            key="l3")
+        e = K.sum_rows(idx, inf.w3_t)
+        for kernel in ("numpy", "torch"):
+            row("cohort normalisation, rectify", kernel,
+                lambda: cohort_normalise(e, inf.cohorts, cfg.eps, True, kernel), key="cohorts")
+        _, st = model.step(f1)
+        if inf.diagonals is not None:
+            row("ring step", "banded", lambda: ring_step(e, st, inf.shift, inf.params,
+                                                         inf.diagonals), key="ring")
+        row("ring step", "dense", lambda: ring_step(e, st, inf.shift, inf.params), key="ring")
+        a = st.activity
+        row("decision", "numpy", lambda: decide(a, inf.unit_centre, 5, "numpy"), key="decide")
+        row("decision", "torch", lambda: decide(a, inf.unit_centre, 5, "torch"), key="decide")
+        total = best_time(lambda: model.step(f1, st), repeats, 300) * 1e6
+        total_cpu = best_time(lambda: model.step(f1, st), repeats, 500, time.process_time) * 1e6
+        model.unfold()
+        eager = best_time(lambda: model.step(f1, st), repeats, 50) * 1e6
+        # exactly the eager step's decisions, frame by frame over the whole query
+        s_fast = s_eager = None
+        same, n = 0, small.shape[0]
+        inf_step = inf
+        for t in range(n):
+            o1, s_fast = inf_step(small[t:t + 1], s_fast)
+            o2, s_eager = model.step(small[t:t + 1], s_eager)
+            same += int(torch.equal(o1.reference, o2.reference))
+    lines = [f"Kernels chosen (`model.fold().kernels`): "
+             f"`{json.dumps(kern)}`; int8 expected on this machine: {int8_expected()}.", "",
+             "| stage (batch 1) | kernel | used | us |", "|---|---|---|---|", *rows,
+             f"| **whole online step**, prepared (`fold()`), inference_mode | | | "
+             f"**{total:.1f}** |",
+             f"| the same, CPU time of this process (`time.process_time`) | | | "
+             f"**{total_cpu:.1f}** |",
+             f"| whole step, eager layers (not folded) | | | {eager:.1f} |", "",
+             f"Prepared online step vs eager step: {same}/{n} identical decisions on the "
+             f"query."]
+    return lines
 
 
 def main(argv=None) -> str:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--compare", type=Path, default=ROOT.parent / "main")
     p.add_argument("--no-docs", action="store_true", help="do not update docs/neural.md")
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    torch.set_num_threads(1)
-    cfg = NeuralConfig()
-    demo = make_demo(n_reference=555, speed=0.8)
-    model = NeuralSeqSLAM(cfg)
-    t0 = time.perf_counter()
-    model.fit(demo.reference, log=False)
-    fit_s = time.perf_counter() - t0
-    raw = demo.query  # (Q, 96, 128)
-    small = resize(raw, cfg.input_size)  # (Q, 24, 32)
-    rows = []
+    if args.worker:
+        print(json.dumps(worker(args.repeats)))
+        return ""
+    sys.path.insert(0, str(ROOT))
+    import torch
 
-    def row(name, batch, seconds_per_call):
-        rows.append((name, batch, seconds_per_call * 1e6 / batch, batch / seconds_per_call))
+    from torchseq.atomic import write_text
 
-    with torch.inference_mode():
-        f1 = small[:1]
-        _, st = model.step(f1)
-        model.unfold()
-        row("step, eager (mask * weight each call)", 1,
-            best_time(lambda: model.step(f1, st), args.repeats, 20))
-        model.fold()
-        row("step, masks folded into dense weights", 1,
-            best_time(lambda: model.step(f1, st), args.repeats, 50))
-        row("step, folded, raw 96x128 frame (incl. resize)", 1,
-            best_time(lambda: model.step(raw[:1], st), args.repeats, 50))
-        w1 = model._folded["w1"].to_sparse_csr()
-        w3 = model._folded["w3"].to_sparse_csr()
-        row("step, torch.sparse CSR weights", 1,
-            best_time(lambda: sparse_step(model, w1, w3, f1, st), args.repeats, 20))
-        for b in (16, 256):
-            fb = small[:b]
-            _, sb = model.step(fb)
-            row(f"step, folded, {b} independent streams", b,
-                best_time(lambda: model.step(fb, sb), args.repeats, 5))
-        _, sb = model.step(small[:256])
-        w_b = small[:256]
-        row("step, sparse CSR, 256 streams", 256,
-            best_time(lambda: sparse_step(model, w1, w3, w_b, sb), args.repeats, 3))
-        q = small.shape[0]
-        fast_run = model.run(small)
-        l1_int8 = model._folded["l1_int8"]
-        model._folded["l1_int8"] = None  # the float path, side by side
-        try:
-            float_run = model.run(small)
-            float_s = best_time(lambda: model.run(small), args.repeats, 1)
-        finally:
-            model._folded["l1_int8"] = l1_int8
-        same = torch.equal(fast_run.matches.reference, float_run.matches.reference)
-        row(f"run, float32 path (int8 GEMMs off), {q} frames", q, float_s)
-        row(f"run (single stream fast path, int8 GEMMs: {l1_int8 is not None}), {q} frames, "
-            f"same decisions as the float path: {same}", q,
-            best_time(lambda: model.run(small), args.repeats, 1))
-        stage_rows(row, model, small, args.repeats)
-        row(f"run, raw 96x128 frames, {q} frames", q,
-            best_time(lambda: model.run(raw), args.repeats, 1))
-        row(f"feed-forward only (encode..evidence, fast path), {q} frames", q,
-            best_time(lambda: model._feedforward(small), args.repeats, 1))
-        exact = model.run(small).matches.reference
-        approx = model.run(small, l1_dtype=torch.bfloat16).matches.reference
-        same = float((approx == exact).float().mean())
-        row(f"run(l1_dtype=torch.bfloat16): approximate, {same:.1%} same decisions, "
-            f"{q} frames", q,
-            best_time(lambda: model.run(small, l1_dtype=torch.bfloat16), args.repeats, 1))
     lines = [f"Machine: {platform.processor() or platform.machine()}, torch "
-             f"{torch.__version__}, 1 thread; model: default NeuralConfig, route of "
-             f"{demo.reference.shape[0]} reference frames ({model.n_units} output units).", "",
-             "| path | batch | us per frame | frames/s |", "|---|---|---|---|"]
-    lines += [f"| {n} | {b} | {us:.1f} | {fps:,.0f} |" for n, b, us, fps in rows]
-    lines += ["", f"Fit: {fit_s:.2f} s for {demo.reference.shape[0]} reference frames "
-              f"({fit_s / demo.reference.shape[0] * 1e3:.2f} ms per frame, raw 96x128 frames)."]
+             f"{torch.__version__}, 1 thread; model: default NeuralConfig, demo route of 555 "
+             "reference frames (555 output units).", ""]
+    if args.compare.exists() and args.compare.resolve() != ROOT:
+        lines += compare(args.compare.resolve(), args.rounds, args.repeats) + [""]
+    lines += stages(args.repeats)
     table = "\n".join(lines)
     print(table)
     docs = ROOT / "docs" / "neural.md"

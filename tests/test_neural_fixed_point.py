@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from torchseq.layers import kwta
+from torchseq.layers.kernels import Int8Linear, kwta_partition
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.neural.config import NeuralError
-from torchseq.neural.fast import Int8Linear, feedforward, feedforward_uint8, kwta_code
 from torchseq.neural.fixed_point import (
     block_order,
     factor_power_of_two,
@@ -16,6 +16,7 @@ from torchseq.neural.fixed_point import (
     round_rows,
     zscore_blocks,
 )
+from torchseq.neural.inference import int8_expected
 
 
 def test_quantise_input_grid_and_identity():
@@ -62,7 +63,8 @@ def test_int8_linear_is_exact():
     scale = torch.full((96,), 2.0**-8)
     lin = Int8Linear.create(n, scale, 1 / 32, 128)
     if lin is None:
-        pytest.skip("oneDNN's int8 GEMM is missing or inexact on this CPU (float path is used)")
+        assert not int8_expected(), "oneDNN's int8 GEMM is missing or inexact on this x86 CPU"
+        pytest.skip("no oneDNN int8 GEMM on this (non-x86) machine")
     x = torch.randint(0, 256, (33, 200), generator=g, dtype=torch.uint8)
     x[0] = 255
     x[1] = 0
@@ -77,9 +79,11 @@ def test_kwta_code_equals_kwta(ties):
     if ties:
         h = torch.randint(-6, 7, (40, 500), generator=g).float()  # many ties at the threshold
         h[5] = 0.0  # every entry tied
-    code = kwta_code(h, 37)
-    assert code.dtype == torch.uint8
+    code = kwta_partition(h, 37)
+    assert code.dtype == torch.bool
     assert torch.equal(code.float(), kwta(h, 37, binary=True))
+    assert torch.equal(kwta(h, 37, binary=True, kernel="partition"), kwta(h, 37, binary=True))
+    assert torch.equal(kwta(h, 37, kernel="partition"), kwta(h, 37))
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +93,6 @@ def model():
     demo = make_demo(n_reference=80, speed=0.8)
     m = NeuralSeqSLAM(NeuralConfig(hidden=1024, n_output=60))
     m.fit(demo.reference, log=False)
-    m.fold()
     return m, demo
 
 
@@ -103,34 +106,39 @@ def test_default_model_sits_on_its_integer_grids(model):
 
 def test_int8_path_equals_float_path(model):
     m, demo = model
-    f, cfg = m._folded, m.config
-    if f["l1_int8"] is None:
-        pytest.skip("oneDNN's int8 GEMM is missing or inexact on this CPU (float path is used)")
-    x = m.encode(demo.query)
-    xq = (x * 32 + 128).to(torch.uint8)[:, block_order(24, 32, 4)]  # the int8 path's order
+    fast = m.inference()
+    if fast.kernels["l1"] != "int8_gemm":
+        assert not int8_expected(), "the int8 kernels are missing on this x86 CPU"
+        pytest.skip("no oneDNN int8 GEMM on this (non-x86) machine")
+    slow = m.inference({"l1": "float32_gemm", "l3": "embedding_bag"})
+    x = m.encode(demo.query)[:, block_order(24, 32, 4)]  # block-major, as the modules take it
+    xq = (x * 32 + 128).to(torch.uint8)
     with torch.no_grad():
-        h_float = x @ f["w1_t"]
-        assert torch.equal(f["l1_int8"](xq), h_float)  # exact L1
-        got = feedforward_uint8(xq, f["l1_int8"], f["l3_int8"], cfg.k, m.cohorts, cfg.eps)
-        want = feedforward(x, f["w1_t"], f["w3_t"], cfg.k, m.cohorts, cfg.eps)
-        assert torch.equal(m._feedforward(demo.query), got)  # raw frames: the same integers
-    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
-    fast = m.run(demo.query)
-    f["l1_int8"], keep = None, f["l1_int8"]  # force the float path
+        assert torch.equal(fast.l1_int8(xq), x @ slow.w1_t)  # exact L1
+        torch.testing.assert_close(fast.evidence(demo.query), slow.evidence(demo.query),
+                                   rtol=1e-5, atol=1e-5)
+        one = fast.evidence(demo.query[:1])  # below SMALL_BATCH: the embedding-bag L3
+        torch.testing.assert_close(one, slow.evidence(demo.query[:1]), rtol=1e-5, atol=1e-5)
+    a, b = m.run(demo.query), m.run(demo.query)
+    assert torch.equal(a.activity, b.activity)
+    m.fold({"l1": "float32_gemm", "l3": "embedding_bag"})
     try:
-        slow = m.run(demo.query)
+        c = m.run(demo.query)
     finally:
-        f["l1_int8"] = keep
-    assert torch.equal(fast.matches.reference, slow.matches.reference)
-    torch.testing.assert_close(fast.activity, slow.activity, rtol=1e-4, atol=1e-5)
+        m.unfold()
+    assert torch.equal(a.matches.reference, c.matches.reference)
+    torch.testing.assert_close(a.activity, c.activity, rtol=1e-4, atol=1e-5)
 
 
 def test_float_model_falls_back():
     m = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=10, input_steps=0, l1_levels=0,
                                    l3_levels=0))
     m.fit(torch.rand(20, 24, 32) * 255, log=False)
-    m.fold()
-    assert m._folded["l1_int8"] is None
+    assert m.inference().kernels["l1"] == "float32_gemm"
+    assert m.inference().kernels["l3"] == "embedding_bag"
+    for ask in ({"l1": "int8_gemm"}, {"l3": "int8_gemm"}):
+        with pytest.raises(NeuralError, match="int8"):
+            m.inference(ask)
     assert m.run(torch.rand(5, 24, 32) * 255).matches.reference.shape == (5,)
 
 
@@ -155,7 +163,7 @@ def test_zscore_blocks_equal_patch_normalise():
     z = zscore_blocks(frames, 4)  # (6, 48, 16)
     order = block_order(24, 32, 4)
     want = patch_normalise(frames, 4, "zscore").reshape(6, -1)[:, order].reshape(6, 48, 16)
-    torch.testing.assert_close(z, want, rtol=1e-5, atol=1e-5)
+    assert torch.equal(z, want)  # patch_normalise's z-scores are this z-score
     assert torch.equal(z[1], torch.zeros(48, 16)) and torch.equal(z[2, 0], torch.zeros(16))
     loop = [int(r) * 32 + int(c) for br in range(6) for bc in range(8)
             for r in range(4 * br, 4 * br + 4) for c in range(4 * bc, 4 * bc + 4)]

@@ -24,11 +24,11 @@ PUBLIC = {
     "torchseq.layers": [
         "KWinnersTakeAll", "MaskedLinear", "OutputRing", "RingParams", "RingState",
         "cohort_normalise", "kwta", "learn_shift_matrix", "make_mask", "masked_linear",
-        "ring_step",
+        "ring_scan", "ring_step",
     ],
     "torchseq.neural": [
-        "NeuralConfig", "NeuralError", "NeuralFitLog", "NeuralResult", "NeuralSeqSLAM",
-        "NeuralStep", "seqslam_bytes",
+        "NeuralConfig", "NeuralError", "NeuralFitLog", "NeuralInference", "NeuralResult",
+        "NeuralSeqSLAM", "NeuralStep", "seqslam_bytes",
     ],
     "torchseq.events": [
         "EVENT_DTYPE", "EventFormatError", "EventRun", "EventStream", "accumulate",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -78,7 +79,9 @@ def patch_normalise(frames: torch.Tensor, patch: int = 8, mode: str = "seqslam")
     ``127 + round((p - mean) / std)`` with the block's sample std, clamped to 0..255, rounding
     halves away from zero like MATLAB.
     ``mode="zscore"`` returns the float z-scores ``(p - mean) / std``. A flat block (std 0)
-    maps to 127 (or 0 in z-score mode) instead of NaN. Uses only ops that export to ONNX.
+    maps to 127 (or 0 in z-score mode) instead of NaN. The z-scores are
+    :func:`zscore_pixel_major`'s (the one z-score of torchseq), laid back out as images. Uses
+    only ops that export to ONNX.
 
     Args:
         frames: ``(T, H, W)`` float, ``H`` and ``W`` multiples of ``patch``.
@@ -90,26 +93,111 @@ def patch_normalise(frames: torch.Tensor, patch: int = 8, mode: str = "seqslam")
     """
     check_shape(frames, ("T", "H", "W"), "frames")
     t, h, w = frames.shape
-    if h % patch or w % patch:
-        raise ValueError(f"frame size {h}x{w} is not a multiple of the patch side {patch}")
+    if patch < 2 or h % patch or w % patch:
+        raise ValueError(f"frame size {h}x{w} is not a multiple of the patch side {patch} "
+                         "(at least 2)")
     if mode not in ("seqslam", "zscore"):
         raise ValueError(f"mode must be 'seqslam' or 'zscore', got {mode!r}")
-    # block statistics with avg_pool2d, spread back over each block by expand + reshape (one
-    # copy): reductions and broadcasts over the strided block axes of a 5-D view are several
-    # times slower on the CPU
-    x = frames.unsqueeze(1)  # (T, 1, H, W)
-
-    def spread(s: torch.Tensor) -> torch.Tensor:  # (T, 1, H/p, W/p) -> (T, 1, H, W)
-        return (s[:, :, :, None, :, None].expand(t, 1, h // patch, patch, w // patch, patch)
-                .reshape(t, 1, h, w))
-
-    dev = x - spread(F.avg_pool2d(x, patch))
-    var = F.avg_pool2d(dev * dev, patch) * (patch * patch / (patch * patch - 1))
-    std = var.sqrt()
-    z = (dev / spread(torch.where(std > 0, std, torch.ones_like(std)))).squeeze(1)  # flat: 0
+    z = zscore_pixel_major(frames, patch)  # (p * p, T, blocks)
+    z = z.reshape(patch, patch, t, h // patch, w // patch).permute(2, 3, 0, 4, 1)
+    z = z.reshape(t, h, w)
     if mode == "seqslam":
         z = (127.0 + round_half_away(z)).clamp(0.0, 255.0)
-    return z.reshape(t, h, w)
+    return z
+
+
+def block_order(height: int, width: int, patch: int) -> torch.Tensor:
+    """``(H * W,)`` pixel index (row-major) of each position in block-major order.
+
+    Block-major: blocks row by row, and within a block its pixels row by row.
+    """
+    idx = torch.arange(height * width).reshape(height // patch, patch, width // patch, patch)
+    return idx.permute(0, 2, 1, 3).reshape(-1)
+
+
+def zscore_blocks(frames: torch.Tensor, patch: int, kernel: str = "torch") -> torch.Tensor:
+    """Sample z-scores of non-overlapping ``patch x patch`` blocks, in block-major order.
+
+    :func:`zscore_pixel_major` (the definition) as ``(T, blocks, p * p)``.
+
+    Args:
+        frames: ``(T, H, W)`` float, ``H`` and ``W`` multiples of ``patch``.
+        patch: block side.
+        kernel: see :func:`zscore_pixel_major`.
+
+    Returns:
+        ``(T, (H / p) * (W / p), p * p)`` (a permuted view).
+    """
+    return zscore_pixel_major(frames, patch, kernel).permute(1, 2, 0)
+
+
+def zscore_pixel_major(frames: torch.Tensor, patch: int, kernel: str = "torch") -> torch.Tensor:
+    """The patch z-score: ``(p - mean) / std`` of each ``patch x patch`` block, pixel-major.
+
+    ``mean`` and the sample ``std`` (``n - 1``) of the block's ``n = p * p`` pixels; a flat
+    block gives 0. Sums run over the block's pixels first to last (:func:`in_order_sum`),
+    so every kernel and the ONNX graph round alike. Laid out ``(p * p, T, blocks)``: each
+    pixel position of a block is one contiguous row over all frames and blocks, so the sums
+    are whole-row additions (several times faster on the CPU than reductions over the
+    strided block axes of an image).
+
+    Kernels: ``"torch"`` (any device, differentiable, exportable) and ``"numpy"`` (CPU, no
+    gradients: the same element-wise operations in the same order, the square root still
+    torch's, so the same bits, with a fraction of the per-call overhead on small batches).
+
+    Args:
+        frames: ``(T, H, W)`` float, ``H`` and ``W`` multiples of ``patch``.
+        patch: block side.
+        kernel: ``"torch"`` or ``"numpy"``.
+
+    Returns:
+        ``(p * p, T, (H / p) * (W / p))``.
+    """
+    t, h, w = frames.shape
+    n = patch * patch
+    if kernel == "numpy":
+        if frames.device.type != "cpu" or frames.requires_grad:
+            raise ValueError("the numpy z-score kernel needs a CPU tensor without gradients")
+        pixels = (frames.numpy().reshape(t, h // patch, patch, w // patch, patch)
+                  .transpose(2, 4, 0, 1, 3).reshape(n, t, -1))
+        # np.add.reduce over the first axis of a C-contiguous array adds row after row, first
+        # to last: in_order_sum's order (the bit-for-bit test against "torch" checks it)
+        dev = pixels - np.add.reduce(pixels, axis=0) / n
+        # torch's sqrt, not NumPy's: the two differ in the last bit for some float32 inputs
+        std = torch.from_numpy(np.add.reduce(dev * dev, axis=0) / (n - 1)).sqrt_().numpy()
+        return torch.from_numpy(dev / np.where(std > 0, std, std.dtype.type(1)))
+    if kernel != "torch":
+        raise ValueError(f"kernel must be 'torch' or 'numpy', got {kernel!r}")
+    pixels = (frames.reshape(t, h // patch, patch, w // patch, patch)
+              .permute(2, 4, 0, 1, 3).reshape(n, t, -1))
+    dev = pixels - in_order_sum(pixels) / n
+    std = (in_order_sum(dev * dev) / (n - 1)).sqrt()
+    return dev / torch.where(std > 0, std, torch.ones_like(std))  # a flat block: 0 / 1
+
+
+def in_order_sum(x):
+    """Sum over the first axis, first to last: ``(n, ...) -> (...)`` (tensor or NumPy array).
+
+    Element-wise additions in a fixed order round the same way in PyTorch, NumPy and any
+    ONNX runtime (a reduction kernel may add in another order), so the exported graph
+    computes bit for bit the model's z-scores.
+    """
+    s = x[0]
+    for i in range(1, x.shape[0]):
+        s = s + x[i]
+    return s
+
+
+def quantise_input(x: torch.Tensor, steps: int) -> torch.Tensor:
+    """Round ``x`` to multiples of ``1 / steps`` (half to even, like ONNX ``Round``).
+
+    Args:
+        x: any float tensor.
+        steps: grid steps per unit; ``0`` returns ``x`` unchanged.
+    """
+    if not steps:
+        return x
+    return torch.round(x * steps) / steps
 
 
 def preprocess(

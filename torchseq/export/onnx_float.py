@@ -1,13 +1,12 @@
-"""Float ONNX export of the Neural SeqSLAM streaming step.
+"""Float ONNX export of the Neural SeqSLAM streaming step, traced from its inference module.
 
-The exported graph takes the k-WTA winners straight from ONNX ``TopK`` (whose index set
-breaks ties by the lower index, the model's rule) as a scattered 0/1 code; eager PyTorch
-uses the exact :func:`torchseq.layers.functional.kwta`. Same maths, tested on tied inputs.
-
-:class:`StreamingStep` restates ``NeuralSeqSLAM.step`` ("Step maths" in ``docs/neural.md``)
-from the model's buffers with the masks folded into dense weights, for frames already at
-the model's input size; :func:`export_float_onnx` writes it with a dynamic batch axis using
-the TorchScript-based exporter (``dynamo=False``: the dynamo exporter needs onnxscript).
+:class:`StreamingStep` is ``model.inference("portable")`` (plain torch float32 kernels,
+:mod:`torchseq.neural.inference`) with the state and the outputs as plain tensors, for
+frames already at the model's input size. The stages are the layers' own functions; the
+k-WTA takes its export branch inside :func:`torchseq.layers.kwta` (ONNX ``TopK``'s index
+set, whose tie rule is the model's). :func:`export_float_onnx` writes it with a dynamic
+batch axis using the TorchScript-based exporter (``dynamo=False``: the dynamo exporter needs
+onnxscript).
 """
 
 from __future__ import annotations
@@ -19,78 +18,45 @@ from pathlib import Path
 import numpy as np
 import onnx
 import torch
-from torch import nn
 
 from torchseq.export.int_onnx import run_step_session, write_onnx
-from torchseq.layers.functional import cohort_normalise, kwta
-from torchseq.neural.fixed_point import block_order, quantise_input, zscore_blocks
-from torchseq.neural.learning import decide
-from torchseq.preprocess import patch_normalise
+from torchseq.layers import RingState
+from torchseq.neural.inference import NeuralInference
 
 OPSET = 17
 
 
-class StreamingStep(nn.Module):
+class StreamingStep(NeuralInference):
     """``(frames (B, h, w), state (B, N)) -> (activity, new_state, reference, confidence)``.
+
+    ``NeuralInference(model, "portable")`` with tensors in and out (its buffers keep their
+    names in the graph: ``w1_t`` and ``w3_t`` are the two weight products).
 
     Args:
         model: a fitted :class:`torchseq.neural.NeuralSeqSLAM`.
     """
 
     def __init__(self, model) -> None:
-        super().__init__()
         if not model.fitted:
             raise ValueError("the model has not learnt a route yet (fit it first)")
-        cfg = model.config
-        self.patch, self.mode = int(cfg.patch_size), cfg.patch_mode
-        self.steps = int(getattr(cfg, "input_steps", 0))
-        self.k, self.eps, self.window = int(cfg.k), float(cfg.eps), int(cfg.uniqueness_window)
-        self.rectify = bool(getattr(cfg, "rectify", False))
-        self.decay, self.gain = (float(v) for v in model.ring.params)
-        self.input_size = tuple(cfg.input_size)
-        with torch.no_grad():
-            w1_t = model.l1.folded_weight().detach().float().T  # (D, M)
-            self.blocks = bool(self.patch) and self.mode == "zscore"
-            if self.blocks:
-                w1_t = w1_t[block_order(*self.input_size, self.patch)]
-            self.register_buffer("w1_t", w1_t.contiguous())
-            self.register_buffer("w3_t", model.l3.folded_weight().detach().float().T.contiguous())
-            self.register_buffer("shift_t", model.ring.shift.detach().float().T.contiguous())
-        self.register_buffer("cohorts", model.cohorts.detach().float().clone())
-        self.register_buffer("unit_centre", model.unit_centre.detach().clone())
+        super().__init__(model, "portable")
+        self.input_size = tuple(model.config.input_size)
 
     def forward(self, frames: torch.Tensor, state: torch.Tensor):
         """One step.
 
         Args:
-            frames: ``(B, h, w)`` float32 grey at the input size, 0..255 (not normalised).
-            state: ``(B, N)`` float32 previous activity (zeros at the start).
+            frames: ``(B, h, w)`` float grey at the input size, 0..255 (not normalised).
+            state: ``(B, N)`` previous activity (zeros at the start).
 
         Returns:
             ``activity (B, N)``, ``new_state (B, N)`` (the same values), ``reference (B,)``
-            int64, ``confidence (B,)`` float32.
+            int64, ``confidence (B,)``.
         """
-        x = frames
-        if self.blocks:  # NeuralSeqSLAM's z-scores, block-major (w1_t's rows follow)
-            x = zscore_blocks(x, self.patch)
-        elif self.patch:  # as NeuralSeqSLAM.encode: OpenSeqSLAM's code centred on 0
-            x = patch_normalise(x, self.patch, self.mode) - 127.0
-        x = quantise_input(x.reshape(x.shape[0], -1), self.steps)  # (B, D); ONNX Round
-        h = x @ self.w1_t  # (B, M)
-        if torch.onnx.is_in_onnx_export():
-            # ONNX TopK selects ties by the lower index (TopK-11 rule) = kwta's rule, so the
-            # winners' indices give the binary code.
-            idx = torch.topk(h, self.k, dim=1, sorted=False).indices  # (B, k)
-            code = torch.zeros_like(h).scatter(1, idx, torch.ones_like(idx, dtype=h.dtype))
-            e = code @ self.w3_t  # (B, N)
-        else:  # eager: torch.topk's tie order is unspecified, use the exact k-WTA
-            e = kwta(h, self.k, binary=True) @ self.w3_t
-        z = cohort_normalise(e, self.cohorts, self.eps)  # (B, N)
-        if self.rectify:
-            z = z.clamp_min(0.0)
-        activity = self.decay * (state @ self.shift_t) + self.gain * z
-        reference, confidence = decide(activity, self.unit_centre, self.window)
-        return activity, activity.clone(), reference, confidence
+        if frames.dtype != self.w3_t.dtype:  # static: no Cast node in the graph
+            frames = frames.to(self.w3_t.dtype)
+        out, _ = super().forward(frames, RingState(state))
+        return out.activity, out.activity.clone(), out.reference, out.confidence
 
 
 def build_float_onnx(model) -> onnx.ModelProto:

@@ -8,6 +8,7 @@ from torchseq.layers.functional import (
     learn_shift_matrix,
     make_mask,
     masked_linear,
+    ring_scan,
     ring_step,
 )
 from torchseq.layers.k_winners import KWinnersTakeAll
@@ -25,5 +26,6 @@ __all__ = [
     "learn_shift_matrix",
     "make_mask",
     "masked_linear",
+    "ring_scan",
     "ring_step",
 ]

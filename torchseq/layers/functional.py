@@ -6,11 +6,12 @@ Every function here uses only ops that export to ONNX (no ``kthvalue``, no spars
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
-import numpy as np
 import torch
 import torch.nn.functional as F
+
+from torchseq.layers import kernels
+from torchseq.layers.kernels import kwta_numpy  # noqa: F401
+from torchseq.layers.ring import RingParams, RingState, ring_scan, ring_step  # noqa: F401
 
 
 def make_mask(
@@ -82,14 +83,23 @@ def kwta_k(n: int, k: int | None = None, fraction: float | None = None) -> int:
     return int(k)
 
 
+KWTA_KERNELS = ("topk", "partition")
+
+
 def kwta(
-    x: torch.Tensor, k: int, binary: bool = False, straight_through: bool = False
+    x: torch.Tensor, k: int, binary: bool = False, straight_through: bool = False,
+    kernel: str = "topk",
 ) -> torch.Tensor:
     """k-winners-take-all along the last axis, with deterministic ties (lowest index wins).
 
-    The ``k``-th largest value ``v`` comes from ``torch.topk`` (its value does not depend on
-    how topk orders ties). Winners are all entries ``> v`` plus the lowest-index entries
-    ``== v`` until there are exactly ``k``.
+    The ``k``-th largest value ``v`` is found; winners are all entries ``> v`` plus the
+    lowest-index entries ``== v`` until there are exactly ``k``.
+
+    Kernels: ``"topk"`` takes ``v`` from ``torch.topk`` (any device, differentiable);
+    ``"partition"`` from NumPy's introselect (:func:`~torchseq.layers.kernels.kwta_numpy`,
+    several times faster on one CPU thread; CPU, no gradients, no NaN). During ONNX export
+    the winners are ONNX ``TopK``'s indices, whose tie rule (TopK-11: the lower index) is
+    this one, scattered into a 0/1 code.
 
     Args:
         x: ``(..., N)``.
@@ -97,6 +107,7 @@ def kwta(
         binary: return 1.0 at winners instead of the winners' values.
         straight_through: backward pass as identity (gradient reaches every input);
             otherwise the gradient flows through the winners only (valued) or is zero (binary).
+        kernel: ``"topk"`` or ``"partition"``.
 
     Returns:
         ``(..., N)`` same dtype as ``x``, exactly ``k`` non-zero positions per sample
@@ -105,46 +116,26 @@ def kwta(
     n = x.shape[-1]
     if not 1 <= k <= n:
         raise ValueError(f"k must be in 1..{n}, got {k}")
-    v = torch.topk(x, k, dim=-1).values[..., -1:]  # (..., 1) the k-th largest value
-    greater = x > v
-    equal = x == v
-    room = k - greater.sum(-1, keepdim=True)  # how many tied entries still win
-    win = greater | (equal & (equal.to(torch.int64).cumsum(-1) <= room))
+    if torch.onnx.is_in_onnx_export():
+        idx = torch.topk(x, k, dim=-1, sorted=False).indices  # (..., k)
+        win = torch.zeros_like(x).scatter(-1, idx, torch.ones_like(idx, dtype=x.dtype))
+        return win if binary else x * win
+    if kernel == "partition":
+        if x.device.type != "cpu" or x.requires_grad or straight_through:
+            raise ValueError("kwta's partition kernel needs a CPU tensor without gradients")
+        win = kernels.kwta_partition(x, k)
+    elif kernel == "topk":
+        v = torch.topk(x, k, dim=-1).values[..., -1:]  # (..., 1) the k-th largest value
+        greater = x > v
+        equal = x == v
+        room = k - greater.sum(-1, keepdim=True)  # how many tied entries still win
+        win = greater | (equal & (equal.to(torch.int64).cumsum(-1) <= room))
+    else:
+        raise ValueError(f"kernel must be one of {KWTA_KERNELS}, got {kernel!r}")
     y = win.to(x.dtype) if binary else x * win.to(x.dtype)
     if straight_through:
         y = y.detach() + (x - x.detach())
     return y
-
-
-def kwta_numpy(values: np.ndarray, k: int) -> np.ndarray:
-    """The binary code of :func:`kwta` for NumPy rows ``(B, M)``, as a bool array.
-
-    The ``k``-th largest value ``v`` of each row comes from ``numpy.partition``
-    (introselect, several times faster than ``torch.topk`` on one CPU thread); the winners
-    are the entries ``>= v``, except in rows with a tie at ``v``, which keep the entries
-    ``> v`` and the lowest-index entries ``== v``. Any real or integer dtype, no NaN.
-
-    Float rows are selected on their bits read as signed integers (faster to partition):
-    positive floats sort like those integers and every negative float reads as a negative
-    one, so the result is the same whenever each row's ``v`` is above ``+0.0``; otherwise
-    the floats themselves are partitioned.
-    """
-    m = values.shape[1]
-    keys = values
-    if values.dtype.kind == "f":
-        keys = values.view(np.dtype(f"i{values.itemsize}"))
-    v = np.partition(keys, m - k, axis=1)[:, m - k : m - k + 1]  # (B, 1)
-    if keys is not values and not bool((v > 0).all()):
-        keys = values
-        v = np.partition(keys, m - k, axis=1)[:, m - k : m - k + 1]
-    win = keys >= v  # (B, M)
-    tied = np.flatnonzero(win.view(np.uint8).sum(1, dtype=np.int32) != k)
-    if tied.size:
-        row, vt = keys[tied], v[tied]
-        greater, equal = row > vt, row == vt
-        room = k - greater.sum(1, keepdims=True, dtype=np.int32)
-        win[tied] = greater | (equal & (equal.cumsum(1, dtype=np.int32) <= room))
-    return win
 
 
 def learn_shift_matrix(
@@ -203,58 +194,37 @@ def learn_shift_matrix(
     return shift.to(torch.float32)
 
 
-class RingState(NamedTuple):
-    """State of the output ring.
-
-    Attributes:
-        activity: ``(B, N)`` activity after the last step.
-    """
-
-    activity: torch.Tensor
-
-
-class RingParams(NamedTuple):
-    """Ring dynamics: ``a_t = decay * (a_{t-1} @ shift.T) + gain * evidence_t``."""
-
-    decay: float = 0.9
-    gain: float = 0.1
-
-
-def ring_step(
-    evidence: torch.Tensor, state: RingState, shift: torch.Tensor, params: RingParams
-) -> tuple[torch.Tensor, RingState]:
-    """One step of the output ring: shift the old activity along the ring, add new evidence.
-
-    ``activity = params.decay * state.activity @ shift.T + params.gain * evidence``.
-
-    Args:
-        evidence: ``(B, N)`` feed-forward evidence of the new frame.
-        state: previous :class:`RingState` with ``(B, N)`` activity.
-        shift: ``(N, N)`` ``W[next, current]``.
-        params: :class:`RingParams`.
-
-    Returns:
-        ``(activity (B, N), new state)``.
-    """
-    moved = F.linear(state.activity, shift)  # (B, N): moved[b, i] = sum_j shift[i, j] a[b, j]
-    activity = params.decay * moved + params.gain * evidence
-    return activity, RingState(activity)
-
-
 def cohort_normalise(
-    evidence: torch.Tensor, membership: torch.Tensor, eps: float = 1e-6
+    evidence: torch.Tensor, membership: torch.Tensor, eps: float = 1e-6, rectify: bool = False,
+    kernel: str = "torch",
 ) -> torch.Tensor:
     """Z-score evidence within cohorts of units (one cohort = global normalisation).
+
+    Kernels: ``"torch"`` (any device, differentiable, exportable) and ``"numpy"`` (CPU, no
+    gradients, one cohort: the same statistics in NumPy with a fraction of the per-call
+    overhead; several cohorts take the torch kernel). Equal up to float rounding.
 
     Args:
         evidence: ``(B, N)``.
         membership: ``(N, C)`` one-hot: unit ``i`` belongs to cohort ``c``.
         eps: added to the std.
+        rectify: clamp the result at 0 (only above-average evidence passes).
+        kernel: ``"torch"`` or ``"numpy"``.
 
     Returns:
         ``(B, N)``: ``(e - mean_c) / (std_c + eps)`` with the mean and (population) std of
-        each unit's cohort.
+        each unit's cohort (then ``max(., 0)`` with ``rectify``).
     """
+    if kernel == "numpy" and membership.shape[1] == 1:
+        return kernels.cohort_normalise_numpy(evidence, eps, rectify)
+    if kernel not in ("torch", "numpy"):
+        raise ValueError(f"kernel must be 'torch' or 'numpy', got {kernel!r}")
+    z = _cohort_normalise(evidence, membership, eps)
+    return z.clamp_min(0.0) if rectify else z
+
+
+def _cohort_normalise(evidence: torch.Tensor, membership: torch.Tensor,
+                      eps: float) -> torch.Tensor:
     if membership.shape[1] == 1:  # one cohort: plain row statistics (fewer passes)
         dev = evidence - evidence.mean(dim=1, keepdim=True)
         return dev / ((dev * dev).mean(dim=1, keepdim=True).sqrt() + eps)

@@ -1,6 +1,7 @@
 """Neural SeqSLAM: a rate-coded network of ``nn.Module`` s whose memory is bounded."""
 
 from torchseq.neural.config import NeuralConfig, NeuralError
+from torchseq.neural.inference import NeuralInference
 from torchseq.neural.model import (
     NeuralFitLog,
     NeuralResult,
@@ -13,6 +14,7 @@ __all__ = [
     "NeuralConfig",
     "NeuralError",
     "NeuralFitLog",
+    "NeuralInference",
     "NeuralResult",
     "NeuralSeqSLAM",
     "NeuralStep",

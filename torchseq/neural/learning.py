@@ -1,8 +1,15 @@
-"""Local learning rules and read-out of Neural SeqSLAM (pure functions)."""
+"""Local learning rules of Neural SeqSLAM: recruitment, Hebbian weights, cohorts.
+
+Pure functions. The read-out is in :mod:`torchseq.neural.readout`.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import torch
+
+from torchseq.neural.fixed_point import round_rows
 
 
 def recruit_units(n_frames: int, n_units: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -66,34 +73,35 @@ def cohort_membership(n_units: int, n_cohorts: int) -> torch.Tensor:
     return torch.nn.functional.one_hot(which, c).to(torch.float32)
 
 
-def decide(activity: torch.Tensor, unit_centre: torch.Tensor,
-           window: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Read the place out of the ring: the most active unit, and a margin as confidence.
+def learn_readout(codes: Iterable[tuple[int, int, torch.Tensor]], unit_of_frame: torch.Tensor,
+                  spans: torch.Tensor, mask: torch.Tensor, rule: str = "centred",
+                  eps: float = 1e-6, levels: int = 0) -> torch.Tensor:
+    """L2 -> L3 weights from one pass over a route's binary codes.
 
-    ``u* = argmax_u a_u`` (first index on ties); ``reference = unit_centre[u*]``;
-    ``confidence = a_{u*} - max_{|v - u*| > window} a_v`` (minus ``min_v a_v`` when every
-    unit is inside the window).
+    Accumulates each unit's codes and the route's, then applies :func:`hebbian_weights`
+    and, with ``levels``, rounds each row to its integer grid
+    (:func:`torchseq.neural.fixed_point.round_rows`).
 
     Args:
-        activity: ``(B, N)``.
-        unit_centre: ``(N,)`` int64 reference frame each unit stands for.
-        window: units on each side of the winner that are not rivals.
+        codes: ``(lo, hi, code (hi - lo, M))`` for consecutive stretches of frames
+            covering the route ``0..T`` once.
+        unit_of_frame: ``(T,)`` int64 unit of each frame (:func:`recruit_units`).
+        spans: ``(N, 2)`` each unit's first and one-past-last frame.
+        mask: ``(N, M)`` L2 -> L3 connection mask (its device is used).
+        rule: ``"mean"`` or ``"centred"``.
+        eps: floor of the row norm.
+        levels: integer levels per row (0: float weights).
 
     Returns:
-        ``(reference (B,) int64, confidence (B,) float)``.
+        ``(N, M)`` float32 weights.
     """
-    tracing = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()  # no data-dependence
-    if activity.device.type == "cpu" and not tracing:
-        # NumPy's argmax (first index on ties, like torch's) is ~10x torch.max(dim)'s speed
-        unit = torch.from_numpy(activity.detach().numpy().argmax(axis=1))  # (B,)
-    else:
-        unit = activity.argmax(dim=1)
-    best = activity.gather(1, unit[:, None])[:, 0]
-    n = activity.shape[1]
-    near = (unit[:, None] + torch.arange(-window, window + 1, device=activity.device))
-    masked = activity.scatter(1, near.clamp(0, n - 1), float("-inf"))  # (B, N)
-    second = masked.amax(dim=1)  # -inf: every unit is inside the window
-    inside = torch.isinf(second)
-    if tracing or bool(inside.any()):
-        second = torch.where(inside, activity.amin(dim=1), second)
-    return unit_centre[unit], best - second
+    n_units, hidden = mask.shape
+    dev = mask.device
+    sums = torch.zeros(n_units, hidden, device=dev)
+    total = torch.zeros(hidden, device=dev)
+    for lo, hi, c in codes:
+        sums.index_add_(0, unit_of_frame[lo:hi].to(dev), c)
+        total += c.sum(0)
+    counts = (spans[:, 1] - spans[:, 0]).to(dev, torch.float32)
+    w = hebbian_weights(sums, counts, total / unit_of_frame.numel(), mask, rule, eps)
+    return round_rows(w, levels) if levels else w

@@ -12,40 +12,24 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
 from torchseq.layers import KWinnersTakeAll, MaskedLinear, OutputRing, RingState
 from torchseq.layers.functional import cohort_normalise
 from torchseq.matches import Matches
+from torchseq.neural import memory
 from torchseq.neural.checkpoint import load_model, save_checkpoint
 from torchseq.neural.config import NeuralConfig, NeuralError
-from torchseq.neural.fast import (
-    Int8Linear,
-    band_diagonals,
-    feedforward,
-    feedforward_uint8,
-    ring_power,
-    ring_scan,
-)
-from torchseq.neural.fixed_point import (
-    block_order,
-    factor_power_of_two,
-    factor_rows,
-    integer_weights,
-    quantise_input,
-    round_rows,
-    zscore_blocks,
-    zscore_pixel_major,
-)
-from torchseq.neural.learning import (
-    cohort_membership,
-    decide,
-    hebbian_weights,
-    recruit_units,
-)
+from torchseq.neural.fixed_point import integer_weights
+from torchseq.neural.inference import NeuralInference
+from torchseq.neural.learning import cohort_membership, learn_readout, recruit_units
+from torchseq.neural.memory import seqslam_bytes
+from torchseq.neural.progress import Progress, as_progress
+from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
-from torchseq.preprocess import patch_normalise, resize, to_grey
+from torchseq.preprocess import patch_normalise, quantise_input, resize, to_grey, zscore_blocks
 
 __all__ = ["NeuralFitLog", "NeuralResult", "NeuralSeqSLAM", "NeuralStep", "seqslam_bytes"]
 
@@ -72,7 +56,8 @@ class NeuralSeqSLAM(nn.Module):
         self.l2 = KWinnersTakeAll(k=cfg.k, binary=True)
         self.l3: MaskedLinear | None = None
         self.ring: OutputRing | None = None
-        self._folded: dict[str, torch.Tensor | None] | None = None
+        self._inference: NeuralInference | None = None  # set by fold(): step uses it
+        self._run_modules: dict = {}  # run's own inference modules, by l1 dtype
 
     # ------------------------------------------------------------------ structure
     @property
@@ -96,7 +81,7 @@ class NeuralSeqSLAM(nn.Module):
         self.register_buffer("unit_to_reference", torch.zeros(n_units, 2, dtype=torch.int64,
                                                               device=dev))
         self.register_buffer("unit_centre", torch.zeros(n_units, dtype=torch.int64, device=dev))
-        self._folded = None
+        self.unfold()
 
     def _require_fit(self) -> None:
         if not self.fitted:
@@ -125,28 +110,15 @@ class NeuralSeqSLAM(nn.Module):
 
     def _grey(self, frames: torch.Tensor) -> torch.Tensor:
         """Checked raw frames -> float32 grey ``(B, h, w)`` at the input size."""
-        if frames.dim() not in (3, 4) or (frames.dim() == 4 and frames.shape[-1] != 3):
-            raise NeuralError(f"frames must be (B, H, W) or (B, H, W, 3), got "
-                              f"{tuple(frames.shape)}")
-        if frames.shape[0] == 0:
-            raise NeuralError("frames are empty (no frame in the batch)")
-        x = to_grey(frames.to(self.l1.weight.device)).to(torch.float32)
-        # one sum first (NaN and inf propagate), the element-wise test only when it fails
-        if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
-            raise NeuralError("frames hold NaN or infinite values")
-        return resize(x, self.config.input_size)
+        return checked_grey(frames, self.config.input_size, self.l1.weight.device)
 
     def code(self, x: torch.Tensor) -> torch.Tensor:
         """L1 -> L2: random masked projection then binary k-WTA. ``(B, 768) -> (B, hidden)``."""
-        w1 = self._folded["w1"] if self._folded is not None else None
-        h = torch.nn.functional.linear(x, w1) if w1 is not None else self.l1(x)
-        return self.l2(h)
+        return self.l2(self.l1(x))
 
     def evidence(self, code: torch.Tensor) -> torch.Tensor:
         """L2 -> L3 evidence, z-scored within cohorts, rectified. ``(B, hidden) -> (B, N)``."""
-        w3 = self._folded["w3"] if self._folded is not None else None
-        e = torch.nn.functional.linear(code, w3) if w3 is not None else self.l3(code)
-        z = cohort_normalise(e, self.cohorts, self.config.eps)
+        z = cohort_normalise(self.l3(code), self.cohorts, self.config.eps)
         return z.clamp_min(0.0) if self.config.rectify else z
 
     def step(self, frames: torch.Tensor,
@@ -160,8 +132,9 @@ class NeuralSeqSLAM(nn.Module):
         Returns:
             ``(NeuralStep, new state)``.
 
-        After :meth:`fold` (done by :meth:`run`) and with gradients off, the feed-forward
-        part takes the fast path of :func:`torchseq.neural.fast.feedforward`.
+        The model's layers run it (the definition), unless :meth:`fold` prepared an
+        inference module: then that module and its kernels (:attr:`kernels`) run it, in any
+        grad mode, without autograd. Nothing else switches paths.
         """
         self._require_fit()
         if state is not None and (state.activity.dim() != 2
@@ -169,10 +142,9 @@ class NeuralSeqSLAM(nn.Module):
                                   or state.activity.shape[0] != frames.shape[0]):
             raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
                               f"{tuple(state.activity.shape)}")
-        if self._folded is not None and not torch.is_grad_enabled():  # same maths, faster
-            e = self._feedforward(frames)  # (B, N)
-        else:
-            e = self.evidence(self.code(self.encode(frames)))  # (B, N)
+        if self._inference is not None:
+            return self._inference(frames, state)
+        e = self.evidence(self.code(self.encode(frames)))  # (B, N)
         activity, state = self.ring(e, state)
         reference, confidence = decide(activity, self.unit_centre,
                                        self.config.uniqueness_window)
@@ -182,18 +154,18 @@ class NeuralSeqSLAM(nn.Module):
 
     # ------------------------------------------------------------------ learning
     @torch.no_grad()
-    def fit(self, reference: torch.Tensor, progress: bool = False,
+    def fit(self, reference: torch.Tensor, progress: bool | Progress | None = None,
             log: bool = True) -> NeuralFitLog:
         """Learn a route from one pass over its reference traverse (local rules, no backprop).
 
         Units are recruited along the route in order (unit ``u`` stands for a contiguous
-        stretch of frames); L2 -> L3 weights take the mean L2 code of the unit's frames
-        within the mask (Hebbian, rows normalised); the ring's shift matrix learns from the
-        order in which units fired.
+        stretch of frames, :func:`~torchseq.neural.learning.recruit_units`); L2 -> L3 weights
+        follow the configured Hebbian rule (:func:`~torchseq.neural.learning.hebbian_weights`);
+        the ring's shift matrix learns from the order in which units fired.
 
         Args:
             reference: ``(T, H, W)`` or ``(T, H, W, 3)`` frames, any size, 0..255, ``T >= 2``.
-            progress: show a progress bar.
+            progress: a callback ``(frames done, frames in all)`` (``True``: a tqdm bar).
             log: also compute the reference evidence raster (a second feed-forward pass).
 
         Returns:
@@ -209,46 +181,67 @@ class NeuralSeqSLAM(nn.Module):
         self._build_output(n_units)
         unit_of_frame, spans = recruit_units(t_len, n_units)
         dev = self.l1.weight.device
-        sums = torch.zeros(n_units, cfg.hidden, device=dev)
-        total = torch.zeros(cfg.hidden, device=dev)
-        for lo in _chunks(t_len, cfg.chunk, progress, "fit"):
-            hi = min(lo + cfg.chunk, t_len)
-            c = self.code(self.encode(reference[lo:hi]))
-            sums.index_add_(0, unit_of_frame[lo:hi].to(dev), c)
-            total += c.sum(0)
-        counts = (spans[:, 1] - spans[:, 0]).to(dev, torch.float32)
-        w = hebbian_weights(sums, counts, total / t_len, self.l3.mask, cfg.hebbian, cfg.eps)
-        if cfg.l3_levels:
-            w = round_rows(w, cfg.l3_levels)
-        self.l3.weight.copy_(w)
+        codes = ((lo, hi, self.code(self.encode(reference[lo:hi])))
+                 for lo, hi in _chunks(t_len, cfg.chunk, as_progress(progress, "fit")))
+        self.l3.weight.copy_(learn_readout(codes, unit_of_frame, spans, self.l3.mask,
+                                           cfg.hebbian, cfg.eps, cfg.l3_levels))
         self.ring.learn(unit_of_frame)
         self.unit_to_reference.copy_(spans.to(dev))
         self.unit_centre.copy_(((spans[:, 0] + spans[:, 1] - 1) // 2).to(dev))
         evidence = torch.empty(0, n_units)
         if log:
-            parts = [self.evidence(self.code(self.encode(reference[lo:lo + cfg.chunk])))
-                     for lo in range(0, t_len, cfg.chunk)]
+            parts = [self.evidence(self.code(self.encode(reference[lo:hi])))
+                     for lo, hi in _chunks(t_len, cfg.chunk)]
             evidence = torch.cat(parts).cpu()
         return NeuralFitLog(unit_of_frame, evidence, spans, time.perf_counter() - t0)
 
     # ------------------------------------------------------------------ recognition
+    def inference(self, kernels: str | dict = "auto") -> NeuralInference:
+        """A new :class:`~torchseq.neural.inference.NeuralInference` of this fitted model.
+
+        Args:
+            kernels: ``"auto"``, ``"portable"`` or ``{stage: kernel}`` (see
+                :mod:`torchseq.neural.inference`); the choice is its :attr:`kernels`.
+        """
+        self._require_fit()
+        return NeuralInference(self, kernels)
+
+    def fold(self, kernels: str | dict = "auto") -> NeuralInference:
+        """Prepare for inference: :meth:`step` runs through :meth:`inference`'s module.
+
+        Until :meth:`unfold`, :meth:`fit` or :meth:`load_state_dict`. Returns the module.
+        """
+        self._inference = self.inference(kernels)
+        return self._inference
+
+    def unfold(self) -> None:
+        """Back to the layers: :meth:`step` runs the model's own modules again."""
+        self._inference = None
+        self._run_modules = {}
+
+    @property
+    def kernels(self) -> dict[str, str] | None:
+        """The kernels :meth:`step` runs (None: the model's layers, not folded)."""
+        return None if self._inference is None else self._inference.kernels
+
     @torch.inference_mode()
-    def run(self, query: torch.Tensor, progress: bool = False,
+    def run(self, query: torch.Tensor, progress: bool | Progress | None = None,
             l1_dtype: torch.dtype | None = None) -> NeuralResult:
         """Stream a whole query traverse through the network (one stream).
 
-        The feed-forward part runs in batches of ``config.chunk`` frames (it does not
-        depend on the state) with folded weights (:mod:`torchseq.neural.fast`); the ring then
-        steps frame by frame. Same numbers as calling :meth:`step` once per frame, up to
-        float rounding.
+        The evidence runs in batches of ``config.chunk`` frames (it does not depend on the
+        state), then the ring in blocks of frames (:func:`~torchseq.layers.ring_scan`),
+        through the module of :meth:`fold` or else one of :meth:`inference` with the
+        ``"auto"`` kernels (kept for the next call; :meth:`step` is not affected). Same
+        numbers as :meth:`step` once per frame, up to float rounding.
 
         Args:
             query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames.
-            progress: show a progress bar.
-            l1_dtype: ``torch.bfloat16`` runs the L1 product in bfloat16 (about 1.5x faster
-                on CPUs with AMX/AVX512-BF16) - an approximation: rounding moves a few L2
+            progress: a callback ``(frames done, frames in all)`` (``True``: a tqdm bar).
+            l1_dtype: ``torch.bfloat16`` runs the L1 product in bfloat16 (the
+                ``"bfloat16_gemm"`` kernel) - an approximation: rounding moves a few L2
                 units across the k-WTA threshold, so some decisions differ from the float32
-                model (99.7% identical on the benchmark route). None: exact float32.
+                model (99.7% identical on the benchmark route). None: exact.
 
         Returns:
             :class:`NeuralResult`.
@@ -257,84 +250,26 @@ class NeuralSeqSLAM(nn.Module):
         self._require_fit()
         if query.dim() not in (3, 4) or query.shape[0] == 0:
             raise NeuralError(f"query must be a non-empty (T, H, W), got {tuple(query.shape)}")
-        cfg = self.config
-        self.fold()
-        f = self._folded
-        decay, gain = self.ring.params
-        w1_t = None
-        if l1_dtype is not None and l1_dtype != f["w1_t"].dtype:
-            w1_t = f.setdefault(f"w1_t.{l1_dtype}", f["w1_t"].to(l1_dtype))
-        parts = [self._feedforward(query[lo:lo + cfg.chunk], w1_t)
-                 for lo in _chunks(query.shape[0], cfg.chunk, progress, "run")]
-        drive = torch.cat(parts) * gain  # (T, N)
-        a0 = torch.zeros(self.n_units, device=drive.device)
-        activity = ring_scan(drive, a0, self.ring.shift, decay, f["diagonals"],
-                             power=f["ring_power"])
-        reference, confidence = decide(activity, self.unit_centre, cfg.uniqueness_window)
+        module = self._run_module(l1_dtype)
+        parts = [module.evidence(query[lo:hi])
+                 for lo, hi in _chunks(query.shape[0], self.config.chunk,
+                                       as_progress(progress, "run"))]
+        activity = module.scan(torch.cat(parts))  # (T, N)
+        reference, confidence = module.decide(activity)
         matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
         return NeuralResult(matches, activity.cpu(), time.perf_counter() - t0)
 
-    def _feedforward(self, frames: torch.Tensor,
-                     w1_t: torch.Tensor | None = None) -> torch.Tensor:
-        """Folded L1 -> L3 evidence of raw frames ``(B, ...) -> (B, N)`` (see :meth:`fold`).
-
-        On the int8 path the z-scores go straight to uint8 in block-major order (the L1
-        weights' columns were permuted to match), skipping the float grid of :meth:`encode`;
-        the integers are the same. ``w1_t``: a low-precision L1 copy (``run(l1_dtype=...)``),
-        which forces float products.
-        """
-        f, cfg = self._folded, self.config
-        if f["l1_int8"] is not None and w1_t is None and frames.device.type == "cpu":
-            z = zscore_pixel_major(self._grey(frames), cfg.patch_size)  # (p*p, B, blocks)
-            xq = z.mul_(cfg.input_steps).round_().add_(128.0).to(torch.uint8).permute(1, 2, 0)
-            return feedforward_uint8(xq.reshape(xq.shape[0], -1), f["l1_int8"], f["l3_int8"],
-                                     cfg.k, self.cohorts, cfg.eps, cfg.rectify)
-        return feedforward(self.encode(frames), f["w1_t"] if w1_t is None else w1_t, f["w3_t"],
-                           cfg.k, self.cohorts, cfg.eps, cfg.rectify)
-
-    def fold(self) -> None:
-        """Cache ``weight * mask`` of both masked layers for fast inference.
-
-        Dense float copies always; int8 copies for oneDNN's int8 GEMM when the model's
-        numbers sit on its integer grids (:mod:`torchseq.neural.fixed_point`) and the GEMM
-        reproduces the float products on a check batch. Called by :meth:`run`; cleared by
-        :meth:`fit` and :meth:`load_state_dict`.
-        """
-        self._require_fit()
-        if self._folded is None:
-            with torch.inference_mode(False), torch.no_grad():
-                w1, w3 = self.l1.folded_weight(), self.l3.folded_weight()
-                self._folded = {
-                    "w1": w1, "w3": w3, "w1_t": w1.T.contiguous(), "w3_t": w3.T.contiguous(),
-                    "diagonals": None if self.config.ring_wrap else band_diagonals(
-                        self.ring.shift, self.config.ring_spread),
-                    "l1_int8": None, "l3_int8": None}
-                self._folded["ring_power"] = ring_power(
-                    self.ring.shift, self.ring.params.decay, self._folded["diagonals"])
-                self._folded.update(self._int8_layers(w1, w3))
-
-    def _int8_layers(self, w1: torch.Tensor, w3: torch.Tensor) -> dict:
-        """``{"l1_int8", "l3_int8"}``: :class:`Int8Linear` copies, or nothing when unusable."""
-        cfg = self.config
-        steps, n = cfg.input_steps, cfg.patch_size ** 2
-        if (w1.device.type != "cpu" or not steps or not n or cfg.patch_mode != "zscore"
-                or (n - 1) / math.sqrt(n) * steps > 127):  # |z| <= (n-1)/sqrt(n): int8 fits
-            return {}
-        l1 = factor_power_of_two(w1, 64)  # |n| <= 64: no int16 pair overflow on any CPU
-        l3 = factor_rows(w3, 127)
-        if l1 is None or l3 is None:
-            return {}
-        n1, step1 = l1  # columns to block-major order: the int8 path's input order
-        n1 = n1[:, block_order(*cfg.input_size, cfg.patch_size)].contiguous()
-        lin1 = Int8Linear.create(n1, torch.full((n1.shape[0],), step1), 1.0 / steps, 128)
-        lin3 = Int8Linear.create(*l3, 1.0, 0)
-        if lin1 is None or lin3 is None:
-            return {}
-        return {"l1_int8": lin1, "l3_int8": lin3}
-
-    def unfold(self) -> None:
-        """Drop the folded weights (the next call recomputes ``weight * mask``)."""
-        self._folded = None
+    def _run_module(self, l1_dtype: torch.dtype | None) -> NeuralInference:
+        if l1_dtype is not None and l1_dtype not in (torch.bfloat16, torch.float32):
+            raise NeuralError(f"l1_dtype must be torch.bfloat16 or None, got {l1_dtype}")
+        if l1_dtype in (None, torch.float32) and self._inference is not None:
+            return self._inference
+        key = "bfloat16" if l1_dtype == torch.bfloat16 else "auto"
+        if key not in self._run_modules:
+            kernels = {"l1": "bfloat16_gemm"} if key == "bfloat16" else "auto"
+            with torch.inference_mode(False):
+                self._run_modules[key] = self.inference(kernels)
+        return self._run_modules[key]
 
     # ------------------------------------------------------------------ persistence
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
@@ -343,7 +278,7 @@ class NeuralSeqSLAM(nn.Module):
             n = int(state_dict["unit_to_reference"].shape[0])
             if n != self.n_units:
                 self._build_output(n)
-        self._folded = None
+        self.unfold()
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def save(self, path: str | Path, extra: dict | None = None) -> None:
@@ -370,50 +305,42 @@ class NeuralSeqSLAM(nn.Module):
 
     # ------------------------------------------------------------------ memory
     def model_bytes(self, masked_only: bool = False) -> int:
-        """Bytes of everything the model stores (``state_dict``).
-
-        Args:
-            masked_only: count only the weights inside the masks (as a sparse store would,
-                value only) plus every other buffer, instead of the dense tensors.
-        """
-        total = 0
-        for name, t in self.state_dict().items():
-            if masked_only and name.endswith(".weight"):
-                mask = self.state_dict()[name[: -len("weight")] + "mask"]
-                total += int(mask.sum()) * t.element_size()
-            elif masked_only and name.endswith(".mask"):
-                continue
-            else:
-                total += t.numel() * t.element_size()
-        return total
+        """Bytes of everything the model stores (see :mod:`torchseq.neural.memory`)."""
+        return memory.model_bytes(self.state_dict(), masked_only)
 
     def memory_comparison(self, descriptor: int = 2048) -> dict:
-        """Bytes this model stores beside the bytes classic SeqSLAM keeps for the same route.
-
-        Args:
-            descriptor: SeqSLAM descriptor length (2048 = 32x64 OpenSeqSLAM images).
-
-        Returns:
-            ``{"n_reference", "n_units", "neural_bytes", "neural_masked_bytes",
-            "seqslam_bytes"}`` (see :meth:`model_bytes` and :func:`seqslam_bytes`).
-        """
+        """Bytes stored beside classic SeqSLAM's (see :mod:`torchseq.neural.memory`)."""
         self._require_fit()
-        n_ref = int(self.unit_to_reference[-1, 1])
-        return {"n_reference": n_ref, "n_units": self.n_units,
-                "neural_bytes": self.model_bytes(),
-                "neural_masked_bytes": self.model_bytes(masked_only=True),
-                "seqslam_bytes": seqslam_bytes(n_ref, descriptor)}
+        return memory.memory_comparison(self, descriptor)
 
 
-def seqslam_bytes(n_reference: int, descriptor: int = 2048, itemsize: int = 4) -> int:
-    """Bytes classic SeqSLAM keeps for a route: ``R x descriptor`` float32 descriptors."""
-    return int(n_reference) * int(descriptor) * int(itemsize)
+def checked_grey(frames: torch.Tensor, size: tuple[int, int], device) -> torch.Tensor:
+    """Checked raw frames ``(B, H, W)`` / ``(B, H, W, 3)`` -> float32 grey ``(B, h, w)``."""
+    if frames.dim() not in (3, 4) or (frames.dim() == 4 and frames.shape[-1] != 3):
+        raise NeuralError(f"frames must be (B, H, W) or (B, H, W, 3), got "
+                          f"{tuple(frames.shape)}")
+    if frames.shape[0] == 0:
+        raise NeuralError("frames are empty (no frame in the batch)")
+    if (frames.dim() == 3 and frames.dtype == torch.float32 and frames.device.type == "cpu"
+            and torch.device(device).type == "cpu" and tuple(frames.shape[1:]) == tuple(size)):
+        # the online case (one float32 frame at the input size): one NumPy sum
+        flat = frames.detach().numpy().reshape(-1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            total = float(np.add.reduce(flat))
+        if not math.isfinite(total) and not np.isfinite(flat).all():
+            raise NeuralError("frames hold NaN or infinite values")
+        return frames
+    x = to_grey(frames.to(device)).to(torch.float32)
+    # one sum first (NaN and inf propagate), the element-wise test only when it fails
+    if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
+        raise NeuralError("frames hold NaN or infinite values")
+    return resize(x, size)
 
 
-def _chunks(n: int, size: int, progress: bool, desc: str):
-    starts = range(0, n, size)
-    if progress:
-        from tqdm import tqdm
-
-        return tqdm(starts, desc=desc, unit="chunk")
-    return starts
+def _chunks(n: int, size: int, progress: Progress | None = None):
+    """``(lo, hi)`` bounds of batches of ``size``; ``progress(hi, n)`` after each is taken."""
+    for lo in range(0, n, size):
+        hi = min(lo + size, n)
+        yield lo, hi
+        if progress is not None:
+            progress(hi, n)

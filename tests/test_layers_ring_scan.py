@@ -1,8 +1,9 @@
 import pytest
 import torch
 
-from torchseq.layers import MaskedLinear, cohort_normalise, kwta, learn_shift_matrix
-from torchseq.neural.fast import band_diagonals, feedforward, ring_scan, winners
+from torchseq.layers import kwta, learn_shift_matrix
+from torchseq.layers.kernels import topk_indices as winners
+from torchseq.layers.ring import band_diagonals, ring_scan
 
 
 def test_winners_equal_kwta_with_and_without_ties():
@@ -14,26 +15,6 @@ def test_winners_equal_kwta_with_and_without_ties():
         dense = torch.zeros_like(x).scatter_(1, idx, 1.0)
         assert idx.shape == (x.shape[0], 15)
         assert torch.equal(dense, kwta(x, 15, binary=True))
-
-
-@pytest.mark.parametrize("rectify", [False, True])
-@pytest.mark.parametrize("ties", [False, True])
-def test_feedforward_equals_eager_layers(ties, rectify):
-    l1 = MaskedLinear(48, 200, 0.2, seed=0, dtype=torch.float64)
-    l3 = MaskedLinear(200, 30, 0.3, seed=1, dtype=torch.float64)
-    x = torch.randn(12, 48, dtype=torch.float64)
-    if ties:
-        x[2] = 0.0  # an all-zero input: every L2 unit ties
-    cohorts = torch.nn.functional.one_hot(torch.arange(30) // 10, 3).to(torch.float64)
-    got = feedforward(x, l1.folded_weight().T.contiguous(), l3.folded_weight().T.contiguous(),
-                      10, cohorts, 1e-6, rectify)
-    want = cohort_normalise(l3(kwta(l1(x), 10, binary=True)), cohorts, 1e-6)
-    if rectify:
-        want = torch.where(want > 0, want, torch.zeros_like(want))
-    torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-10)
-    small = feedforward(x[:3], l1.folded_weight().T.contiguous(),
-                        l3.folded_weight().T.contiguous(), 10, cohorts, 1e-6, rectify)
-    torch.testing.assert_close(small, want[:3], atol=1e-10, rtol=1e-10)  # gather path
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -76,24 +57,6 @@ def test_ring_scan_blocks_equal_frame_by_frame(t_len, block, wrap):
         a = 0.95 * (shift @ a) + drive[t]
         want.append(a)
     torch.testing.assert_close(got, torch.stack(want), atol=1e-12, rtol=1e-12)
-
-
-def test_decide_equals_loop():
-    from torchseq.neural.learning import decide
-
-    g = torch.Generator().manual_seed(5)
-    act = torch.rand(50, 40, generator=g)
-    act[3] = 1.0  # all tied: first index wins
-    centre = torch.arange(40) * 3
-    for window, n in ((5, 40), (2, 40), (30, 40), (39, 40), (0, 40), (5, 6)):
-        a = act[:, :n]
-        ref, conf = decide(a, centre[:n], window)
-        for b in range(a.shape[0]):
-            u = max(range(n), key=lambda i: (float(a[b, i]), -i))
-            rivals = [float(a[b, v]) for v in range(n) if abs(v - u) > window]
-            second = max(rivals) if rivals else float(a[b].min())
-            assert int(ref[b]) == int(centre[u])
-            assert float(conf[b]) == pytest.approx(float(a[b, u]) - second, abs=1e-7)
 
 
 @pytest.mark.parametrize("wrap", [False, True])

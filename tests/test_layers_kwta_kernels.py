@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from torchseq.layers import kwta
-from torchseq.neural.fast import has_tie, winners
+from torchseq.layers.kernels import has_tie
+from torchseq.layers.kernels import topk_indices as winners
 
 
 def tie_loop(h: torch.Tensor, v: torch.Tensor, k: int) -> bool:
@@ -55,3 +56,22 @@ def test_winners_match_kwta_code_and_topk_order_without_ties(dtype):
     idx = winners(h, 9)
     code = torch.zeros_like(h).scatter_(1, idx, 1.0)
     assert torch.equal(code, kwta(h, 9, binary=True))
+
+
+@pytest.mark.parametrize("case", ["plain", "ties", "negative", "zeros"])
+@pytest.mark.parametrize("batch", [1, 4])
+def test_partition_indices_equal_kwta(case, batch):
+    """kwta_partition_indices (its one-row shortcut included) against the definition."""
+    from torchseq.layers.kernels import kwta_partition_indices
+
+    g = torch.Generator().manual_seed(11)
+    h = torch.randn(batch, 500, generator=g)
+    if case == "ties":
+        h = torch.randint(-4, 5, (batch, 500), generator=g).float()
+    elif case == "negative":
+        h = -h.abs() - 1.0  # the threshold is negative: the float bits do not sort
+    elif case == "zeros":
+        h[0] = 0.0
+    idx = kwta_partition_indices(h, 37)
+    want = kwta(h, 37, binary=True).nonzero()[:, 1].reshape(batch, 37)
+    assert torch.equal(idx, want)

@@ -1,0 +1,188 @@
+"""Which kernel ran, per stage, device, dtype and mode (in the manner of kornia's
+``test_selection_dispatch``): the private kernels are wrapped so that each call is recorded.
+
+On an x86-64 CPU the int8 GEMM must be there: its absence fails here, it is not skipped.
+"""
+
+import contextlib
+from unittest import mock
+
+import numpy as np
+import pytest
+import torch
+from conftest import DEVICES
+
+from torchseq.demo import make_demo
+from torchseq.layers import kernels as K
+from torchseq.layers import ring as R
+from torchseq.neural import NeuralConfig, NeuralError, NeuralSeqSLAM, readout
+from torchseq.neural import inference as I
+
+
+@pytest.fixture(scope="module")
+def route():
+    return make_demo(n_reference=40, size=(48, 64), seed=8)
+
+
+@pytest.fixture(scope="module")
+def grid_model(route):
+    """The default config (integer grids) at a small size."""
+    model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=40))
+    model.fit(route.reference, log=False)
+    return model
+
+
+@contextlib.contextmanager
+def recording(module):
+    """Yield a list of the kernels that ran, in order, as ``stage:kernel`` strings."""
+    ran = []
+
+    def wrap(target, name, label):
+        original = getattr(target, name)
+
+        def spy(*args, **kwargs):
+            ran.append(label(*args, **kwargs) if callable(label) else label)
+            return original(*args, **kwargs)
+        return mock.patch.object(target, name, side_effect=spy)
+
+    original_call = K.Int8Linear.__call__
+
+    def int8_call(self, x):
+        ran.append("l1:int8_gemm" if self is module.l1_int8 else "l3:int8_gemm")
+        return original_call(self, x)
+
+    def scan_label(d, *args):
+        return "scan:numpy" if isinstance(d, np.ndarray) else "scan:torch"
+
+    patches = [
+        mock.patch.object(K.Int8Linear, "__call__", int8_call),
+        wrap(K, "kwta_partition", "kwta:partition"),
+        wrap(K, "kwta_partition_indices", "kwta:partition"),
+        wrap(K, "cohort_normalise_numpy", "cohorts:numpy"),
+        wrap(K, "topk_indices", "kwta:topk"),
+        wrap(K, "sum_rows", "l3:embedding_bag"),
+        wrap(R, "_ring_step_banded", "ring:banded"),
+        wrap(R, "_scan_blocks", scan_label),
+        wrap(readout, "_decide_numpy", "decide:numpy"),
+        wrap(I, "zscore_pixel_major", lambda f, p, kernel="torch": f"input:{kernel}"),
+    ]
+    with contextlib.ExitStack() as stack:
+        for p in patches:
+            stack.enter_context(p)
+        yield ran
+
+
+def test_int8_kernels_exist_on_x86(grid_model):
+    """The default model sits on its integer grids: on x86 the int8 GEMM must be chosen."""
+    kernels = grid_model.inference().kernels
+    if I.int8_expected():
+        assert kernels["l1"] == "int8_gemm", "oneDNN's int8 GEMM is missing or inexact here"
+        assert kernels["l3"] == "int8_gemm_or_embedding_bag"
+    else:
+        assert kernels["l1"] == "float32_gemm"
+
+
+@pytest.mark.parametrize("batch", [1, 3, 16, 40])
+def test_auto_cpu_step_dispatch(grid_model, route, batch):
+    inf = grid_model.inference()
+    frames = route.query[:batch]
+    with recording(inf) as ran:
+        with torch.inference_mode():
+            inf(frames)
+    int8 = inf.kernels["l1"] == "int8_gemm"
+    l3 = ("l3:int8_gemm" if int8 and batch >= I.SMALL_BATCH else "l3:embedding_bag")
+    want = ["input:numpy", "l1:int8_gemm" if int8 else None, "kwta:partition", l3,
+            "cohorts:numpy", "ring:banded", "decide:numpy"]
+    assert ran == [w for w in want if w]
+
+
+def test_auto_cpu_run_dispatch(grid_model, route):
+    inf = grid_model.inference()
+    grid_model.fold()
+    try:
+        with recording(grid_model._inference) as ran:
+            grid_model.run(route.query)
+    finally:
+        grid_model.unfold()
+    int8 = inf.kernels["l1"] == "int8_gemm"
+    assert ran[0] == "input:numpy" and ran[-2:] == ["scan:numpy", "decide:numpy"]
+    assert ("l1:int8_gemm" in ran) == int8
+    assert "ring:banded" not in ran  # the sequence form, not the step
+
+
+def test_portable_kernels_are_plain_torch(grid_model, route):
+    inf = grid_model.inference("portable")
+    assert inf.kernels == I.PORTABLE
+    with recording(inf) as ran:
+        inf(route.query[:3])
+        inf.scan(torch.rand(20, grid_model.n_units))
+    assert ran == ["input:torch", "scan:torch"]  # no NumPy, no int8, no embedding-bag
+
+
+def test_float_model_falls_back_to_float_kernels(route):
+    model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=40, l1_levels=0, l3_levels=0))
+    model.fit(route.reference, log=False)
+    inf = model.inference()
+    assert inf.kernels["l1"] == "float32_gemm" and inf.kernels["l3"] == "embedding_bag"
+    with recording(inf) as ran:
+        inf(route.query[:20])
+    assert ran == ["input:numpy", "kwta:partition", "l3:embedding_bag", "cohorts:numpy",
+                   "ring:banded", "decide:numpy"]
+
+
+def test_explicit_kernels_and_wrapped_ring(grid_model, route):
+    inf = grid_model.inference({"kwta": "topk", "l3": "embedding_bag", "ring": "dense",
+                                "decide": "torch", "input": "torch", "cohorts": "torch"})
+    with recording(inf) as ran:
+        inf(route.query[:2])
+    assert ran[0] == "input:torch" and ran[-2:] == ["kwta:topk", "l3:embedding_bag"]
+    wrapped = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=20, ring_wrap=True))
+    wrapped.fit(route.reference[:20], log=False)
+    assert wrapped.inference().kernels["ring"] == "dense"
+    with pytest.raises(NeuralError, match="banded"):
+        wrapped.inference({"ring": "banded"})
+
+
+def test_kernels_do_not_follow_grad_mode_or_history(grid_model, route):
+    assert grid_model.kernels is None  # not folded: step runs the layers
+    grid_model.run(route.query[:5])
+    assert grid_model.kernels is None  # run does not fold the model for step
+    inf = grid_model.fold()
+    try:
+        assert grid_model.kernels == inf.kernels
+        logs = []
+        for ctx in (torch.enable_grad, torch.no_grad, torch.inference_mode):
+            with recording(inf) as ran, ctx():
+                grid_model.step(route.query[:2])
+            logs.append(ran)
+        assert logs[0] == logs[1] == logs[2] and logs[0]
+    finally:
+        grid_model.unfold()
+    with recording(inf) as ran:
+        grid_model.step(route.query[:2])
+    assert ran == []  # unfolded: the layers ran, no kernel
+
+
+def test_bad_kernel_requests(grid_model):
+    for bad in ("fast", {"l9": "x"}, {"l1": "cuda_gemm"}, {"l3": "int8_gemm", "kwta": "topk"}):
+        with pytest.raises(NeuralError):
+            grid_model.inference(bad)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_dispatch(route, device):
+    model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=40), device=device)
+    model.fit(route.reference, log=False)
+    inf = model.inference()
+    if device == "cpu":
+        assert inf.kernels["input"] == "numpy" and inf.kernels["scan"] == "numpy"
+        return
+    assert inf.kernels == {"input": "torch", "l1": "float32_gemm", "kwta": "topk",
+                           "l3": "embedding_bag", "cohorts": "torch", "ring": "banded",
+                           "scan": "torch", "decide": "torch"}
+    with recording(inf) as ran:
+        out, _ = inf(route.query[:3])
+    assert ran == ["input:torch", "kwta:topk", "l3:embedding_bag", "ring:banded"]
+    assert out.activity.device.type == "cuda"
+    with pytest.raises(NeuralError, match="CPU"):
+        model.inference({"kwta": "partition"})

@@ -1,0 +1,302 @@
+"""``NeuralInference``: a fitted Neural SeqSLAM folded for inference, kernels chosen at build.
+
+It computes the step of ``docs/neural.md`` ("Step maths") with the same functions as the
+model's layers (:func:`~torchseq.preprocess.zscore_pixel_major`,
+:func:`~torchseq.layers.kwta`, :func:`~torchseq.layers.cohort_normalise`,
+:func:`~torchseq.layers.ring_step` / :func:`~torchseq.layers.ring_scan`,
+:func:`~torchseq.neural.readout.decide`), with the masks folded into dense weights and one
+named kernel per stage. The kernels are fixed when the module is built and visible as
+:attr:`NeuralInference.kernels`; nothing else (grad mode, earlier calls) changes them.
+
+Stages and kernels:
+
+=========== ============================================================================
+``input``   ``"torch"`` or ``"numpy"``: the patch z-score (same bits either way) on the
+            ``1 / input_steps`` grid; ``"encode"``: the model's ``encode`` (other patch
+            modes)
+``l1``      ``"float32_gemm"``, ``"int8_gemm"`` (oneDNN; the model's integer grids make
+            it exact) or ``"bfloat16_gemm"`` (approximate, opt-in)
+``kwta``    ``"topk"`` or ``"partition"`` (NumPy introselect)
+``l3``      ``"embedding_bag"`` (sum of the winners' rows), ``"int8_gemm"``,
+            ``"int8_gemm_or_embedding_bag"`` (the embedding-bag for batches of fewer than
+            ``SMALL_BATCH`` frames, where it is about 3x faster, the int8 GEMM from
+            there on) or ``"dense"`` (the 0/1 code times the weights: the exported graph)
+``ring``    ``"banded"`` (diagonals of a banded shift matrix) or ``"dense"``
+``scan``    ``"numpy"`` or ``"torch"``: :func:`~torchseq.layers.ring_scan`'s kernel in
+            :meth:`NeuralInference.run`
+``decide``  ``"numpy"`` or ``"torch"``
+=========== ============================================================================
+
+``kernels="auto"`` picks, on the CPU: NumPy input, int8 GEMMs when the model sits on its
+integer grids and oneDNN reproduces the float products on a check batch (else float32 and
+the embedding-bag), the NumPy partition, the banded ring, NumPy scan and read-out; on other
+devices the torch kernels. ``"portable"`` is plain torch float32 throughout (what the float
+ONNX graph is traced from). A dict overrides single stages.
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+
+import numpy as np
+import torch
+from torch import nn
+
+from torchseq.layers import RingState, cohort_normalise, kwta
+from torchseq.layers import kernels as K
+from torchseq.layers.kernels import TIE_STEP, Int8Linear
+from torchseq.layers.ring import band_diagonals, ring_power, ring_scan, ring_step
+from torchseq.neural.config import NeuralError
+from torchseq.neural.fixed_point import factor_power_of_two, factor_rows
+from torchseq.neural.readout import decide
+from torchseq.neural.results import NeuralStep
+from torchseq.preprocess import block_order, zscore_pixel_major
+
+STAGES = ("input", "l1", "kwta", "l3", "cohorts", "ring", "scan", "decide")
+CHOICES = {
+    "input": ("torch", "numpy", "encode"),
+    "l1": ("float32_gemm", "int8_gemm", "bfloat16_gemm"),
+    "kwta": ("topk", "partition"),
+    "l3": ("embedding_bag", "int8_gemm", "int8_gemm_or_embedding_bag", "dense"),
+    "cohorts": ("torch", "numpy"),
+    "ring": ("banded", "dense"),
+    "scan": ("numpy", "torch"),
+    "decide": ("numpy", "torch"),
+}
+SMALL_BATCH = 16  # below: the embedding-bag L3 beats the int8 GEMM (bench_neural.py)
+PORTABLE = {"input": "torch", "l1": "float32_gemm", "kwta": "topk", "l3": "dense",
+            "cohorts": "torch", "ring": "dense", "scan": "torch", "decide": "torch"}
+
+
+def int8_expected() -> bool:
+    """Whether this machine should have oneDNN's int8 GEMM (an x86-64 CPU build of torch)."""
+    return (platform.machine().lower() in ("x86_64", "amd64")
+            and torch.backends.mkldnn.is_available())
+
+
+class NeuralInference(nn.Module):
+    """A fitted :class:`~torchseq.neural.NeuralSeqSLAM` folded for inference.
+
+    Build it with :meth:`NeuralSeqSLAM.inference` (or ``NeuralInference(model, kernels)``).
+    It copies what it needs (folded weights, the shift matrix, cohorts, unit centres) as
+    buffers: later changes to the model's tensors do not reach it (with a patch mode other
+    than ``"zscore"`` its input stage is the model's own ``encode``). No autograd.
+
+    Args:
+        model: a fitted :class:`~torchseq.neural.NeuralSeqSLAM`.
+        kernels: ``"auto"``, ``"portable"`` or a dict ``{stage: kernel}`` over ``"auto"``.
+
+    Raises:
+        NeuralError: an unfitted model, an unknown stage or kernel, or a kernel that cannot
+            run here (int8 on a model off its integer grids or without oneDNN, NumPy kernels
+            off the CPU, the banded ring on a shift matrix that is not banded).
+    """
+
+    def __init__(self, model, kernels: str | dict = "auto") -> None:
+        super().__init__()
+        if not model.fitted:
+            raise NeuralError("the model has not learnt a route yet: call fit(reference) first")
+        cfg = self.config = model.config
+        with torch.inference_mode(False), torch.no_grad():
+            w1 = model.l1.folded_weight().detach()
+            w3 = model.l3.folded_weight().detach()
+            shift = model.ring.shift.detach()
+            cpu = w1.device.type == "cpu"
+            self.block_major = bool(cfg.patch_size) and cfg.patch_mode == "zscore"
+            w1_t = w1.T
+            if self.block_major:  # the z-scores come block-major: permute L1's columns
+                w1_t = w1_t[block_order(*cfg.input_size, cfg.patch_size).to(w1.device)]
+            self.register_buffer("w1_t", w1_t.contiguous())
+            self.register_buffer("w3_t", w3.T.contiguous())
+            self.register_buffer("shift", shift.clone())
+            diag = None if cfg.ring_wrap else band_diagonals(shift, cfg.ring_spread)
+            self.register_buffer("diagonals", diag)
+            self.register_buffer("cohorts", model.cohorts.detach().clone())
+            self.register_buffer("unit_centre", model.unit_centre.detach().clone())
+            self.decay, self.gain = (float(v) for v in model.ring.params)
+            self.params = model.ring.params
+            self.l1_int8 = self.l3_int8 = None
+            self._kernels = self._resolve(kernels, cpu, w1, w3)
+            self.register_buffer("ring_power", ring_power(
+                shift, self.decay, diag if self._kernels["ring"] == "banded" else None))
+            self.w1_bf16 = (self.w1_t.to(torch.bfloat16)
+                            if self._kernels["l1"] == "bfloat16_gemm" else None)
+        self._encode = model.encode if self._kernels["input"] == "encode" else None
+
+    # ------------------------------------------------------------------ kernel choice
+    @property
+    def kernels(self) -> dict[str, str]:
+        """The kernel of each stage, fixed at construction."""
+        return dict(self._kernels)
+
+    def _resolve(self, kernels, cpu: bool, w1, w3) -> dict[str, str]:
+        if isinstance(kernels, str):
+            if kernels not in ("auto", "portable"):
+                raise NeuralError(f"kernels must be 'auto', 'portable' or a dict, got {kernels!r}")
+            base, asked = kernels, {}
+        else:
+            base, asked = "auto", dict(kernels)
+            unknown = set(asked) - set(STAGES)
+            if unknown:
+                raise NeuralError(f"unknown stages {sorted(unknown)}; stages are {STAGES}")
+            for stage, name in asked.items():
+                if name not in CHOICES[stage]:
+                    raise NeuralError(f"stage {stage!r} has kernels {CHOICES[stage]}, "
+                                      f"got {name!r}")
+        cfg = self.config
+        if not self.block_major:
+            asked["input"] = "encode"
+        if base == "portable":
+            out = {**PORTABLE, **({"input": "encode"} if not self.block_major else {})}
+            return self._check(out, cpu)
+        if cpu:
+            self._build_int8(w1, w3)
+        numpy = "numpy" if cpu else "torch"
+        out = {
+            "input": numpy if self.block_major else "encode",
+            "l1": "int8_gemm" if self.l1_int8 is not None else "float32_gemm",
+            "kwta": "partition" if cpu else "topk",
+            "l3": ("int8_gemm_or_embedding_bag" if self.l3_int8 is not None
+                   else "embedding_bag"),
+            "cohorts": numpy, "ring": "banded" if self.diagonals is not None else "dense",
+            "scan": numpy, "decide": numpy,
+        }
+        out.update(asked)
+        if not cfg.input_steps and out["l1"] == "int8_gemm":
+            raise NeuralError("the int8 L1 kernel needs input_steps > 0")
+        return self._check(out, cpu)
+
+    def _check(self, out: dict, cpu: bool) -> dict:
+        if not cpu:
+            bad = [s for s in ("input", "cohorts", "scan", "decide") if out[s] == "numpy"]
+            bad += ["kwta"] if out["kwta"] == "partition" else []
+            bad += [s for s in ("l1", "l3") if out[s].startswith("int8_gemm")]
+            if bad:
+                raise NeuralError(f"stages {bad} have CPU-only kernels; the model is elsewhere")
+        if out["l1"] == "int8_gemm" and self.l1_int8 is None:
+            raise NeuralError("the int8 L1 kernel is unavailable: oneDNN's int8 GEMM is missing "
+                              "or inexact here, or the model is off its integer grids")
+        int8_l3 = out["l3"] in ("int8_gemm", "int8_gemm_or_embedding_bag")
+        if int8_l3 and self.l3_int8 is None:
+            raise NeuralError("the int8 L3 kernel is unavailable: oneDNN's int8 GEMM is missing "
+                              "or inexact here, or the L3 weights are off their int8 rows")
+        if int8_l3 and out["kwta"] != "partition":
+            raise NeuralError("the int8 L3 kernel takes the partition k-WTA's uint8 code")
+        if out["l1"] == "int8_gemm" and out["input"] == "encode":
+            raise NeuralError("the int8 L1 kernel needs patch_mode 'zscore' with a patch")
+        if out["ring"] == "banded" and self.diagonals is None:
+            raise NeuralError("the banded ring needs a banded shift matrix (no ring_wrap)")
+        return out
+
+    def _build_int8(self, w1: torch.Tensor, w3: torch.Tensor) -> None:
+        """OneDNN int8 copies of both products when the weights sit on their grids."""
+        cfg = self.config
+        steps, n = cfg.input_steps, cfg.patch_size ** 2
+        if (w1.device.type != "cpu" or not steps or not self.block_major
+                or (n - 1) / math.sqrt(n) * steps > 127):  # |z| <= (n-1)/sqrt(n): int8 fits
+            return
+        l1 = factor_power_of_two(w1, 64)  # |n| <= 64: no int16 pair overflow on any CPU
+        l3 = factor_rows(w3, 127)
+        if l1 is None or l3 is None:
+            return
+        n1, step1 = l1  # columns to block-major order: the input order
+        n1 = n1[:, block_order(*cfg.input_size, cfg.patch_size)].contiguous()
+        self.l1_int8 = Int8Linear.create(n1, torch.full((n1.shape[0],), step1), 1.0 / steps, 128)
+        self.l3_int8 = Int8Linear.create(*l3, 1.0, 0)
+
+    # ------------------------------------------------------------------ the stages
+    def evidence(self, frames: torch.Tensor, grey: torch.Tensor | None = None) -> torch.Tensor:
+        """Normalised (and rectified) L3 evidence of raw frames ``(B, ...) -> (B, N)``.
+
+        Args:
+            frames: ``(B, H, W)`` or ``(B, H, W, 3)`` raw frames, or None with ``grey``.
+            grey: ``(B, h, w)`` float32 grey frames at the input size (checked already).
+        """
+        k, cfg = self._kernels, self.config
+        if k["input"] == "encode":
+            x = self._encode(frames)
+        else:
+            if grey is None:
+                grey = self._grey(frames)
+            z = zscore_pixel_major(grey, cfg.patch_size, k["input"])  # (p*p, B, blocks)
+            if k["l1"] == "int8_gemm" and k["input"] == "numpy":  # uint8 x * steps + 128
+                q = np.rint(z.numpy() * np.float32(cfg.input_steps))  # half to even
+                q += 128
+                x = torch.from_numpy(q.astype(np.uint8).transpose(1, 2, 0).reshape(
+                    z.shape[1], -1))
+            elif k["l1"] == "int8_gemm":
+                xq = z.mul_(cfg.input_steps).round_().add_(128.0).to(torch.uint8)
+                x = xq.permute(1, 2, 0).reshape(z.shape[1], -1)
+            else:
+                x = z.permute(1, 2, 0).reshape(z.shape[1], -1)
+                if cfg.input_steps:
+                    x = torch.round(x * cfg.input_steps) / cfg.input_steps
+        h = self._l1(x)  # (B, M)
+        e = self._l3(h)  # (B, N)
+        return cohort_normalise(e, self.cohorts, cfg.eps, cfg.rectify, k["cohorts"])
+
+    def _grey(self, frames: torch.Tensor) -> torch.Tensor:
+        from torchseq.neural.model import checked_grey
+
+        return checked_grey(frames, self.config.input_size, self.w1_t.device)
+
+    def _l1(self, x: torch.Tensor) -> torch.Tensor:
+        name = self._kernels["l1"]
+        if name == "int8_gemm":
+            return self.l1_int8(x)  # exact integer sums times a power of two
+        if name == "bfloat16_gemm":  # approximate; its many exact ties go to the lowest index
+            h = (x.to(torch.bfloat16) @ self.w1_bf16).to(x.dtype)
+            return h - torch.arange(h.shape[1], device=h.device, dtype=h.dtype) * TIE_STEP
+        if x.dtype != self.w1_t.dtype:  # (a static test: no Cast node in a traced graph)
+            x = x.to(self.w1_t.dtype)
+        return x @ self.w1_t
+
+    def _l3(self, h: torch.Tensor) -> torch.Tensor:
+        k = self._kernels
+        n = self.config.k
+        name = k["l3"]
+        if name == "int8_gemm_or_embedding_bag":
+            name = "int8_gemm" if h.shape[0] >= SMALL_BATCH else "embedding_bag"
+        if name == "int8_gemm":  # kwta's partition kernel, its bool code read as uint8
+            return self.l3_int8(K.kwta_partition(h, n).view(torch.uint8))
+        if name == "dense":
+            return kwta(h, n, True, kernel=k["kwta"]) @ self.w3_t
+        if k["kwta"] == "partition":
+            idx = K.kwta_partition_indices(h, n)
+        else:
+            idx = K.topk_indices(h, n)
+        return K.sum_rows(idx, self.w3_t)
+
+    # ------------------------------------------------------------------ step and run
+    def forward(self, frames: torch.Tensor,
+                state: RingState | None = None) -> tuple[NeuralStep, RingState]:
+        """One streaming step for ``B`` streams (see :meth:`NeuralSeqSLAM.step`)."""
+        with torch.no_grad():
+            e = self.evidence(frames)
+            if state is None:
+                state = RingState(torch.zeros_like(e))
+            diag = self.diagonals if self._kernels["ring"] == "banded" else None
+            activity, state = ring_step(e, state, self.shift.to(e.dtype), self.params, diag)
+            reference, confidence = decide(activity, self.unit_centre,
+                                           self.config.uniqueness_window, self._kernels["decide"])
+        return NeuralStep(reference, confidence, activity), state
+
+    step = forward
+
+    def scan(self, evidence: torch.Tensor) -> torch.Tensor:
+        """Ring activity ``(T, N)`` of one stream's evidence ``(T, N)`` from a zero start."""
+        drive = evidence * self.gain
+        a0 = torch.zeros(evidence.shape[1], dtype=drive.dtype, device=drive.device)
+        banded = self._kernels["ring"] == "banded"
+        return ring_scan(drive, a0, self.shift, self.decay, self.diagonals if banded else None,
+                         power=self.ring_power, kernel=self._kernels["scan"])
+
+    def decide(self, activity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(reference, confidence)`` of activity ``(B, N)`` with this module's kernel."""
+        return decide(activity, self.unit_centre, self.config.uniqueness_window,
+                      self._kernels["decide"])
+
+    def extra_repr(self) -> str:
+        """Summary for print(module)."""
+        return ", ".join(f"{s}={n}" for s, n in self._kernels.items())
