@@ -34,6 +34,10 @@ class SeqSLAMConfig:
             ``"trajectory"`` = start + floor(v_best ds/2), the row the best trajectory
             actually crosses at the centre column. None (default): ``"trajectory"`` when
             ``speed_ratio`` is set (speeds far from 1), else ``"start"`` (parity).
+        candidates: candidate mode (docs/seqslam.md): K >= 1 nearest references per query
+            from a FAISS index, only trajectories through them scored; 0 = always the exact
+            all-pairs mode; None (default) = exact up to 2**31 reference x query pairs,
+            candidate mode with K = 20 (and a warning) above.
     """
 
     image_size: tuple[int, int] = (32, 64)
@@ -49,6 +53,7 @@ class SeqSLAMConfig:
     top_k: int = 10
     max_chunk_elements: int = 2**26
     match_at: str | None = None
+    candidates: int | None = None
 
     def validate(self) -> SeqSLAMConfig:
         """Raise ``ValueError`` on nonsense values; return ``self`` for chaining."""
@@ -83,6 +88,11 @@ class SeqSLAMConfig:
             raise ValueError(f"max_chunk_elements must be >= 1, got {self.max_chunk_elements}")
         if self.match_at not in (None, *MATCH_AT):
             raise ValueError(f"match_at must be one of {MATCH_AT} or None, got {self.match_at!r}")
+        if self.candidates is not None and (isinstance(self.candidates, bool)
+                                            or not isinstance(self.candidates, int)
+                                            or self.candidates < 0):
+            raise ValueError(f"candidates must be None or an integer >= 0, got "
+                             f"{self.candidates!r}")
         from torchseq.seqslam.search import velocities
 
         velocities(self.sequence_length, vmin, vmax)  # raises when the range holds no step

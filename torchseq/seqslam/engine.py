@@ -11,6 +11,7 @@ from torch import nn
 from torchseq._checks import check_not_empty
 from torchseq.matches import Matches
 from torchseq.preprocess import preprocess
+from torchseq.seqslam.candidates import CandidateSeqSLAM, resolve_candidates
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.difference import check_descriptors, difference_matrix
 from torchseq.seqslam.enhance import enhance_contrast
@@ -117,6 +118,10 @@ class SeqSLAM(nn.Module):
         dtype = self._working_dtype(reference)
         reference = reference.to(self.device, dtype)
         query = query.to(self.device, dtype)
+        k = resolve_candidates(c, reference.shape[0], query.shape[0])
+        if k:  # candidate mode: an index proposes K references per query (candidates.py)
+            return CandidateSeqSLAM(reference, c, k, device=self.device,
+                                    dtype=dtype).match_descriptors(query, progress)
         seconds = {}
         t0 = t = time.perf_counter()
         diff = difference_matrix(reference, query, c.metric, c.max_chunk_elements)
