@@ -17,7 +17,7 @@ from seqslam_oracle import (
 
 from torchseq.ground_truth import load_ground_truth
 from torchseq.metrics import evaluate
-from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, difference_matrix
+from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, StreamingSeqSLAM, difference_matrix
 from torchseq.sources import load_traverse
 
 faiss = pytest.importorskip(
@@ -268,3 +268,34 @@ def test_corridor_recall_with_few_candidates():
     assert recall[200] == exact  # K >= R: the exact mode
     # measured: exact 0.378, K = 2: 0.495, K = 10: 0.405 (candidates drop distant confusers)
     assert recall[10] >= exact - 0.02 and recall[2] >= exact - 0.02
+
+
+@pytest.mark.parametrize("over", [{}, dict(ds=5, vmin=0.5, vmax=1.5, rwindow=3)])
+def test_streaming_in_candidate_mode(over):
+    """Trailing windows in candidate mode: K >= R is exact streaming; small K the loop rule
+    with each column's minimum over the window's band rows."""
+    rng = np.random.default_rng(12)
+    ref, query = route(rng, 120, 40, 0.9)
+    exact = StreamingSeqSLAM(torch.tensor(ref), SeqSLAMConfig(**over), descriptors=True)
+    full = StreamingSeqSLAM(torch.tensor(ref), SeqSLAMConfig(candidates=120, **over),
+                            descriptors=True)
+    want, got = exact.run(torch.tensor(query)), full.run(torch.tensor(query))
+    np.testing.assert_array_equal(got.reference, want.reference)
+    np.testing.assert_allclose(got.score, want.score, rtol=1e-10, atol=1e-10)
+    config = SeqSLAMConfig(candidates=3, **over)
+    few = StreamingSeqSLAM(torch.tensor(ref), config, descriptors=True)
+    got = few.run(torch.tensor(query))
+    cand = few.candidate.index.search(torch.tensor(query), 3).numpy()
+    enh = oracle_enhance(oracle_difference(ref, query), config.enhance_window, False)
+    loop = oracle_candidate_rule(enh, cand, config.ds, *config.velocity_range, config.rwindow,
+                                 1, "end", "column")
+    np.testing.assert_array_equal(got.reference, loop[0])
+    np.testing.assert_allclose(got.score, loop[1], rtol=1e-10, atol=1e-10)
+    # two streams at once give each stream's own decisions
+    other = torch.tensor(route(np.random.default_rng(13), 120, 40, 1.1)[1])
+    state, refs = None, []
+    for t in range(40):
+        out, state = few.step(torch.stack([torch.tensor(query[t]), other[t]]), state)
+        refs.append(out.reference)
+    np.testing.assert_array_equal(torch.stack(refs)[:, 0], got.reference)
+    np.testing.assert_array_equal(torch.stack(refs)[:, 1], few.run(other).reference)
