@@ -32,6 +32,7 @@ from torchseq.frontend import (
 )
 from torchseq.ground_truth import alignment_ground_truth, load_ground_truth
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+from torchseq.seqslam.candidates import evaluated_dense
 
 ENGINES = ("seqslam", "neural", "both")
 
@@ -58,6 +59,7 @@ class EvalConfig:
     patch_size: int = 8
     enhance_window: int = 10
     rwindow: int = 10
+    candidates: int | None = None
     window_ms: float = 10.0
     event_count: int | None = None
     frame_size: str | None = None
@@ -93,6 +95,9 @@ HELP = {
     "patch_size": "patch normalisation side in pixels (0 disables it)",
     "enhance_window": "local contrast enhancement window R in reference frames",
     "rwindow": "uniqueness exclusion window Rwindow in reference frames",
+    "candidates": "SeqSLAM candidate mode: score only trajectories through the K nearest "
+                  "references of each query (FAISS index); 0 = exact all-pairs; default: exact "
+                  "up to 2**31 reference x query pairs",
     "window_ms": "event files: accumulation window in milliseconds",
     "event_count": "event files: events per frame instead of a time window",
     "frame_size": "event files: downsample frames to HxW by area pooling (e.g. 16x16)",
@@ -142,9 +147,12 @@ def run_seqslam(cfg: EvalConfig, ref, query, device):
         image_size=cfg.image_size, patch_size=cfg.patch_size, metric=cfg.metric,
         enhance_window=cfg.enhance_window, ds=cfg.ds, vmin=cfg.vmin, vmax=cfg.vmax,
         speed_ratio=cfg.speed_ratio, speed_tolerance=cfg.speed_tolerance, rwindow=cfg.rwindow,
-        match_at=cfg.match_at)
+        match_at=cfg.match_at, candidates=cfg.candidates)
     result = SeqSLAM(scfg, device=device).match(ref, query, progress=cfg.progress)
-    return {"matches": result.matches, "ranked": result.ranked, "matrix": result.enhanced,
+    matrix = result.enhanced
+    if matrix.is_sparse:  # candidate mode: the evaluated entries only, NaN (blank) elsewhere
+        matrix = evaluated_dense(matrix)
+    return {"matches": result.matches, "ranked": result.ranked, "matrix": matrix,
             "seconds": result.seconds["total"], "parameters": to_jsonable(scfg)}
 
 

@@ -275,7 +275,7 @@ def test_streaming_in_candidate_mode(over):
     """Trailing windows in candidate mode: K >= R is exact streaming; small K the loop rule
     with each column's minimum over the window's band rows."""
     rng = np.random.default_rng(12)
-    ref, query = route(rng, 120, 40, 0.9)
+    ref, query = route(rng, 120, 30, 0.9)
     exact = StreamingSeqSLAM(torch.tensor(ref), SeqSLAMConfig(**over), descriptors=True)
     full = StreamingSeqSLAM(torch.tensor(ref), SeqSLAMConfig(candidates=120, **over),
                             descriptors=True)
@@ -292,9 +292,9 @@ def test_streaming_in_candidate_mode(over):
     np.testing.assert_array_equal(got.reference, loop[0])
     np.testing.assert_allclose(got.score, loop[1], rtol=1e-10, atol=1e-10)
     # two streams at once give each stream's own decisions
-    other = torch.tensor(route(np.random.default_rng(13), 120, 40, 1.1)[1])
+    other = torch.tensor(route(np.random.default_rng(13), 120, 30, 1.1)[1])
     state, refs = None, []
-    for t in range(40):
+    for t in range(30):
         out, state = few.step(torch.stack([torch.tensor(query[t]), other[t]]), state)
         refs.append(out.reference)
     np.testing.assert_array_equal(torch.stack(refs)[:, 0], got.reference)

@@ -61,7 +61,8 @@ class CandidateIndex:
             except by the ``"flat"`` index itself).
         metric: the engine's metric, ``"l1"``, ``"l2"`` or ``"cosine"``.
         kind: ``"auto"``, ``"flat"``, ``"ivf"`` or ``"hnsw"`` (see the module docstring).
-        pca_dim: PCA output dimensions of ``"ivf"`` and ``"hnsw"`` (capped at ``D``).
+        pca_dim: PCA output dimensions of ``"ivf"`` and ``"hnsw"`` (capped at ``D`` and at
+            the training rows).
         nlist: IVF cells (None: ``round(sqrt(R))``, at least 1).
         nprobe: IVF cells scanned per query.
         hnsw_m: HNSW links per node.
@@ -106,7 +107,9 @@ class CandidateIndex:
             else:
                 index = faiss.IndexFlatIP(dim)
         else:
-            out = min(int(pca_dim), dim)
+            rng = np.random.default_rng(seed)
+            take = np.sort(rng.choice(n_ref, min(int(train_size), n_ref), replace=False))
+            out = min(int(pca_dim), dim, len(take))  # PCA keeps at most n_train directions
             pca = faiss.PCAMatrix(dim, out)
             if kind == "ivf":
                 cells = int(nlist) if nlist is not None else max(1, round(math.sqrt(n_ref)))
@@ -118,8 +121,6 @@ class CandidateIndex:
                 inner = faiss.IndexHNSWFlat(out, int(hnsw_m))
             index = faiss.IndexPreTransform(pca, inner)
             self._inner = inner
-            rng = np.random.default_rng(seed)
-            take = np.sort(rng.choice(n_ref, min(int(train_size), n_ref), replace=False))
             index.train(_as_float32(reference[torch.from_numpy(take)], self._unit))
         for r0 in range(0, n_ref, ADD_CHUNK_ROWS):
             index.add(_as_float32(reference[r0:r0 + ADD_CHUNK_ROWS], self._unit))

@@ -81,6 +81,15 @@ def resolve_candidates(config: SeqSLAMConfig, n_ref: int, n_query: int) -> int:
     return DEFAULT_CANDIDATES
 
 
+def evaluated_dense(sparse: torch.Tensor, fill: float = math.nan) -> torch.Tensor:
+    """A candidate-mode ``(R, Q)`` sparse matrix as a dense one, ``fill`` where not evaluated."""
+    sparse = sparse.coalesce()
+    out = torch.full(sparse.shape, fill, dtype=sparse.dtype)
+    rows, cols = sparse.indices()
+    out[rows, cols] = sparse.values()
+    return out
+
+
 def pair_differences(reference: torch.Tensor, query: torch.Tensor, metric: str) -> torch.Tensor:
     """Distances of matched rows: ``(..., D)`` against ``(..., D)`` -> ``(...)``.
 
@@ -121,13 +130,10 @@ def candidate_starts(cand: torch.Tensor, offsets: list[list[int]], n_ref: int) -
     Returns:
         ``(C, P)`` int64 sorted distinct starts in ``0 .. R - 1``, padded with ``R``.
     """
-    parts = []
-    for k in range(cand.shape[1]):
-        col = cand[:, k]
-        for off in offsets:
-            s = col - off[k]
-            parts.append(s.masked_fill((col < 0) | (s < 0), n_ref))
-    return _unique_rows(torch.cat(parts, 1).clamp_max(n_ref), n_ref)
+    off = torch.tensor(offsets, device=cand.device).T  # (ds + 1, V)
+    s = cand[:, :, None, :] - off[None, :, :, None]  # (C, ds + 1, V, K)
+    s = s.masked_fill((cand < 0)[:, :, None, :] | (s < 0), n_ref).clamp_max(n_ref)
+    return _unique_rows(s.reshape(cand.shape[0], -1), n_ref)
 
 
 def compact_bands(starts: torch.Tensor, n_ref: int, span: int,
