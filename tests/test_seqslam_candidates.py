@@ -107,12 +107,12 @@ def test_all_candidates_reproduce_exact_mode(over, dtype, device):
         pytest.skip("cosine in float32: 1 - cos keeps few bits and the enhancement amplifies "
                     "the different rounding of a matrix product and a row sum")
     rng = np.random.default_rng(3)
-    data = route(rng, 60, 50, 0.9, integer=over.get("enhance_window") != 0)
+    data = route(rng, 110, 50, 0.9, integer=over.get("enhance_window") != 0)
     ref, query = (torch.tensor(x, dtype=dtype) for x in data)
     exact = SeqSLAM(SeqSLAMConfig(**over), device=device).match_descriptors(ref, query)
-    got = SeqSLAM(SeqSLAMConfig(candidates=60, **over), device=device).match_descriptors(
+    got = SeqSLAM(SeqSLAMConfig(candidates=110, **over), device=device).match_descriptors(
         ref, query)
-    assert got.enhanced.is_sparse and got.enhanced._nnz() == 60 * 50  # every entry evaluated
+    assert got.enhanced.is_sparse and got.enhanced._nnz() == 110 * 50  # all entries evaluated
     np.testing.assert_array_equal(got.matches.reference, exact.matches.reference)
     np.testing.assert_array_equal(got.ranked, exact.ranked)
     tol = 1e-4 if dtype == torch.float32 else 1e-10
@@ -162,6 +162,28 @@ def smooth_route(rng, n_ref, n_query, dim=64):
     query = np.clip(ref[1000:1000 + n_query] + np.round(rng.normal(0, 1.5, (n_query, dim))),
                     119, 135)
     return ref, query
+
+
+def test_compact_bands_keep_trajectories_and_distances():
+    """Band rows keep their order; gaps shrink to at most G positions (empty, -1), so starts
+    closer than G keep their distance and every band ends with G empty positions."""
+    rng = np.random.default_rng(14)
+    n_ref, span, gap = 500, 13, 14
+    sets = [np.unique(rng.integers(0, n_ref, size)) for size in (1, 5, 40)] + [np.array([
+        0, 3, 30, 44, 60, 487, 499])]
+    width = max(len(x) for x in sets)
+    starts = torch.tensor(np.stack([np.pad(x, (0, width - len(x)), constant_values=n_ref)
+                                    for x in sets]))
+    rows, is_start = cm.compact_bands(starts, n_ref, span, gap)
+    for c, x in enumerate(sets):
+        r = rows[c].numpy()
+        band = sorted({i for s in x for i in range(s, min(s + span, n_ref))})
+        assert r[r >= 0].tolist() == band
+        pos = {int(v): p for p, v in enumerate(r) if v >= 0}
+        assert sorted(np.nonzero(is_start[c].numpy())[0].tolist()) == [pos[int(s)] for s in x]
+        for a, b in zip(band, band[1:]):
+            assert pos[b] - pos[a] == min(b - a, gap)
+        assert (r[pos[band[-1]] + 1:] == -1).all() and len(r) - 1 - pos[band[-1]] >= gap
 
 
 def test_no_all_pairs_matrix_on_a_long_reference():
