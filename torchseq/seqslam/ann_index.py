@@ -27,7 +27,7 @@ from torchseq._checks import check_finite, check_not_empty, check_shape
 INDEX_KINDS = ("auto", "flat", "ivf", "hnsw")
 # "auto" builds an exact flat index up to this many references (a float32 copy of R x D and
 # R x D work per query), an IVF index above it (see docs/seqslam.md for the measurements)
-FLAT_MAX_REFERENCES = 20_000
+FLAT_MAX_REFERENCES = 5_000
 # rows converted to float32 at a time while adding references (bounds the temporary copy)
 ADD_CHUNK_ROWS = 16_384
 

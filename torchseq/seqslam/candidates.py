@@ -55,8 +55,9 @@ EXACT_MAX_PAIRS = 2**31
 DEFAULT_CANDIDATES = 20
 # Enhanced values are computed in tiles of this many reference rows of one query column.
 TILE_ROWS = 32
-# Elements of the working dtype in one block of gathered reference rows (cache-friendly).
-PAIR_BLOCK_ELEMENTS = 2**22
+# Elements of the working dtype in one block of gathered reference rows: cache-sized (at
+# 2**22 the L1 differences took 8.5 us per 2048-dim pair, at 2**16 .. 2**20 about 1.9 us).
+PAIR_BLOCK_ELEMENTS = 2**19
 # Query centres whose bands are laid out and scored together.
 CENTRES_PER_BLOCK = 64
 
