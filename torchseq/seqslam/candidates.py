@@ -39,6 +39,7 @@ import time
 import warnings
 
 import torch
+from tqdm import tqdm
 
 from torchseq._checks import check_finite, check_not_empty, check_shape
 from torchseq.matches import Matches
@@ -367,7 +368,7 @@ class CandidateSeqSLAM:
             :class:`~torchseq.seqslam.engine.SeqSLAMResult` whose ``difference`` and
             ``enhanced`` are sparse ``(R, Q)`` COO tensors of the evaluated entries (whole
             tiles of :data:`TILE_ROWS` rows around the bands); ``seconds`` adds ``"index"``
-            (building it), ``"candidates"`` (querying it) and ``"bands"``.
+            (building it, not in ``"total"``), ``"candidates"`` (querying it) and ``"bands"``.
         """
         from torchseq.seqslam.engine import SeqSLAMResult
 
@@ -404,7 +405,10 @@ class CandidateSeqSLAM:
         uniqueness = torch.full_like(best_score, math.nan)
         ranked = torch.full((n_query, c.top_k), -1, dtype=torch.int64, device=dev)
         report = c.match_rule
-        for c0, c1, cols, rows, is_start in self._blocks(cand, block):
+        blocks = self._blocks(cand, block)
+        for c0, c1, cols, rows, is_start in tqdm(blocks, total=-(-(n_query - ds) // block),
+                                                 desc="candidate search", disable=not progress,
+                                                 leave=False):
             vals = table.lookup(cols.T[:, :, None], rows[None]) - floor
             out = score_bands(vals, rows, is_start, ds, self.offsets, self.n_ref, c.rwindow,
                               c.top_k, report)

@@ -120,8 +120,10 @@ class SeqSLAM(nn.Module):
         query = query.to(self.device, dtype)
         k = resolve_candidates(c, reference.shape[0], query.shape[0])
         if k:  # candidate mode: an index proposes K references per query (candidates.py)
-            return CandidateSeqSLAM(reference, c, k, device=self.device,
-                                    dtype=dtype).match_descriptors(query, progress)
+            result = CandidateSeqSLAM(reference, c, k, device=self.device,
+                                      dtype=dtype).match_descriptors(query, progress)
+            result.seconds["total"] += result.seconds["index"]  # built for this call
+            return result
         seconds = {}
         t0 = t = time.perf_counter()
         diff = difference_matrix(reference, query, c.metric, c.max_chunk_elements)
