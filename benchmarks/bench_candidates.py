@@ -170,41 +170,44 @@ def scale_child(n_ref: int, n_query: int, kind: str, k: int) -> dict:
     return {"n_ref": n_ref, "kind": kind, "k": k, "data_s": data_s, "build_s": build,
             "build_cpu_s": build_cpu, "cpu_ms_per_query": 1e3 * run_cpu / n_query,
             "ms_per_query": 1e3 * run / n_query, "queries_per_s": n_query / run,
-            "stages_ms": per_q, "peak_mb": peak_mb(), "data_mb": base, "correct": correct}
+            "stages_ms": per_q, "peak_mb": peak_mb(), "data_mb": base, "correct": correct,
+            "pairs": (result.enhanced._nnz() if result.enhanced.is_sparse
+                      else n_ref * n_query) / n_query}
 
 
 def scale_table(sizes, kinds, k, n_query) -> list[str]:
     lines = ["| references | mode | build s (CPU s) | ms / query (CPU ms) | queries / s | "
-             "stages, ms / query | peak RSS MB | data RSS MB | correct |",
-             "|---:|---|---:|---:|---:|---|---:|---:|---:|"]
+             "stages, ms / query | pairs / query | peak RSS MB | data RSS MB | correct |",
+             "|---:|---|---:|---:|---:|---|---:|---:|---:|---:|"]
     for n in sizes:
         for kind in kinds:
             if kind == "flat" and n > 200_000:
                 lines.append(f"| {n} | flat | | not run: a float32 copy of R x 2048 "
                              f"({n * 2048 * 4 / 2**30:.1f} GiB) and R x D work per query | | | |"
-                             " | |")
+                             " | | |")
                 continue
             if kind == "exact" and n > 100_000:
                 lines.append(f"| {n} | exact | | not run: two R x Q float32 matrices "
-                             f"({2 * n * n_query * 4 / 2**30:.1f} GiB) | | | | | |")
+                             f"({2 * n * n_query * 4 / 2**30:.1f} GiB) | | | | | | |")
                 continue
             if kind == "hnsw" and n > 200_000:
                 lines.append(f"| {n} | hnsw | | not run (graph build time, see text) | | | |"
-                             " | |")
+                             " | | |")
                 continue
             cmd = [sys.executable, __file__, "--child", str(n), kind, str(k), str(n_query)]
             out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
                                  env={**os.environ, "PYTHONPATH": str(ROOT)})
             if out.returncode:
                 print(out.stderr[-3000:], file=sys.stderr)
-                lines.append(f"| {n} | {kind} | failed | | | | | | |")
+                lines.append(f"| {n} | {kind} | failed | | | | | | | |")
                 continue
             r = json.loads(out.stdout.strip().splitlines()[-1])
             stages = ", ".join(f"{s} {v:.2f}" for s, v in r["stages_ms"].items())
             name = "exact" if kind == "exact" else f"{kind}, K = {k}"
             lines.append(f"| {n} | {name} | {r['build_s']:.1f} ({r['build_cpu_s']:.1f}) | "
                          f"{r['ms_per_query']:.2f} ({r['cpu_ms_per_query']:.2f}) | "
-                         f"{r['queries_per_s']:.0f} | {stages} | {r['peak_mb']:.0f} | "
+                         f"{r['queries_per_s']:.0f} | {stages} | {r['pairs']:.0f} | "
+                         f"{r['peak_mb']:.0f} | "
                          f"{r['data_mb']:.0f} | {r['correct']:.3f} |")
             print(lines[-1], flush=True)
     return lines

@@ -293,17 +293,22 @@ class CandidateSeqSLAM:
         device: where to compute (the index itself runs on CPU).
         dtype: working float dtype (None: float64 for float64 references, else float32).
         index_options: keyword arguments of :class:`CandidateIndex`.
+        refine: an approximate index proposes ``refine * K`` references, re-ranked exactly
+            (see :meth:`search`); 1 = take its K as they are.
     """
 
     def __init__(self, reference: torch.Tensor, config: SeqSLAMConfig | None = None,
                  candidates: int | None = None, index: str | CandidateIndex = "auto",
                  device: torch.device | str | None = None, dtype: torch.dtype | None = None,
-                 index_options: dict | None = None) -> None:
+                 index_options: dict | None = None, refine: int = 4) -> None:
         self.config = (config or SeqSLAMConfig()).validate()
         k = candidates if candidates is not None else self.config.candidates
         if k is None or isinstance(k, bool) or int(k) < 1:
             raise ValueError(f"candidate mode needs candidates K >= 1, got {k!r}")
         self.k = int(k)
+        if isinstance(refine, bool) or int(refine) < 1:
+            raise ValueError(f"refine must be an integer >= 1, got {refine!r}")
+        self.refine = int(refine)
         reference = torch.as_tensor(reference)
         check_not_empty(reference, "reference descriptors")
         check_shape(reference, ("R", "D"), "reference descriptors")
@@ -337,8 +342,33 @@ class CandidateSeqSLAM:
         return self.reference.shape[0]
 
     def search(self, query: torch.Tensor) -> torch.Tensor:
-        """``(Q, D)`` descriptors -> ``(Q, K)`` candidate references on the device."""
-        return self.index.search(query, self.k).to(self.device)
+        """``(Q, D)`` descriptors -> ``(Q, K)`` candidate references on the device.
+
+        A flat index gives the exact top K under the metric. An approximate one (IVF, HNSW)
+        is asked for ``refine * K`` and those are re-ranked by their exact distance (the
+        metric on the stored descriptors; ties -> lower reference), keeping K: the far-off
+        proposals an approximate index makes at 10^6 references would each cost a band.
+        """
+        query = torch.as_tensor(query)
+        if self.index.kind == "flat" or self.refine <= 1:
+            return self.index.search(query, self.k).to(self.device)
+        cand = self.index.search(query, self.refine * self.k).to(self.device)  # (Q, K')
+        k = min(self.k, cand.shape[1])
+        out = torch.empty(cand.shape[0], k, dtype=torch.int64, device=self.device)
+        rows = max(1, PAIR_BLOCK_ELEMENTS // (cand.shape[1] * query.shape[1]))
+        for q0 in range(0, cand.shape[0], rows):
+            c = cand[q0:q0 + rows]
+            ok = c >= 0
+            ref = self.reference[c.clamp_min(0)].to(self.dtype)  # (q, K', D)
+            q = query[q0:q0 + rows].to(self.device, self.dtype)[:, None, :]
+            d = pair_differences(ref, q, self.config.metric).masked_fill_(~ok, math.inf)
+            # order by (distance, reference): sort by reference first, then stably by distance
+            by_ref = c.masked_fill(~ok, self.n_ref).argsort(dim=1)
+            d, c = d.gather(1, by_ref), c.gather(1, by_ref)
+            order = d.argsort(dim=1, stable=True)[:, :k]
+            out[q0:q0 + rows] = torch.where(d.gather(1, order).isfinite(), c.gather(1, order),
+                                            -1)
+        return out
 
     def bands(self, cand: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(C, ds + 1, K)`` window candidates -> band ``rows (C, W)``, ``is_start (C, W)``."""
