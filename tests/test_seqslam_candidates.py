@@ -321,3 +321,21 @@ def test_streaming_in_candidate_mode(over):
         refs.append(out.reference)
     np.testing.assert_array_equal(torch.stack(refs)[:, 0], got.reference)
     np.testing.assert_array_equal(torch.stack(refs)[:, 1], few.run(other).reference)
+
+
+def test_refined_candidates_are_the_exact_top_k():
+    """An approximate index's proposals are re-ranked by exact distance: when it proposes
+    every reference (all cells probed, refine * K >= R) that is the flat index's top K."""
+    rng = np.random.default_rng(15)
+    ref, query = (torch.tensor(x) for x in route(rng, 300, 40, 1.0, integer=False))
+    config = SeqSLAMConfig(candidates=5)
+    flat = cm.CandidateSeqSLAM(ref, config, index="flat")
+    options = dict(nlist=4, nprobe=4, pca_dim=16)
+    ivf = cm.CandidateSeqSLAM(ref, config, index="ivf", index_options=options, refine=60)
+    assert ivf.index.kind == "ivf" and flat.index.kind == "flat"
+    np.testing.assert_array_equal(ivf.search(query), flat.search(query))
+    few = cm.CandidateSeqSLAM(ref, config, index=ivf.index, refine=2).search(query)
+    d = cm.pair_differences(ref[few], query[:, None, :], "l1")
+    assert (d[:, 1:] >= d[:, :-1]).all()  # nearest first
+    with pytest.raises(ValueError, match="refine"):
+        cm.CandidateSeqSLAM(ref, config, index=ivf.index, refine=0)
