@@ -197,18 +197,20 @@ class TileTable:
         self.difference = torch.empty_like(self.values)
         self.seconds = {"difference": 0.0, "enhance": 0.0}
         block = max(1, PAIR_BLOCK_ELEMENTS // (length * dim))
-        for t0 in range(0, len(keys), block):
-            t = time.perf_counter()
+        t = time.perf_counter()
+        d = torch.empty(len(keys), length, dtype=dtype, device=keys.device)  # (n, L)
+        for t0 in range(0, len(keys), block):  # cache-sized blocks of gathered rows
             sl = slice(t0, t0 + block)
             rows = lo[sl, None] + torch.arange(length, device=keys.device)  # (c, L)
             ref = reference[rows.reshape(-1)].to(dtype).view(-1, length, dim)
-            d = pair_differences(ref, columns[col[sl]][:, None, :], metric)  # (c, L)
-            self.seconds["difference"] += time.perf_counter() - t
-            t = time.perf_counter()
+            d[sl] = pair_differences(ref, columns[col[sl]][:, None, :], metric)
+        self.seconds["difference"] += time.perf_counter() - t
+        t = time.perf_counter()
+        if len(keys):  # one call: every tile is a column of its own (L, n) matrix
             e = enhance_contrast(d.T, window, False).T if window else d
-            self.values[sl] = e.gather(1, local[sl]).masked_fill_(outside[sl], math.inf)
-            self.difference[sl] = d.gather(1, local[sl]).masked_fill_(outside[sl], math.inf)
-            self.seconds["enhance"] += time.perf_counter() - t
+            self.values = e.gather(1, local).masked_fill_(outside, math.inf)
+            self.difference = d.gather(1, local).masked_fill_(outside, math.inf)
+        self.seconds["enhance"] += time.perf_counter() - t
 
     def lookup(self, column: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         """Enhanced values at ``(column, row)`` (broadcast); ``inf`` where ``row < 0``.
