@@ -20,6 +20,7 @@ PUBLIC = {
     "torchseq.seqslam": [
         "SeqSLAM", "SeqSLAMConfig", "SeqSLAMResult", "StreamingMatch", "StreamingSeqSLAM",
         "difference_matrix", "enhance_contrast", "search", "trajectory_offsets", "velocities",
+        "CandidateIndex", "CandidateSeqSLAM", "StreamingState",
     ],
     "torchseq.layers": [
         "KWinnersTakeAll", "MaskedLinear", "OutputRing", "RingParams", "RingState",

@@ -46,6 +46,7 @@ from torchseq.frontend import (
 from torchseq.ground_truth import alignment_ground_truth, load_ground_truth
 from torchseq.neural import NeuralConfig
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+from torchseq.seqslam.candidates import evaluated_dense
 from torchseq.sources import FrameSelection, load_traverse_sizes
 
 PROG = "torchseq eval"  # set by main() to the name the user ran
@@ -145,7 +146,7 @@ SEQSLAM_LIMITS = {
     "patch_size": (0, 4096), "enhance_window": (0, 10 ** 6), "ds": (2, 10 ** 5),
     "vmin": (1e-3, 1e3), "vmax": (1e-3, 1e3), "speed_ratio": (1e-3, 1e3),
     "speed_tolerance": (0.0, 1.0), "rwindow": (0, 10 ** 6), "top_k": (1, 1000),
-    "max_chunk_elements": (1, 2 ** 40),
+    "max_chunk_elements": (1, 2 ** 40), "candidates": (0, 10 ** 6),
 }
 
 
@@ -350,8 +351,11 @@ def run_seqslam(s: Settings, ref, query, device, notes: list):
     result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
                                                      progress=s.run.progress)
     reduced = result.enhanced is None  # long routes: only the engine's reduced copy
+    matrix = result.preview if reduced else result.enhanced
+    if matrix.is_sparse:  # candidate mode: the evaluated entries only, NaN (blank) elsewhere
+        matrix = evaluated_dense(matrix)
     return {"matches": result.matches, "ranked": result.ranked,
-            "matrix": result.preview if reduced else result.enhanced, "matrix_reduced": reduced,
+            "matrix": matrix, "matrix_reduced": reduced,
             "seconds": result.seconds["total"], "parameters": to_jsonable(s.seqslam)}
 
 

@@ -52,6 +52,10 @@ class SeqSLAMConfig:
             work in bands of query columns in O(R (B + ds)) memory (``seqslam/banded.py``)
             and return only a reduced copy (``SeqSLAMResult.preview``). None (default): keep
             them while ``R * Q <= KEEP_MATRICES_MAX`` (2**27, two 512 MiB float32 matrices).
+        candidates: candidate mode (docs/seqslam.md): K >= 1 nearest references per query
+            from a FAISS index, only trajectories through them scored; 0 = always the exact
+            all-pairs mode; None (default) = exact up to 2**31 reference x query pairs,
+            candidate mode with K = 20 (and a warning) above.
     """
 
     image_size: tuple[int, int] = (32, 64)
@@ -105,6 +109,7 @@ class SeqSLAMConfig:
         if name == "default":
             return cls(**overrides).validate()
         return getattr(cls, name)(**overrides)
+    candidates: int | None = None
 
     def validate(self) -> SeqSLAMConfig:
         """Raise ``ValueError`` on nonsense values; return ``self`` for chaining."""
@@ -144,6 +149,11 @@ class SeqSLAMConfig:
                 f"preprocessing must be one of {PREPROCESSING}, got {self.preprocessing!r}")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be >= 1 or None, got {self.threads}")
+        if self.candidates is not None and (isinstance(self.candidates, bool)
+                                            or not isinstance(self.candidates, int)
+                                            or self.candidates < 0):
+            raise ValueError(f"candidates must be None or an integer >= 0, got "
+                             f"{self.candidates!r}")
         from torchseq.seqslam.search import velocities
 
         velocities(self.sequence_length, vmin, vmax)  # raises when the range holds no step

@@ -13,6 +13,7 @@ from torchseq.matches import Matches
 from torchseq.preprocess import preprocess, preprocess_openseqslam
 from torchseq.seqslam._parallel import resolve_threads, single_threaded_ops
 from torchseq.seqslam.banded import match_banded, preview_columns, preview_rows
+from torchseq.seqslam.candidates import CandidateSeqSLAM, resolve_candidates
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.difference import check_descriptors, difference_with_kernel
 from torchseq.seqslam.enhance import enhance_contrast
@@ -141,6 +142,12 @@ class SeqSLAM(nn.Module):
         dtype = self._working_dtype(reference)
         reference = reference.to(self.device, dtype)
         query = query.to(self.device, dtype)
+        k = resolve_candidates(c, reference.shape[0], query.shape[0])
+        if k:  # candidate mode: an index proposes K references per query (candidates.py)
+            result = CandidateSeqSLAM(reference, c, k, device=self.device,
+                                      dtype=dtype).match_descriptors(query, progress)
+            result.seconds["total"] += result.seconds["index"]  # built for this call
+            return result
         if not c.keeps_matrices(reference.shape[0], query.shape[0]):
             t0 = time.perf_counter()
             out = match_banded(reference, query, c, self.speeds, progress)

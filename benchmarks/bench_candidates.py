@@ -1,0 +1,242 @@
+"""SeqSLAM candidate mode: recall against the exact mode on real routes, time and memory at scale.
+
+    .venv/bin/python benchmarks/bench_candidates.py --recall        # real routes (shared data)
+    .venv/bin/python benchmarks/bench_candidates.py --scale         # 10^4 .. 10^6 references
+    .venv/bin/python benchmarks/bench_candidates.py --scale --sizes 10000 --kinds flat,ivf
+
+One thread (torch and FAISS). Each scale run (size, index kind) is its own subprocess so its
+peak RSS is clean. Synthetic descriptors: D = 2048 integers in 127 +- 8 (as patch
+normalisation gives), stored as uint8; neighbouring reference frames look alike (an AR(1)
+process with coefficient 0.9 per frame, as along a real route); the queries are a stretch of
+the reference at speed 1 with integer noise (sd 1.5). A query counts as correct when its match
+is within 2 frames of the truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+KS = (1, 2, 5, 10, 20, 50)
+
+
+def peak_mb() -> float:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM")) / 1024
+
+
+def one_thread():
+    import faiss
+    import torch
+
+    torch.set_num_threads(1)
+    faiss.omp_set_num_threads(1)
+
+
+# ----------------------------------------------------------------------------- real routes
+def real_routes():
+    """(name, reference descriptors, query descriptors, (R, Q) ground truth) of each route."""
+    import torch
+
+    from torchseq.events import load_event_frames
+    from torchseq.ground_truth import load_ground_truth
+    from torchseq.seqslam import SeqSLAM
+    from torchseq.sources import load_traverse
+
+    engine = SeqSLAM()
+    routes = []
+    for name, ref, query, gt in (
+            ("corridor", "corridor/ref", "corridor/query", "corridor/ground_truth.csv"),
+            ("lens-davis128", "lens-davis128/example-reference", "lens-davis128/example-query",
+             "lens-davis128/example-reference_example-query_GT.npy")):
+        r = load_traverse(DATA / ref, progress=False)
+        q = load_traverse(DATA / query, progress=False)
+        routes.append((name, engine.descriptors(r), engine.descriptors(q),
+                       load_ground_truth(DATA / gt, len(r), len(q))))
+    # the longest pair the shared data gives: both routes one after the other, and every
+    # frame of the real event recordings (10 ms windows) added to the reference as distractors
+    distract = [engine.descriptors(load_event_frames(DATA / "events" / f))
+                for f in ("alex_walking_again.aedat", "IMU_translBoxes.aedat", "sample.aedat4")]
+    (_, r1, q1, g1), (_, r2, q2, g2) = routes
+    ref = torch.cat([r1, r2, *distract])
+    gt = np.zeros((len(ref), len(q1) + len(q2)), bool)
+    gt[:len(r1), :len(q1)] = g1
+    gt[len(r1):len(r1) + len(r2), len(q1):] = g2
+    routes.append(("corridor + lens + event distractors", ref, torch.cat([q1, q2]), gt))
+    return routes
+
+
+def recall_table() -> list[str]:
+    from torchseq.metrics import evaluate
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+    from torchseq.seqslam.ann_index import CandidateIndex
+    from torchseq.seqslam.candidates import CandidateSeqSLAM
+
+    one_thread()
+    lines = ["| route (R x Q) | enhancement | exact | " + " | ".join(f"K = {k}" for k in KS)
+             + " |", "|---|---|---:|" + "---:|" * len(KS)]
+    kinds = ["| route | enhancement | K | " + " | ".join(
+        ("flat L1", "flat L2", "IVF (PCA 128)", "HNSW (PCA 128)")) + " |", "|---|---|---:|"
+        + "---:|" * 4]
+    for name, ref, query, gt in real_routes():
+        for window in (10, 0):
+            config = SeqSLAMConfig(enhance_window=window)
+            exact = SeqSLAM(config).match_descriptors(ref, query)
+            r0 = evaluate(exact.matches, gt)["recall_at_1"]
+            cells = []
+            for k in KS:
+                res = SeqSLAM(SeqSLAMConfig(enhance_window=window, candidates=k)
+                              ).match_descriptors(ref, query)
+                same = float((res.matches.reference == exact.matches.reference).float().mean())
+                cells.append(f"{evaluate(res.matches, gt)['recall_at_1']:.3f} ({same:.0%})")
+            lines.append(f"| {name} ({len(ref)} x {len(query)}) | "
+                         f"{'R = 10' if window else 'off'} | {r0:.3f} | " + " | ".join(cells)
+                         + " |")
+            print(lines[-1], flush=True)
+            for k in (5, 20):
+                row = []
+                for metric, kind in (("l1", "flat"), ("l2", "flat"), ("l1", "ivf"),
+                                     ("l1", "hnsw")):
+                    index = CandidateIndex(ref, metric, kind)
+                    res = CandidateSeqSLAM(ref, SeqSLAMConfig(enhance_window=window,
+                                                              candidates=k), index=index
+                                           ).match_descriptors(query)
+                    row.append(f"{evaluate(res.matches, gt)['recall_at_1']:.3f}")
+                kinds.append(f"| {name} | {'R = 10' if window else 'off'} | {k} | "
+                             + " | ".join(row) + " |")
+                print(kinds[-1], flush=True)
+    return lines + [""] + kinds
+
+
+# ----------------------------------------------------------------------------- scale
+def synthetic(n_ref: int, n_query: int, seed: int = 0, dim: int = 2048):
+    """uint8 AR(1) reference (R, D) and float32 queries (Q, D) with their true positions."""
+    rng = np.random.default_rng(seed)
+    ref = np.empty((n_ref, dim), np.uint8)
+    z = rng.standard_normal(dim, dtype=np.float32) * 2.5
+    a, b = 0.9, math.sqrt(1 - 0.81) * 2.5
+    for r0 in range(0, n_ref, 4096):
+        noise = rng.standard_normal((min(4096, n_ref - r0), dim), dtype=np.float32) * b
+        block = np.empty_like(noise)
+        for i in range(len(noise)):
+            z = a * z + noise[i]
+            block[i] = z
+        ref[r0:r0 + len(noise)] = 127 + np.clip(np.rint(block), -8, 8)
+    first = n_ref // 3
+    pos = first + np.arange(n_query)
+    noise = np.rint(rng.normal(0, 1.5, (n_query, dim)))
+    query = np.clip(ref[pos].astype(np.float32) + noise, 119, 135).astype(np.float32)
+    return ref, query, pos
+
+
+def scale_child(n_ref: int, n_query: int, kind: str, k: int) -> dict:
+    import torch
+
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+    from torchseq.seqslam.candidates import CandidateSeqSLAM
+
+    one_thread()
+    t = time.perf_counter()
+    ref, query, pos = synthetic(n_ref, n_query)
+    data_s = time.perf_counter() - t
+    base = peak_mb()
+    ref_t, query_t = torch.from_numpy(ref), torch.from_numpy(query)
+    t, cpu = time.perf_counter(), time.process_time()
+    if kind == "exact":
+        result = SeqSLAM(SeqSLAMConfig(candidates=0)).match_descriptors(ref_t.float(), query_t)
+        build = build_cpu = 0.0
+    else:
+        engine = CandidateSeqSLAM(ref_t, SeqSLAMConfig(candidates=k), index=kind)
+        build, build_cpu = engine.index_seconds, time.process_time() - cpu
+        t, cpu = time.perf_counter(), time.process_time()
+        result = engine.match_descriptors(query_t)
+    run, run_cpu = time.perf_counter() - t, time.process_time() - cpu
+    m = result.matches.reference.numpy()
+    scored = m >= 0
+    correct = float((np.abs(m[scored] - pos[scored]) <= 2).mean())
+    per_q = {key: 1e3 * v / n_query for key, v in result.seconds.items()
+             if key not in ("index", "total")}
+    return {"n_ref": n_ref, "kind": kind, "k": k, "data_s": data_s, "build_s": build,
+            "build_cpu_s": build_cpu, "cpu_ms_per_query": 1e3 * run_cpu / n_query,
+            "ms_per_query": 1e3 * run / n_query, "queries_per_s": n_query / run,
+            "stages_ms": per_q, "peak_mb": peak_mb(), "data_mb": base, "correct": correct,
+            "pairs": (result.enhanced._nnz() if result.enhanced.is_sparse
+                      else n_ref * n_query) / n_query}
+
+
+def scale_table(sizes, kinds, k, n_query) -> list[str]:
+    lines = ["| references | mode | build s (CPU s) | ms / query (CPU ms) | queries / s | "
+             "stages, ms / query | pairs / query | peak RSS MB | data RSS MB | correct |",
+             "|---:|---|---:|---:|---:|---|---:|---:|---:|---:|"]
+    for n in sizes:
+        for kind in kinds:
+            if kind == "flat" and n > 200_000:
+                lines.append(f"| {n} | flat | | not run: a float32 copy of R x 2048 "
+                             f"({n * 2048 * 4 / 2**30:.1f} GiB) and R x D work per query | | | |"
+                             " | | |")
+                continue
+            if kind == "exact" and n > 100_000:
+                lines.append(f"| {n} | exact | | not run: a float32 copy of the reference "
+                             f"({n * 2048 * 4 / 2**30:.1f} GiB) and two R x Q float32 matrices "
+                             f"({2 * n * n_query * 4 / 2**30:.1f} GiB) | | | | | | |")
+                continue
+            if kind == "hnsw" and n > 200_000:
+                lines.append(f"| {n} | hnsw | | not run (graph build time, see text) | | | |"
+                             " | | |")
+                continue
+            cmd = [sys.executable, __file__, "--child", str(n), kind, str(k), str(n_query)]
+            out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT,
+                                 env={**os.environ, "PYTHONPATH": str(ROOT)})
+            if out.returncode:
+                print(out.stderr[-3000:], file=sys.stderr)
+                lines.append(f"| {n} | {kind} | failed | | | | | | | |")
+                continue
+            r = json.loads(out.stdout.strip().splitlines()[-1])
+            stages = ", ".join(f"{s} {v:.2f}" for s, v in r["stages_ms"].items())
+            name = "exact" if kind == "exact" else f"{kind}, K = {k}"
+            lines.append(f"| {n} | {name} | {r['build_s']:.1f} ({r['build_cpu_s']:.1f}) | "
+                         f"{r['ms_per_query']:.2f} ({r['cpu_ms_per_query']:.2f}) | "
+                         f"{r['queries_per_s']:.0f} | {stages} | {r['pairs']:.0f} | "
+                         f"{r['peak_mb']:.0f} | "
+                         f"{r['data_mb']:.0f} | {r['correct']:.3f} |")
+            print(lines[-1], flush=True)
+    return lines
+
+
+def main() -> None:
+    if sys.argv[1:2] == ["--child"]:
+        n, kind, k, q = sys.argv[2:6]
+        print(json.dumps(scale_child(int(n), int(q), kind, int(k))))
+        return
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--recall", action="store_true")
+    p.add_argument("--scale", action="store_true")
+    p.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
+    p.add_argument("--kinds", default="exact,flat,ivf,hnsw")
+    p.add_argument("--k", type=int, default=10)
+    p.add_argument("--queries", type=int, default=1000)
+    args = p.parse_args()
+    import torch
+
+    print(f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores "
+          f"(1 thread used), Python {platform.python_version()}, torch {torch.__version__}, "
+          f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}\n")
+    if args.recall:
+        print("\n".join(recall_table()) + "\n")
+    if args.scale:
+        print("\n".join(scale_table(args.sizes, args.kinds.split(","), args.k, args.queries)))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,467 @@
+"""SeqSLAM candidate mode: only trajectories through K indexed candidates per query are scored.
+
+An index proposes K references per query; the differences of the pairs those trajectories
+need are computed exactly, and no R x Q matrix is made. Definitions (``ds`` even, offsets
+``floor(k v)`` of :func:`~torchseq.seqslam.search.trajectory_offsets`, ``M`` = the largest
+offset ``floor(ds vmax)``):
+
+- ``cand(j)``: the K references the index (:class:`~torchseq.seqslam.ann_index.CandidateIndex`)
+  returns for query ``j``.
+- Candidate starts of the window of query centre ``N`` (columns ``N - ds/2 .. N + ds/2``): every
+  start ``0 <= s < R`` whose trajectory at some velocity passes through a candidate of its
+  column, ``s + floor(k v) in cand(N - ds/2 + k)``. Each candidate start is scored over *all*
+  velocities, exactly as the exact search scores it; other starts count as unscored (inf).
+- The entries this needs are the window's columns by the band rows ``s .. s + M`` of its
+  candidate starts. Their differences are computed with the engine's metric, and their
+  contrast enhancement over the true window of ``enhance_window`` reference rows (the rows
+  around them are computed too), so every enhanced value is the exact mode's value.
+- OpenSeqSLAM subtracts the global minimum of the enhanced matrix. Candidate mode subtracts
+  the minimum over the entries it evaluated (all band entries of all windows). Every
+  trajectory takes one entry per column, so the constant moves all scores of a window equally:
+  matches and rankings do not depend on it, only the uniqueness value does. With ``K >= R``
+  every entry is evaluated and the result is the exact mode's (tested against the engine and
+  the loop oracle).
+
+Implementation: the bands of a block of centres are laid side by side along the reference
+axis, each in compact coordinates (gaps between band rows shortened to ``G`` rows of inf, with
+``G > M`` and ``G > rwindow / 2``, so no trajectory crosses from one band into another and
+starts closer than the uniqueness window keep their true distance) and followed by ``G`` inf
+rows. :func:`~torchseq.seqslam.search.trajectory_scores` then scores all of them at once and
+:func:`~torchseq.seqslam.search.rank_scores` ranks them (its ``centre`` argument maps compact
+positions back to reference rows), so the score, velocity, tie, uniqueness and top-K rules are
+the exact mode's own code.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+
+import torch
+from tqdm import tqdm
+
+from torchseq._checks import check_finite, check_not_empty, check_shape
+from torchseq.matches import Matches
+from torchseq.seqslam.ann_index import CandidateIndex
+from torchseq.seqslam.config import SeqSLAMConfig
+from torchseq.seqslam.enhance import enhance_contrast
+from torchseq.seqslam.search import rank_scores, trajectory_offsets, trajectory_scores, velocities
+
+# Above this many reference x query pairs, ``candidates=None`` switches to candidate mode (with
+# a warning): 2**31 pairs are 16 GB for the exact mode's two float32 matrices, and above the
+# 35,768 x 35,768 full Nordland route (1.28e9 pairs) that the exact mode is meant to handle.
+EXACT_MAX_PAIRS = 2**31
+# K used when ``candidates=None`` switches to candidate mode above EXACT_MAX_PAIRS.
+DEFAULT_CANDIDATES = 20
+# Enhanced values are computed in tiles of this many reference rows of one query column.
+TILE_ROWS = 32
+# Elements of the working dtype in one block of gathered reference rows: cache-sized (at
+# 2**22 the L1 differences took 8.5 us per 2048-dim pair, at 2**16 .. 2**20 about 1.9 us).
+PAIR_BLOCK_ELEMENTS = 2**19
+# Query centres whose bands are laid out and scored together.
+CENTRES_PER_BLOCK = 64
+
+
+def resolve_candidates(config: SeqSLAMConfig, n_ref: int, n_query: int) -> int:
+    """Candidates per query for a run of ``n_ref x n_query``; 0 = exact mode.
+
+    ``config.candidates``: None = exact up to :data:`EXACT_MAX_PAIRS` pairs, else
+    :data:`DEFAULT_CANDIDATES` with a warning; 0 = always exact; ``K >= 1`` = candidate mode.
+    """
+    k = config.candidates
+    if k is not None:
+        return int(k)
+    if n_ref * n_query <= EXACT_MAX_PAIRS:
+        return 0
+    warnings.warn(
+        f"SeqSLAM: {n_ref} x {n_query} pairs exceed the exact mode's limit of "
+        f"{EXACT_MAX_PAIRS} (two float32 matrices of {8 * n_ref * n_query / 1e9:.0f} GB): "
+        f"using candidate mode with candidates={DEFAULT_CANDIDATES}. Set "
+        f"SeqSLAMConfig(candidates=K) to choose K, or candidates=0 to force the exact mode.",
+        stacklevel=3)
+    return DEFAULT_CANDIDATES
+
+
+def evaluated_dense(sparse: torch.Tensor, fill: float = math.nan) -> torch.Tensor:
+    """A candidate-mode ``(R, Q)`` sparse matrix as a dense one, ``fill`` where not evaluated."""
+    sparse = sparse.coalesce()
+    out = torch.full(sparse.shape, fill, dtype=sparse.dtype)
+    rows, cols = sparse.indices()
+    out[rows, cols] = sparse.values()
+    return out
+
+
+def pair_differences(reference: torch.Tensor, query: torch.Tensor, metric: str) -> torch.Tensor:
+    """Distances of matched rows: ``(..., D)`` against ``(..., D)`` -> ``(...)``.
+
+    The definitions of :func:`~torchseq.seqslam.difference.difference_matrix` (``l1`` sum of
+    absolute differences, ``l2`` Euclidean, ``cosine`` 1 - cosine similarity with a zero vector
+    at similarity 0), evaluated pair by pair (the all-pairs function is tested equal to it).
+    """
+    if metric == "l1":
+        return (reference - query).abs_().sum(-1)
+    if metric == "l2":
+        diff = reference - query
+        return (diff * diff).sum(-1).sqrt_()
+    tiny = torch.finfo(reference.dtype).tiny
+    ref_n = reference / reference.norm(dim=-1, keepdim=True).clamp_min(tiny)
+    query_n = query / query.norm(dim=-1, keepdim=True).clamp_min(tiny)
+    return 1.0 - (ref_n * query_n).sum(-1)
+
+
+def _unique_rows(x: torch.Tensor, fill: int) -> torch.Tensor:
+    """Sort each row and replace repeats by ``fill`` (larger than every value), sorted again."""
+    x = x.sort(dim=1).values
+    if x.shape[1] > 1:
+        dup = torch.zeros_like(x, dtype=torch.bool)
+        dup[:, 1:] = x[:, 1:] == x[:, :-1]
+        x = x.masked_fill(dup, fill).sort(dim=1).values
+    keep = int((x < fill).sum(1).max()) if x.numel() else 0
+    return x[:, :max(keep, 1)].contiguous()
+
+
+def candidate_starts(cand: torch.Tensor, offsets: list[list[int]], n_ref: int) -> torch.Tensor:
+    """Starts whose trajectories pass through a candidate of their window.
+
+    Args:
+        cand: ``(C, ds + 1, K)`` int64 candidates of each window's columns (``-1``: none).
+        offsets: per velocity, the row offsets of the ``ds + 1`` steps.
+        n_ref: reference frames ``R``.
+
+    Returns:
+        ``(C, P)`` int64 sorted distinct starts in ``0 .. R - 1``, padded with ``R``.
+    """
+    off = torch.tensor(offsets, device=cand.device).T  # (ds + 1, V)
+    s = cand[:, :, None, :] - off[None, :, :, None]  # (C, ds + 1, V, K)
+    s = s.masked_fill((cand < 0)[:, :, None, :] | (s < 0), n_ref).clamp_max(n_ref)
+    return _unique_rows(s.reshape(cand.shape[0], -1), n_ref)
+
+
+def compact_bands(starts: torch.Tensor, n_ref: int, span: int,
+                  gap: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Band rows ``s .. s + span - 1`` of every start, in compact coordinates.
+
+    Args:
+        starts: ``(C, P)`` sorted distinct starts, padded with ``n_ref``.
+        n_ref: reference frames ``R``.
+        span: rows per start (``M + 1``).
+        gap: the longest run of empty positions between band rows, also appended at the end.
+
+    Returns:
+        ``rows (C, W)`` int64 reference row at each position (``-1`` for empty positions) and
+        ``is_start (C, W)`` bool, True at the positions of the starts.
+    """
+    n_c = starts.shape[0]
+    rows = (starts[:, :, None] + torch.arange(span, device=starts.device)).reshape(n_c, -1)
+    rows = _unique_rows(rows.clamp_max(n_ref), n_ref)  # (C, N) sorted, padded with n_ref
+    valid = rows < n_ref
+    step = (rows[:, 1:] - rows[:, :-1]).clamp(max=gap)
+    pos = torch.cat([torch.zeros_like(rows[:, :1]), step.cumsum(1)], 1)
+    width = int(pos.masked_fill(~valid, -1).max()) + 1 + gap
+    pos = pos.masked_fill(~valid, width)  # dump column, dropped below
+    grid = rows.new_full((n_c, width + 1), -1).scatter_(1, pos, rows.masked_fill(~valid, -1))
+    at = torch.searchsorted(rows, starts).clamp_max(rows.shape[1] - 1)
+    start_pos = torch.where(starts < n_ref, pos.gather(1, at), width)
+    is_start = torch.zeros(n_c, width + 1, dtype=torch.bool, device=starts.device)
+    is_start.scatter_(1, start_pos, True)
+    return grid[:, :width], is_start[:, :width]
+
+
+class TileTable:
+    """Enhanced (and raw) differences of whole tiles of ``TILE_ROWS`` rows of query columns.
+
+    Args:
+        reference: ``(R, D)`` reference descriptors (any real dtype; rows are converted to
+            ``dtype`` as they are gathered).
+        columns: ``(C, D)`` query descriptors, one per column id, in ``dtype``.
+        keys: ``(n,)`` int64 distinct tile keys ``column * n_tiles + tile``.
+        metric: the engine's metric.
+        window: contrast enhancement window (0 = off).
+    """
+
+    def __init__(self, reference: torch.Tensor, columns: torch.Tensor, keys: torch.Tensor,
+                 metric: str, window: int) -> None:
+        n_ref, dim = reference.shape
+        self.n_tiles = -(-n_ref // TILE_ROWS)
+        self.keys = keys.sort().values
+        half = window // 2 if window else 0
+        length = min(n_ref, TILE_ROWS + 2 * half)
+        col, tile = self.keys // self.n_tiles, self.keys % self.n_tiles
+        out_rows = tile[:, None] * TILE_ROWS + torch.arange(TILE_ROWS, device=keys.device)
+        lo = (tile * TILE_ROWS - half).clamp(min=0, max=n_ref - length)
+        local = (out_rows - lo[:, None]).clamp_max(length - 1)
+        outside = out_rows >= n_ref
+        dtype = columns.dtype
+        self.values = torch.empty(len(keys), TILE_ROWS, dtype=dtype, device=keys.device)
+        self.difference = torch.empty_like(self.values)
+        self.seconds = {"difference": 0.0, "enhance": 0.0}
+        block = max(1, PAIR_BLOCK_ELEMENTS // (length * dim))
+        t = time.perf_counter()
+        d = torch.empty(len(keys), length, dtype=dtype, device=keys.device)  # (n, L)
+        for t0 in range(0, len(keys), block):  # cache-sized blocks of gathered rows
+            sl = slice(t0, t0 + block)
+            rows = lo[sl, None] + torch.arange(length, device=keys.device)  # (c, L)
+            ref = reference[rows.reshape(-1)].to(dtype).view(-1, length, dim)
+            d[sl] = pair_differences(ref, columns[col[sl]][:, None, :], metric)
+        self.seconds["difference"] += time.perf_counter() - t
+        t = time.perf_counter()
+        if len(keys):  # one call: every tile is a column of its own (L, n) matrix
+            e = enhance_contrast(d.T, window, False).T if window else d
+            self.values = e.gather(1, local).masked_fill_(outside, math.inf)
+            self.difference = d.gather(1, local).masked_fill_(outside, math.inf)
+        self.seconds["enhance"] += time.perf_counter() - t
+
+    def lookup(self, column: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """Enhanced values at ``(column, row)`` (broadcast); ``inf`` where ``row < 0``.
+
+        Raises:
+            RuntimeError: a looked-up tile was never computed (an internal error).
+        """
+        r = rows.clamp_min(0)
+        if len(self.keys) == 0:
+            return torch.full(torch.broadcast_shapes(column.shape, rows.shape), math.inf,
+                              dtype=self.values.dtype, device=self.values.device)
+        key = (column * self.n_tiles + r // TILE_ROWS).contiguous()
+        slot = torch.searchsorted(self.keys, key).clamp_max(len(self.keys) - 1)
+        missing = (self.keys[slot] != key) & (rows >= 0)
+        if bool(missing.any()):
+            raise RuntimeError("candidate mode looked up a tile it did not compute")
+        val = self.values[slot, r % TILE_ROWS]
+        return val.masked_fill_(rows < 0, math.inf)
+
+
+def band_tile_keys(rows: torch.Tensor, columns: torch.Tensor, n_tiles: int) -> torch.Tensor:
+    """Distinct tile keys of the band rows ``(C, W)`` in each window's columns ``(C, ds + 1)``."""
+    tiles = torch.where(rows >= 0, rows // TILE_ROWS, n_tiles)
+    tiles = _unique_rows(tiles, n_tiles)  # (C, n) distinct tiles per window
+    keys = columns[:, :, None] * n_tiles + tiles[:, None, :]
+    keep = (tiles < n_tiles)[:, None, :].expand_as(keys)
+    return keys[keep].unique()
+
+
+def score_bands(values: torch.Tensor, rows: torch.Tensor, is_start: torch.Tensor, ds: int,
+                offsets: list[list[int]], n_ref: int, rwindow: int, top_k: int,
+                report: str) -> tuple[torch.Tensor, ...]:
+    """Score the candidate starts of ``C`` windows laid out as compact bands.
+
+    Args:
+        values: ``(ds + 1, C, W)`` enhanced values of each window's columns at its band rows
+            (``inf`` at empty positions).
+        rows: ``(C, W)`` reference row of each position (``-1`` empty).
+        is_start: ``(C, W)`` True at candidate starts.
+        ds: even sequence length.
+        offsets: per velocity, the row offsets of the ``ds + 1`` steps.
+        n_ref: reference frames ``R``.
+        rwindow: uniqueness exclusion window.
+        top_k: ranked candidates kept.
+        report: which row a start reports: ``"start"`` (``s + ds/2``), ``"trajectory"``
+            (``s + floor(v ds/2)``) or ``"end"`` (``s + floor(v ds)``, streaming).
+
+    Returns:
+        ``match (C,)``, ``best (C,)``, ``uniqueness (C,)``, ``ranked (C, top_k)``, best start
+        ``(C,)`` (reference row, ``-1`` if none) and best velocity index ``(C,)``.
+    """
+    n_c, width = rows.shape
+    scores, best_v = trajectory_scores(values.reshape(ds + 1, n_c * width), ds // 2,
+                                       ds // 2 + 1, ds, offsets, with_velocity=True)
+    scores = scores[0, :-1].view(n_c, width).masked_fill(~is_start, math.inf)
+    best_v = best_v[0, :-1].view(n_c, width)
+    if report == "start":
+        offset = torch.full_like(rows, ds // 2)
+    else:
+        step = ds // 2 if report == "trajectory" else ds
+        offset = torch.tensor([off[step] for off in offsets], device=rows.device)[best_v]
+    # position p reports rows[p] + offset[p]: rank_scores adds ``centre`` to the position
+    shift = rows + offset - torch.arange(width, device=rows.device)
+    start, best, ratio, ranked = rank_scores(scores, ds, n_ref, rwindow, top_k, shift)
+    ok = torch.isfinite(best)
+    match = torch.where(ok, (start + shift.gather(1, start[:, None])[:, 0]).clamp_max(n_ref - 1),
+                        -1)
+    first = torch.where(ok, rows.gather(1, start[:, None])[:, 0], -1)
+    return match, best, ratio, ranked, first, best_v.gather(1, start[:, None])[:, 0]
+
+
+class CandidateSeqSLAM:
+    """SeqSLAM in candidate mode over a fixed reference traverse (the index is built once).
+
+    Args:
+        reference: ``(R, D)`` reference descriptors; integer-valued descriptors may be kept
+            as uint8 (4x less memory at 10^6 references; converted as rows are used).
+        config: parameters; ``config.candidates`` is K unless ``candidates`` is given.
+        candidates: K, overriding ``config.candidates`` (the one used must be >= 1).
+        index: index kind (:data:`~torchseq.seqslam.ann_index.INDEX_KINDS`) or a built
+            :class:`~torchseq.seqslam.ann_index.CandidateIndex` over the same reference.
+        device: where to compute (the index itself runs on CPU).
+        dtype: working float dtype (None: float64 for float64 references, else float32).
+        index_options: keyword arguments of :class:`CandidateIndex`.
+        refine: an approximate index proposes ``refine * K`` references, re-ranked exactly
+            (see :meth:`search`); 1 = take its K as they are.
+    """
+
+    def __init__(self, reference: torch.Tensor, config: SeqSLAMConfig | None = None,
+                 candidates: int | None = None, index: str | CandidateIndex = "auto",
+                 device: torch.device | str | None = None, dtype: torch.dtype | None = None,
+                 index_options: dict | None = None, refine: int = 4) -> None:
+        self.config = (config or SeqSLAMConfig()).validate()
+        k = candidates if candidates is not None else self.config.candidates
+        if k is None or isinstance(k, bool) or int(k) < 1:
+            raise ValueError(f"candidate mode needs candidates K >= 1, got {k!r}")
+        self.k = int(k)
+        if isinstance(refine, bool) or int(refine) < 1:
+            raise ValueError(f"refine must be an integer >= 1, got {refine!r}")
+        self.refine = int(refine)
+        reference = torch.as_tensor(reference)
+        check_not_empty(reference, "reference descriptors")
+        check_shape(reference, ("R", "D"), "reference descriptors")
+        check_finite(reference, "reference descriptors")
+        if reference.shape[0] < 2:
+            raise ValueError(f"need at least 2 reference frames, got {reference.shape[0]}")
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.dtype = dtype or (torch.float64 if reference.dtype == torch.float64
+                               else torch.float32)
+        t = time.perf_counter()
+        if isinstance(index, CandidateIndex):
+            if index.size != reference.shape[0] or index.dim != reference.shape[1]:
+                raise ValueError(f"index holds ({index.size}, {index.dim}) descriptors, the "
+                                 f"reference is {tuple(reference.shape)}")
+            self.index = index
+        else:
+            self.index = CandidateIndex(reference, self.config.metric, index,
+                                        **(index_options or {}))
+        self.index_seconds = time.perf_counter() - t
+        self.reference = reference.to(self.device)
+        c = self.config
+        self.ds = c.sequence_length
+        self.speeds = velocities(self.ds, *c.velocity_range)
+        self.offsets = trajectory_offsets(self.ds, self.speeds)
+        self.span = max(off[-1] for off in self.offsets) + 1
+        self.gap = max(self.span, c.rwindow // 2 + 1)
+
+    @property
+    def n_ref(self) -> int:
+        """Reference frames ``R``."""
+        return self.reference.shape[0]
+
+    def search(self, query: torch.Tensor) -> torch.Tensor:
+        """``(Q, D)`` descriptors -> ``(Q, K)`` candidate references on the device.
+
+        A flat index gives the exact top K under the metric. An approximate one (IVF, HNSW)
+        is asked for ``refine * K`` and those are re-ranked by their exact distance (the
+        metric on the stored descriptors; ties -> lower reference), keeping K: the far-off
+        proposals an approximate index makes at 10^6 references would each cost a band.
+        """
+        query = torch.as_tensor(query)
+        if self.index.kind == "flat" or self.refine <= 1:
+            return self.index.search(query, self.k).to(self.device)
+        cand = self.index.search(query, self.refine * self.k).to(self.device)  # (Q, K')
+        k = min(self.k, cand.shape[1])
+        out = torch.empty(cand.shape[0], k, dtype=torch.int64, device=self.device)
+        rows = max(1, PAIR_BLOCK_ELEMENTS // (cand.shape[1] * query.shape[1]))
+        for q0 in range(0, cand.shape[0], rows):
+            c = cand[q0:q0 + rows]
+            ok = c >= 0
+            ref = self.reference[c.clamp_min(0)].to(self.dtype)  # (q, K', D)
+            q = query[q0:q0 + rows].to(self.device, self.dtype)[:, None, :]
+            d = pair_differences(ref, q, self.config.metric).masked_fill_(~ok, math.inf)
+            # order by (distance, reference): sort by reference first, then stably by distance
+            by_ref = c.masked_fill(~ok, self.n_ref).argsort(dim=1)
+            d, c = d.gather(1, by_ref), c.gather(1, by_ref)
+            order = d.argsort(dim=1, stable=True)[:, :k]
+            out[q0:q0 + rows] = torch.where(d.gather(1, order).isfinite(), c.gather(1, order),
+                                            -1)
+        return out
+
+    def bands(self, cand: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(C, ds + 1, K)`` window candidates -> band ``rows (C, W)``, ``is_start (C, W)``."""
+        starts = candidate_starts(cand, self.offsets, self.n_ref)
+        return compact_bands(starts, self.n_ref, self.span, self.gap)
+
+    def table(self, columns: torch.Tensor, keys: torch.Tensor) -> TileTable:
+        """Enhanced values of the tiles ``keys`` of the query ``columns (C, D)``."""
+        return TileTable(self.reference, columns, keys, self.config.metric,
+                         self.config.enhance_window)
+
+    def _blocks(self, cand: torch.Tensor, rows_per_block: int):
+        """Yield ``(c0, c1, columns (C, ds+1), rows, is_start)`` per block of centres."""
+        ds = self.ds
+        windows = cand.unfold(0, ds + 1, 1).permute(0, 2, 1)  # (Q - ds, ds + 1, K)
+        for c0 in range(0, windows.shape[0], rows_per_block):
+            c1 = min(c0 + rows_per_block, windows.shape[0])
+            rows, is_start = self.bands(windows[c0:c1])
+            cols = torch.arange(c0, c1, device=cand.device)[:, None] + torch.arange(
+                ds + 1, device=cand.device)
+            yield c0, c1, cols, rows, is_start
+
+    def match_descriptors(self, query: torch.Tensor, progress: bool = False):
+        """Match ``(Q, D)`` query descriptors (as :meth:`SeqSLAM.match_descriptors`).
+
+        Returns:
+            :class:`~torchseq.seqslam.engine.SeqSLAMResult` whose ``difference`` and
+            ``enhanced`` are sparse ``(R, Q)`` COO tensors of the evaluated entries (whole
+            tiles of :data:`TILE_ROWS` rows around the bands); ``seconds`` adds ``"index"``
+            (building it, not in ``"total"``), ``"candidates"`` (querying it) and ``"bands"``.
+        """
+        from torchseq.seqslam.engine import SeqSLAMResult
+
+        c, ds = self.config, self.ds
+        query = torch.as_tensor(query)
+        check_not_empty(query, "query descriptors")
+        check_shape(query, ("Q", self.reference.shape[1]), "query descriptors")
+        check_finite(query, "query descriptors")
+        n_query = query.shape[0]
+        if n_query < ds + 1:
+            raise ValueError(f"need at least ds + 1 = {ds + 1} query frames for ds = {c.ds}, "
+                             f"got {n_query}")
+        seconds = {"index": self.index_seconds}
+        t0 = t = time.perf_counter()
+        cand = self.search(query)
+        seconds["candidates"] = time.perf_counter() - t
+        t = time.perf_counter()
+        block = CENTRES_PER_BLOCK
+        keys = [band_tile_keys(rows, cols, -(-self.n_ref // TILE_ROWS))
+                for _, _, cols, rows, _ in self._blocks(cand, block)]
+        seconds["bands"] = time.perf_counter() - t
+        query = query.to(self.device, self.dtype)
+        table = self.table(query, torch.cat(keys).unique())
+        seconds.update(table.seconds)
+        t = time.perf_counter()
+        floor = math.inf  # minimum over the evaluated band entries (OpenSeqSLAM's global min)
+        for _, _, cols, rows, _ in self._blocks(cand, block):
+            vals = table.lookup(cols.T[:, :, None], rows[None])
+            floor = min(floor, float(vals.min()))
+        floor = floor if math.isfinite(floor) else 0.0  # nothing evaluated: no match anywhere
+        dev = self.device
+        match = torch.full((n_query,), -1, dtype=torch.int64, device=dev)
+        best_score = torch.full((n_query,), math.nan, dtype=self.dtype, device=dev)
+        uniqueness = torch.full_like(best_score, math.nan)
+        ranked = torch.full((n_query, c.top_k), -1, dtype=torch.int64, device=dev)
+        report = c.match_rule
+        blocks = self._blocks(cand, block)
+        for c0, c1, cols, rows, is_start in tqdm(blocks, total=-(-(n_query - ds) // block),
+                                                 desc="candidate search", disable=not progress,
+                                                 leave=False):
+            vals = table.lookup(cols.T[:, :, None], rows[None]) - floor
+            out = score_bands(vals, rows, is_start, ds, self.offsets, self.n_ref, c.rwindow,
+                              c.top_k, report)
+            sl = slice(c0 + ds // 2, c1 + ds // 2)
+            match[sl], best_score[sl], uniqueness[sl], ranked[sl] = out[:4]
+        seconds["search"] = time.perf_counter() - t
+        seconds["total"] = time.perf_counter() - t0
+        table.values -= floor
+        difference, enhanced = self._sparse(table, n_query)
+        return SeqSLAMResult(
+            matches=Matches(match.cpu(), uniqueness.cpu(), lower_is_better=True),
+            difference=difference, enhanced=enhanced, ranked=ranked.cpu(),
+            best_score=best_score.cpu(), seconds=seconds)
+
+    def _sparse(self, table: TileTable, n_query: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The table's entries as sparse ``(R, Q)`` COO tensors on CPU (raw, enhanced)."""
+        col = (table.keys // table.n_tiles)[:, None].expand(-1, TILE_ROWS)
+        row = (table.keys % table.n_tiles)[:, None] * TILE_ROWS + torch.arange(
+            TILE_ROWS, device=table.keys.device)
+        keep = row < self.n_ref
+        idx = torch.stack([row[keep], col[keep]]).cpu()
+        size = (self.n_ref, n_query)
+        return tuple(torch.sparse_coo_tensor(idx, v[keep].cpu(), size, check_invariants=False)
+                     .coalesce() for v in (table.difference, table.values))
