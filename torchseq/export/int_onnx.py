@@ -16,7 +16,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from torchseq.atomic import atomic_path
 from torchseq.export.int_format import INPUT_ZSCORE, X_MAX, IntegerModel
-from torchseq.export.int_runtime import ISQRT_BITS
+from torchseq.export.int_runtime import ISQRT_BITS, MEMORY_BUDGET, check_dense_budget
 
 OPSET = 17
 IR_VERSION = 8  # what onnxruntime >= 1.15 reads
@@ -97,8 +97,13 @@ def _l1_int8(g: _Graph, x: str, w: np.ndarray) -> str:
                               g.op("Mul", mid, g.const(64, c))), ll)
 
 
-def build_integer_onnx(model: IntegerModel) -> onnx.ModelProto:
+def build_integer_onnx(model: IntegerModel,
+                       memory_budget: int = MEMORY_BUDGET) -> onnx.ModelProto:
     """Build the integer streaming step as an ONNX model.
+
+    The two products are dense int8 ``MatMulInteger`` weights; their build takes about
+    ``14 * n_input * hidden + 2 * hidden * n_units`` bytes, refused past ``memory_budget``
+    (``IntegerFormatError``).
 
     Inputs: ``frames`` uint8 ``(B, h*pool_h, w*pool_w)``, ``state`` int32 ``(B, N)``.
     Outputs: ``activity`` int32 ``(B, N)``, ``new_state`` int32 ``(B, N)``, ``reference``
@@ -106,6 +111,8 @@ def build_integer_onnx(model: IntegerModel) -> onnx.ModelProto:
     """
     model.check()
     p, a = model.params, model.arrays
+    check_dense_budget("the integer ONNX graph", 14 * p["n_input"] * p["hidden"]
+                       + 2 * p["hidden"] * p["n_units"], int(memory_budget))
     g = _Graph()
     h, w, ph, pw = p["height"], p["width"], p["pool_h"], p["pool_w"]
     n_units, d_in = p["n_units"], p["n_input"]

@@ -1,0 +1,166 @@
+"""The integer step of ``docs/integer_format.md``, written once as a torch integer module.
+
+:class:`IntegerStepModule` holds the stages of an :class:`IntegerModel` as int64 buffers and
+computes one streaming step with integer tensor operations only (no float in the
+arithmetic; the one float square root inside :func:`isqrt` is a starting guess that two
+exact integer comparisons correct). Run eagerly it is the definition the runtimes are tested
+against: :class:`~torchseq.export.int_runtime.IntegerRuntime` (``kernel="module"`` runs it,
+``kernel="numpy"`` runs the NumPy kernels tested equal to it),
+:class:`~torchseq.export.int_stream.StreamRuntime` and the integer ONNX graph.
+
+The two sparse products read the stored index lists directly (gathers of ``(B, M, F)`` and
+``(B, N, F)``), so memory follows the file's size, never a dense ``(M, D)`` matrix.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from torchseq.export.int_format import INPUT_ZSCORE, X_MAX, IntegerModel
+
+INT32_MAX = 2**31 - 1
+
+
+def round_div(a: torch.Tensor, b: torch.Tensor | int) -> torch.Tensor:
+    """``a / b`` rounded half away from zero: ``sign(a) * floor((2|a| + b) / 2b)``.
+
+    Args:
+        a: int64 tensor, ``|a| < 2**61``.
+        b: int64 tensor broadcastable to ``a`` (or an int), ``0 < b < 2**62``.
+
+    Returns:
+        int64 tensor of ``a``'s broadcast shape (exact: ``2|a| + b < 2**63``).
+    """
+    q = torch.div(2 * a.abs() + b, 2 * b, rounding_mode="floor")
+    return torch.where(a < 0, -q, q)
+
+
+def isqrt(v: torch.Tensor) -> torch.Tensor:
+    """``floor(sqrt(v))`` of int64 ``0 <= v < 2**62``, exactly.
+
+    The float64 square root is within one of the answer for such ``v``; one integer step down
+    and one up, with exact int64 squares, make it exact.
+    """
+    r = torch.sqrt(v.to(torch.float64)).floor().to(torch.int64).clamp_max(INT32_MAX)
+    r = r - (r * r > v).long()
+    return r + ((r + 1) * (r + 1) <= v).long()
+
+
+def kwta_code(hid: torch.Tensor, k: int) -> torch.Tensor:
+    """Binary k-WTA of int64 ``(B, M)``: the ``k`` largest, ties to the lowest index.
+
+    ``topk`` runs on the unique keys ``hid * M + (M - 1 - m)`` (exact: ``|hid| < 2**31``,
+    ``M < 2**15``), so its unspecified tie order never matters.
+
+    Returns:
+        ``(B, M)`` int64 0/1 code with exactly ``k`` ones per row.
+    """
+    m = hid.shape[1]
+    key = hid * m + torch.arange(m - 1, -1, -1, dtype=torch.int64, device=hid.device)
+    win = key.topk(k, dim=1).indices
+    return torch.zeros_like(hid).scatter_(1, win, 1)
+
+
+class IntegerStepModule(nn.Module):
+    """One integer step of an :class:`IntegerModel` (docs/integer_format.md, steps 1-8).
+
+    Args:
+        model: a checked :class:`IntegerModel` (its stages are validated when built).
+    """
+
+    def __init__(self, model: IntegerModel) -> None:
+        super().__init__()
+        if not isinstance(model, IntegerModel):
+            raise TypeError(f"IntegerStepModule takes an IntegerModel, got {type(model).__name__}")
+        p, a = model.params, model.arrays
+        self.params = p
+
+        def buf(name: str, value) -> None:
+            self.register_buffer(name, torch.from_numpy(np.array(value, dtype=np.int64)))
+
+        buf("l1_cols", a["l1.cols"])
+        buf("l1_values", a["l1.values"])
+        buf("l3_cols", a["l3.cols"])
+        buf("l3_values", a["l3.values"])
+        buf("row_scale", a["l3.row_scale"])
+        buf("cohort", a["cohort"])
+        buf("cohort_size", np.bincount(a["cohort"], minlength=p["n_cohorts"]))
+        buf("ring_cols", a["ring.cols"])
+        buf("ring_values", a["ring.values"])
+        buf("unit_centre", a["unit_centre"])
+        buf("units", np.arange(p["n_units"]))
+
+    def input_stage(self, frames: torch.Tensor) -> torch.Tensor:
+        """Steps 1-2: uint8 ``(B, h*ph, w*pw)`` -> L1 activity ``x`` ``(B, D)`` int64."""
+        p = self.params
+        h, w, ph, pw = p["height"], p["width"], p["pool_h"], p["pool_w"]
+        pix = frames.to(torch.int64).reshape(-1, h, ph, w, pw).sum((2, 4))  # (B, h, w)
+        if p["input_mode"] != INPUT_ZSCORE:
+            return pix.reshape(-1, h * w)
+        s = p["patch"]
+        n = s * s
+        blocks = pix.reshape(-1, h // s, s, w // s, s)
+        total = blocks.sum((2, 4), keepdim=True)
+        var = n * (blocks * blocks).sum((2, 4), keepdim=True) - total * total  # V >= 0
+        root = isqrt(var * (1 << (2 * p["sqrt_frac"])))
+        z = round_div((n * blocks - total) * p["norm_const"], root.clamp_min(1))
+        x = torch.where(var > 0, z.clamp(-X_MAX, X_MAX), torch.zeros_like(z))
+        return x.reshape(-1, h * w)
+
+    def hidden(self, x: torch.Tensor) -> torch.Tensor:
+        """Step 3: ``hid[b, m] = sum_f l1.values[m, f] * x[b, l1.cols[m, f]]`` ``(B, M)``."""
+        return (x[:, self.l1_cols] * self.l1_values).sum(-1)
+
+    def evidence(self, code: torch.Tensor) -> torch.Tensor:
+        """Step 5: 0/1 code ``(B, M)`` -> rescaled evidence ``E`` ``(B, N)`` int64."""
+        e = (code[:, self.l3_cols] * self.l3_values).sum(-1)
+        return round_div(e * self.row_scale, 1 << self.params["e_shift"])
+
+    def gain_z(self, e: torch.Tensor) -> torch.Tensor:
+        """Step 6: cohort z-score times gain on the activity grid (rectified), ``(B, N)``."""
+        p = self.params
+        zeros = torch.zeros(e.shape[0], p["n_cohorts"], dtype=torch.int64, device=e.device)
+        total = zeros.index_add(1, self.cohort, e)
+        var = self.cohort_size * zeros.index_add(1, self.cohort, e * e) - total * total
+        root = isqrt(var)[:, self.cohort]
+        dev = self.cohort_size[self.cohort] * e - total[:, self.cohort]
+        g = round_div(dev * p["gain_const"], root.clamp_min(1) * (1 << p["gain_shift"]))
+        g = torch.where(var[:, self.cohort] > 0, g, torch.zeros_like(g))
+        return g.clamp_min(0) if p["rectify"] else g
+
+    def drive(self, frames: torch.Tensor) -> torch.Tensor:
+        """Steps 1-6, the state-free part: uint8 frames -> ``g`` ``(B, N)`` int64."""
+        code = kwta_code(self.hidden(self.input_stage(frames)), self.params["k"])
+        return self.gain_z(self.evidence(code))
+
+    def ring(self, state: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        """Step 7: previous int32 state and ``g`` -> new activity ``(B, N)`` int32."""
+        moved = (state.to(torch.int64)[:, self.ring_cols] * self.ring_values).sum(-1)
+        a = round_div(moved, 1 << self.params["ring_frac"]) + g
+        return a.clamp(-INT32_MAX, INT32_MAX).to(torch.int32)
+
+    def decide(self, act: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Step 8: activity ``(B, N)`` int32 -> ``(reference, confidence)`` ``(B,)`` int64."""
+        unit = act.argmax(1)  # the first index of the largest
+        best = act.gather(1, unit[:, None]).to(torch.int64)
+        rival = (self.units[None, :] - unit[:, None]).abs() > self.params["window"]
+        floor = act.min(1, keepdim=True).values
+        second = torch.where(rival, act, floor).max(1, keepdim=True).values.to(torch.int64)
+        return self.unit_centre[unit], (best - second)[:, 0]
+
+    def forward(self, frames: torch.Tensor,
+                state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step.
+
+        Args:
+            frames: ``(B, h*pool_h, w*pool_w)`` uint8.
+            state: ``(B, N)`` int32 previous activity (zeros at a stream's start).
+
+        Returns:
+            ``(activity (B, N) int32 (= the new state), reference (B,) int64,
+            confidence (B,) int64)``.
+        """
+        act = self.ring(state, self.drive(frames))
+        return (act, *self.decide(act))
