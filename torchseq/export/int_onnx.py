@@ -8,15 +8,19 @@ agree bit for bit with :class:`torchseq.export.int_runtime.IntegerRuntime`.
 
 from __future__ import annotations
 
+import io
+import warnings
 from pathlib import Path
 
 import numpy as np
 import onnx
+import torch
 from onnx import TensorProto, helper, numpy_helper
 
 from torchseq.atomic import atomic_path
 from torchseq.export.int_format import INPUT_ZSCORE, X_MAX, IntegerModel
 from torchseq.export.int_runtime import ISQRT_BITS, MEMORY_BUDGET, check_dense_budget
+from torchseq.export.int_step import IntegerStepModule
 
 OPSET = 17
 IR_VERSION = 8  # what onnxruntime >= 1.15 reads
@@ -97,7 +101,7 @@ def _l1_int8(g: _Graph, x: str, w: np.ndarray) -> str:
                               g.op("Mul", mid, g.const(64, c))), ll)
 
 
-def build_integer_onnx(model: IntegerModel,
+def _build_handmade(model: IntegerModel,
                        memory_budget: int = MEMORY_BUDGET) -> onnx.ModelProto:
     """Build the integer streaming step as an ONNX model.
 
@@ -205,6 +209,58 @@ def build_integer_onnx(model: IntegerModel,
         g.inits)
     m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
                           producer_name="torchseq.export", ir_version=IR_VERSION)
+    onnx.checker.check_model(m, full_check=True)
+    return m
+
+
+class _StepGraph(torch.nn.Module):
+    """The module's step with the graph's four outputs (the state output repeats activity)."""
+
+    def __init__(self, model: IntegerModel) -> None:
+        super().__init__()
+        self.step = IntegerStepModule(model).eval()
+
+    def forward(self, frames, state):
+        act, ref, conf = self.step(frames, state)
+        return act, act, ref, conf
+
+
+def build_integer_onnx(model: IntegerModel,
+                       memory_budget: int = MEMORY_BUDGET) -> onnx.ModelProto:
+    """Export the integer step (:class:`IntegerStepModule`) as an ONNX model.
+
+    The graph is ``torch.onnx.export`` of the one definition: every tensor in the step is an
+    integer (uint8 frames, int32/int64 arithmetic, the 12-bit L1 product as four int8
+    ``MatMulInteger`` products, the L3 product as one, ``TopK`` k-WTA on unique keys, ``Div``
+    on non-negative int64 for rounding, ``isqrt`` bit by bit). The dense product weights take
+    about ``14 * n_input * hidden + 2 * hidden * n_units`` bytes to build, refused past
+    ``memory_budget`` (``IntegerFormatError``).
+
+    Inputs: ``frames`` uint8 ``(B, h*pool_h, w*pool_w)``, ``state`` int32 ``(B, N)``.
+    Outputs: ``activity`` int32 ``(B, N)``, ``new_state`` int32 ``(B, N)``, ``reference``
+    int64 ``(B,)``, ``confidence`` int64 ``(B,)`` (on the ``2**-state_frac`` grid).
+    """
+    p = model.check().params
+    check_dense_budget("the integer ONNX graph", 14 * p["n_input"] * p["hidden"]
+                       + 2 * p["hidden"] * p["n_units"], int(memory_budget))
+    frames = torch.zeros(2, p["height"] * p["pool_h"], p["width"] * p["pool_w"],
+                         dtype=torch.uint8)
+    state = torch.zeros(2, p["n_units"], dtype=torch.int32)
+    names = ["activity", "new_state", "reference", "confidence"]
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notice
+        torch.onnx.export(_StepGraph(model), (frames, state), buf, dynamo=False,
+                          opset_version=OPSET, input_names=["frames", "state"],
+                          output_names=names, do_constant_folding=True,
+                          dynamic_axes={k: {0: "batch"} for k in ["frames", "state", *names]})
+    m = onnx.load_from_string(buf.getvalue())
+    used = {i for node in m.graph.node for i in node.input}
+    keep = [t for t in m.graph.initializer if t.name in used]  # the products' index lists
+    del m.graph.initializer[:]
+    m.graph.initializer.extend(keep)
+    m.graph.name, m.producer_name, m.ir_version = ("torchseq_integer_step", "torchseq.export",
+                                                   IR_VERSION)
     onnx.checker.check_model(m, full_check=True)
     return m
 

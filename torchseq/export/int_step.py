@@ -21,6 +21,8 @@ from torch import nn
 from torchseq.export.int_format import INPUT_ZSCORE, X_MAX, IntegerModel
 
 INT32_MAX = 2**31 - 1
+ISQRT_BITS = 31  # isqrt handles 0 <= v < 2**62; result bits 30..0
+_UINT8, _INT64 = 2, 7  # ONNX TensorProto data types
 
 
 def round_div(a: torch.Tensor, b: torch.Tensor | int) -> torch.Tensor:
@@ -33,19 +35,93 @@ def round_div(a: torch.Tensor, b: torch.Tensor | int) -> torch.Tensor:
     Returns:
         int64 tensor of ``a``'s broadcast shape (exact: ``2|a| + b < 2**63``).
     """
-    q = torch.div(2 * a.abs() + b, 2 * b, rounding_mode="floor")
+    # both operands are non-negative, so truncation is the floor (one ONNX integer Div)
+    q = torch.div(2 * a.abs() + b, 2 * b, rounding_mode="trunc")
     return torch.where(a < 0, -q, q)
 
 
-def isqrt(v: torch.Tensor) -> torch.Tensor:
-    """``floor(sqrt(v))`` of int64 ``0 <= v < 2**62``, exactly.
+def isqrt(v: torch.Tensor, bits: int = ISQRT_BITS) -> torch.Tensor:
+    """``floor(sqrt(v))`` of int64 ``0 <= v < 4**bits`` (``bits <= 31``), exactly.
 
-    The float64 square root is within one of the answer for such ``v``; one integer step down
-    and one up, with exact int64 squares, make it exact.
+    Eagerly: the float64 square root is within one of the answer for such ``v``; one integer
+    step down and one up, with exact int64 squares, make it exact. In the ONNX graph (no
+    float tensor in the integer step): bit by bit from bit ``bits - 1`` down,
+    ``r = 0; c = r + 2**b; r = c if c*c <= v``, the same function.
     """
+    if torch.onnx.is_in_onnx_export():
+        r = torch.zeros_like(v)
+        for bit in range(min(bits, ISQRT_BITS) - 1, -1, -1):
+            cand = r + (1 << bit)
+            r = torch.where(cand * cand <= v, cand, r)
+        return r
     r = torch.sqrt(v.to(torch.float64)).floor().to(torch.int64).clamp_max(INT32_MAX)
     r = r - (r * r > v).long()
     return r + ((r + 1) * (r + 1) <= v).long()
+
+
+def _const(g, value: np.ndarray):
+    return g.op("Constant", value_t=torch.from_numpy(np.ascontiguousarray(value)))
+
+
+def _dense_t(cols: np.ndarray, values: np.ndarray, n_in: int, dtype) -> np.ndarray:
+    """``(n_in, rows)`` dense transposed weights from per-row index lists (graph constants)."""
+    rows = np.repeat(np.arange(cols.shape[0]), cols.shape[1])
+    w = np.zeros((n_in, cols.shape[0]), dtype)
+    w[cols.astype(np.int64).ravel(), rows] = values.ravel()
+    return w
+
+
+class _L1Product(torch.autograd.Function):
+    """Step 3, ``hid[m] = sum_f values[m, f] * x[cols[m, f]]``, eager and in the graph.
+
+    Eagerly a gather of the index lists; in the ONNX graph four int8 ``MatMulInteger``
+    products of dense weights.
+
+    Each 12-bit operand splits into ``64 * hi + lo`` with ``lo = v mod 64`` in 0..63 and
+    ``hi`` in -32..31, so ``x @ w = 4096 hh + 64 (hl + lh) + ll``; every partial sum stays
+    inside int32 for ``fan_in <= 512`` (the format's bound), so the result is exact.
+    """
+
+    @staticmethod
+    def forward(ctx, x, cols, values, stage):  # noqa: ARG004 - stage: the graph's weights
+        return (x[:, cols] * values).sum(-1)
+
+    @staticmethod
+    def symbolic(g, x, cols, values, stage):  # noqa: ARG004
+        w = _dense_t(stage.cols, stage.values, stage.n_input, np.int32)  # (D, M)
+        w_lo = np.mod(w, 64)
+        wh, wl = _const(g, ((w - w_lo) // 64).astype(np.int8)), _const(g, w_lo.astype(np.int8))
+        i64 = lambda v: _const(g, np.asarray(v, np.int64))  # noqa: E731
+        x_lo = g.op("Mod", x, i64(64), fmod_i=0)  # 0..63 (floor modulo)
+        # hi + 32 in 0..63 as uint8 with zero point 32: the fast uint8 x int8 kernels
+        x_hi = g.op("Add", g.op("Div", g.op("Sub", x, x_lo), i64(64)), i64(32))
+        x_hi = g.op("Cast", x_hi, to_i=_UINT8)
+        x_lo = g.op("Cast", x_lo, to_i=_UINT8)
+        zp = _const(g, np.asarray(32, np.uint8))
+        hh = g.op("MatMulInteger", x_hi, wh, zp)
+        mid = g.op("Add", g.op("MatMulInteger", x_hi, wl, zp), g.op("MatMulInteger", x_lo, wh))
+        ll = g.op("MatMulInteger", x_lo, wl)
+        i32 = lambda v: _const(g, np.asarray(v, np.int32))  # noqa: E731
+        hid = g.op("Add", g.op("Add", g.op("Mul", hh, i32(4096)), g.op("Mul", mid, i32(64))), ll)
+        return g.op("Cast", hid, to_i=_INT64)
+
+
+class _L3Product(torch.autograd.Function):
+    """Step 5's sums ``e[u] = sum_f values[u, f] * code[cols[u, f]]``, eager and in the graph.
+
+    Eagerly a gather; in the ONNX graph one ``MatMulInteger`` of the uint8 code with the
+    dense int8 weights.
+    """
+
+    @staticmethod
+    def forward(ctx, code, cols, values, stage):  # noqa: ARG004
+        return (code[:, cols] * values).sum(-1)
+
+    @staticmethod
+    def symbolic(g, code, cols, values, stage):  # noqa: ARG004
+        w = _const(g, _dense_t(stage.cols, stage.values, stage.hidden, np.int8))  # (M, N)
+        e = g.op("MatMulInteger", g.op("Cast", code, to_i=_UINT8), w)
+        return g.op("Cast", e, to_i=_INT64)
 
 
 def kwta_code(hid: torch.Tensor, k: int) -> torch.Tensor:
@@ -59,7 +135,7 @@ def kwta_code(hid: torch.Tensor, k: int) -> torch.Tensor:
     """
     m = hid.shape[1]
     key = hid * m + torch.arange(m - 1, -1, -1, dtype=torch.int64, device=hid.device)
-    win = key.topk(k, dim=1).indices
+    win = key.topk(k, dim=1, sorted=False).indices
     return torch.zeros_like(hid).scatter_(1, win, 1)
 
 
@@ -76,6 +152,7 @@ class IntegerStepModule(nn.Module):
             raise TypeError(f"IntegerStepModule takes an IntegerModel, got {type(model).__name__}")
         p, a = model.params, model.arrays
         self.params = p
+        self.stages = model  # the graph's dense weights are built from its index lists
 
         def buf(name: str, value) -> None:
             self.register_buffer(name, torch.from_numpy(np.array(value, dtype=np.int64)))
@@ -87,6 +164,8 @@ class IntegerStepModule(nn.Module):
         buf("row_scale", a["l3.row_scale"])
         buf("cohort", a["cohort"])
         buf("cohort_size", np.bincount(a["cohort"], minlength=p["n_cohorts"]))
+        # sqrt(V_c) <= n_c * 32767: the bits of the cohort isqrt
+        self.cohort_bits = (int(np.bincount(a["cohort"]).max()) * 32767).bit_length()
         buf("ring_cols", a["ring.cols"])
         buf("ring_values", a["ring.values"])
         buf("unit_centre", a["unit_centre"])
@@ -104,27 +183,29 @@ class IntegerStepModule(nn.Module):
         blocks = pix.reshape(-1, h // s, s, w // s, s)
         total = blocks.sum((2, 4), keepdim=True)
         var = n * (blocks * blocks).sum((2, 4), keepdim=True) - total * total  # V >= 0
-        root = isqrt(var * (1 << (2 * p["sqrt_frac"])))
+        peak = n * 255 * ph * pw // 2 + 1  # sqrt(V) <= n * 255 * ph * pw / 2
+        root = isqrt(var * (1 << (2 * p["sqrt_frac"])), (peak << p["sqrt_frac"]).bit_length())
         z = round_div((n * blocks - total) * p["norm_const"], root.clamp_min(1))
         x = torch.where(var > 0, z.clamp(-X_MAX, X_MAX), torch.zeros_like(z))
         return x.reshape(-1, h * w)
 
     def hidden(self, x: torch.Tensor) -> torch.Tensor:
         """Step 3: ``hid[b, m] = sum_f l1.values[m, f] * x[b, l1.cols[m, f]]`` ``(B, M)``."""
-        return (x[:, self.l1_cols] * self.l1_values).sum(-1)
+        return _L1Product.apply(x, self.l1_cols, self.l1_values, self.stages.l1)
 
     def evidence(self, code: torch.Tensor) -> torch.Tensor:
         """Step 5: 0/1 code ``(B, M)`` -> rescaled evidence ``E`` ``(B, N)`` int64."""
-        e = (code[:, self.l3_cols] * self.l3_values).sum(-1)
+        e = _L3Product.apply(code, self.l3_cols, self.l3_values, self.stages.l3)
         return round_div(e * self.row_scale, 1 << self.params["e_shift"])
 
     def gain_z(self, e: torch.Tensor) -> torch.Tensor:
         """Step 6: cohort z-score times gain on the activity grid (rectified), ``(B, N)``."""
         p = self.params
         zeros = torch.zeros(e.shape[0], p["n_cohorts"], dtype=torch.int64, device=e.device)
-        total = zeros.index_add(1, self.cohort, e)
-        var = self.cohort_size * zeros.index_add(1, self.cohort, e * e) - total * total
-        root = isqrt(var)[:, self.cohort]
+        idx = self.cohort.expand(e.shape[0], -1)
+        total = zeros.scatter_add(1, idx, e)  # (B, C)
+        var = self.cohort_size * zeros.scatter_add(1, idx, e * e) - total * total
+        root = isqrt(var, self.cohort_bits)[:, self.cohort]
         dev = self.cohort_size[self.cohort] * e - total[:, self.cohort]
         g = round_div(dev * p["gain_const"], root.clamp_min(1) * (1 << p["gain_shift"]))
         g = torch.where(var[:, self.cohort] > 0, g, torch.zeros_like(g))
