@@ -2,10 +2,13 @@
 plain-Python oracle, the released v1 file, the NumPy kernels and the integer ONNX graph;
 the runtimes' kernel dispatch and their memory budget."""
 
+import io
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
+import onnx
 import pytest
 import torch
 from export_helpers import small_setup
@@ -36,6 +39,9 @@ def tiny(**cfg):
     pool = choose_pool((16, 16), (8, 8))
     frames = device_frames(demo.query, (8, 8), pool)
     frames[2] = 90  # flat: zero variance everywhere and an all-tied k-WTA
+    # the first row of blocks: pooled columns alternately 0 and 4 * 255, the largest
+    # variance the bounds allow (the top bit of the z-score's isqrt)
+    frames[4, :8] = np.where(np.arange(16) // 2 % 2 == 0, 255, 0)[None, :]
     return integer_model(model, pool), frames
 
 
@@ -122,6 +128,28 @@ def test_round_div_isqrt_and_kwta_against_python_ints():
         for row, c in zip(h.tolist(), code.tolist()):  # sort by value, then the lower index
             order = sorted(range(50), key=lambda j: (-row[j], j))[:k]
             assert [j for j in range(50) if c[j]] == sorted(order)
+
+
+@pytest.mark.parametrize("bits", [31, 21, 3])
+def test_isqrt_graph_form_in_onnxruntime(bits):
+    class Root(torch.nn.Module):
+        def forward(self, v):
+            return isqrt(v, bits)
+
+    top = 4**bits - 1
+    g = np.random.default_rng(bits)
+    r = g.integers(0, 2**bits, 500)
+    v = np.concatenate([g.integers(0, top, 500), r * r, np.maximum(r * r - 1, 0),
+                        np.array([0, 1, top, (2**bits - 1) ** 2])])
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(Root(), (torch.from_numpy(v),), buf, dynamo=False, opset_version=17,
+                          input_names=["v"], dynamic_axes={"v": {0: "n"}})
+    types = {node.op_type for node in onnx.load_from_string(buf.getvalue()).graph.node}
+    assert "Sqrt" not in types and "Cast" not in types  # integer-only in the graph
+    (got,) = session(onnx.load_from_string(buf.getvalue())).run(None, {"v": v})
+    assert got.tolist() == [math.isqrt(x) for x in v.tolist()]
 
 
 def test_runtime_kernel_is_chosen_at_construction(monkeypatch):
