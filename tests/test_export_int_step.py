@@ -210,18 +210,3 @@ def test_dense_kernels_refuse_a_small_file_that_asks_for_gigabytes():
     assert state[1].tolist() == want_state
     assert (int(out.reference[1]), int(out.confidence[1])) == (ref, conf)
 
-
-@pytest.mark.parametrize("kind", list(CONFIGS))
-def test_exported_graph_equals_the_handmade_graph(kind):
-    from torchseq.export.int_onnx import _build_handmade
-
-    model, frames = tiny(**CONFIGS[kind], k_fraction=0.3, input_steps=0, l1_levels=0)
-    streams = np.stack([frames[:6], frames[6:12], frames[::2][:6]], 1)  # (T, 3, H, W)
-    new, old = session(build_integer_onnx(model)), session(_build_handmade(model))
-    state_new = state_old = np.zeros((3, model.params["n_units"]), np.int32)
-    for t in range(streams.shape[0]):
-        out_new = new.run(None, {"frames": streams[t], "state": state_new})
-        out_old = old.run(None, {"frames": streams[t], "state": state_old})
-        for a, b in zip(out_new, out_old):
-            assert a.dtype == b.dtype and np.array_equal(a, b)
-        state_new, state_old = out_new[1], out_old[1]
