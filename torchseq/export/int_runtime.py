@@ -35,8 +35,9 @@ KERNELS = ("numpy", "module")
 def check_dense_budget(what: str, n_bytes: int, budget: int) -> None:
     """Refuse to build ``n_bytes`` of dense weights past ``budget`` (``IntegerFormatError``).
 
-    The file stores the sparse products as index lists, so a small legal file (e.g. ``hidden
-    = n_input = 32767`` with fan-in 1, about 128 KB) can ask a dense kernel for gigabytes.
+    The file stores the sparse products as index lists, so a small legal file (e.g.
+    ``n_input = hidden = n_units = 32767``, every fan-in 1: under 1 MB) can ask a dense kernel
+    for gigabytes.
     """
     if n_bytes > budget:
         raise IntegerFormatError(
@@ -300,7 +301,7 @@ class IntegerRuntime:
                              f"{state.dtype} {state.shape}")
         if self.module is not None:
             with torch.inference_mode():
-                act, ref, conf = self.module(torch.from_numpy(frames), torch.from_numpy(state))
+                act, ref, conf = self.module(torch.tensor(frames), torch.tensor(state))
             a = act.numpy()
             return IntegerStep(ref.numpy(), conf.numpy(), a), a
         g = self.drive(frames)
