@@ -71,59 +71,6 @@ def _dense_t(cols: np.ndarray, values: np.ndarray, n_in: int, dtype) -> np.ndarr
     return w
 
 
-class _L1Product(torch.autograd.Function):
-    """Step 3, ``hid[m] = sum_f values[m, f] * x[cols[m, f]]``, eager and in the graph.
-
-    Eagerly a gather of the index lists; in the ONNX graph four int8 ``MatMulInteger``
-    products of dense weights.
-
-    Each 12-bit operand splits into ``64 * hi + lo`` with ``lo = v mod 64`` in 0..63 and
-    ``hi`` in -32..31, so ``x @ w = 4096 hh + 64 (hl + lh) + ll``; every partial sum stays
-    inside int32 for ``fan_in <= 512`` (the format's bound), so the result is exact.
-    """
-
-    @staticmethod
-    def forward(ctx, x, cols, values, stage):  # noqa: ARG004 - stage: the graph's weights
-        return (x[:, cols] * values).sum(-1)
-
-    @staticmethod
-    def symbolic(g, x, cols, values, stage):  # noqa: ARG004
-        w = _dense_t(stage.cols, stage.values, stage.n_input, np.int32)  # (D, M)
-        w_lo = np.mod(w, 64)
-        wh, wl = _const(g, ((w - w_lo) // 64).astype(np.int8)), _const(g, w_lo.astype(np.int8))
-        i64 = lambda v: _const(g, np.asarray(v, np.int64))  # noqa: E731
-        x_lo = g.op("Mod", x, i64(64), fmod_i=0)  # 0..63 (floor modulo)
-        # hi + 32 in 0..63 as uint8 with zero point 32: the fast uint8 x int8 kernels
-        x_hi = g.op("Add", g.op("Div", g.op("Sub", x, x_lo), i64(64)), i64(32))
-        x_hi = g.op("Cast", x_hi, to_i=_UINT8)
-        x_lo = g.op("Cast", x_lo, to_i=_UINT8)
-        zp = _const(g, np.asarray(32, np.uint8))
-        hh = g.op("MatMulInteger", x_hi, wh, zp)
-        mid = g.op("Add", g.op("MatMulInteger", x_hi, wl, zp), g.op("MatMulInteger", x_lo, wh))
-        ll = g.op("MatMulInteger", x_lo, wl)
-        i32 = lambda v: _const(g, np.asarray(v, np.int32))  # noqa: E731
-        hid = g.op("Add", g.op("Add", g.op("Mul", hh, i32(4096)), g.op("Mul", mid, i32(64))), ll)
-        return g.op("Cast", hid, to_i=_INT64)
-
-
-class _L3Product(torch.autograd.Function):
-    """Step 5's sums ``e[u] = sum_f values[u, f] * code[cols[u, f]]``, eager and in the graph.
-
-    Eagerly a gather; in the ONNX graph one ``MatMulInteger`` of the uint8 code with the
-    dense int8 weights.
-    """
-
-    @staticmethod
-    def forward(ctx, code, cols, values, stage):  # noqa: ARG004
-        return (code[:, cols] * values).sum(-1)
-
-    @staticmethod
-    def symbolic(g, code, cols, values, stage):  # noqa: ARG004
-        w = _const(g, _dense_t(stage.cols, stage.values, stage.hidden, np.int8))  # (M, N)
-        e = g.op("MatMulInteger", g.op("Cast", code, to_i=_UINT8), w)
-        return g.op("Cast", e, to_i=_INT64)
-
-
 def kwta_code(hid: torch.Tensor, k: int) -> torch.Tensor:
     """Binary k-WTA of int64 ``(B, M)``: the ``k`` largest, ties to the lowest index.
 
@@ -137,6 +84,59 @@ def kwta_code(hid: torch.Tensor, k: int) -> torch.Tensor:
     key = hid * m + torch.arange(m - 1, -1, -1, dtype=torch.int64, device=hid.device)
     win = key.topk(k, dim=1, sorted=False).indices
     return torch.zeros_like(hid).scatter_(1, win, 1)
+
+
+def _l1_graph(g, x, stage):
+    """Step 3 in the ONNX graph: ``x @ W1`` (int32) with four int8 ``MatMulInteger`` products.
+
+    Each 12-bit operand splits into ``64 * hi + lo`` with ``lo = v mod 64`` in 0..63 and
+    ``hi`` in -32..31, so ``x @ w = 4096 hh + 64 (hl + lh) + ll``; every partial sum stays
+    inside int32 for ``fan_in <= 512`` (the format's bound), so the result is exact.
+    """
+    w = _dense_t(stage.cols, stage.values, stage.n_input, np.int32)  # (D, M)
+    w_lo = np.mod(w, 64)
+    wh, wl = _const(g, ((w - w_lo) // 64).astype(np.int8)), _const(g, w_lo.astype(np.int8))
+    i64 = lambda v: _const(g, np.asarray(v, np.int64))  # noqa: E731
+    x_lo = g.op("Mod", x, i64(64), fmod_i=0)  # 0..63 (floor modulo)
+    # hi + 32 in 0..63 as uint8 with zero point 32: the fast uint8 x int8 kernels
+    x_hi = g.op("Add", g.op("Div", g.op("Sub", x, x_lo), i64(64)), i64(32))
+    x_hi = g.op("Cast", x_hi, to_i=_UINT8)
+    x_lo = g.op("Cast", x_lo, to_i=_UINT8)
+    zp = _const(g, np.asarray(32, np.uint8))
+    hh = g.op("MatMulInteger", x_hi, wh, zp)
+    mid = g.op("Add", g.op("MatMulInteger", x_hi, wl, zp), g.op("MatMulInteger", x_lo, wh))
+    ll = g.op("MatMulInteger", x_lo, wl)
+    i32 = lambda v: _const(g, np.asarray(v, np.int32))  # noqa: E731
+    return g.op("Add", g.op("Add", g.op("Mul", hh, i32(4096)), g.op("Mul", mid, i32(64))), ll)
+
+
+class _SparseCore(torch.autograd.Function):
+    """Steps 3-5's integer sums: L1 activity ``x`` -> L1 product -> k-WTA -> L3 sums ``e``.
+
+    Eagerly (the definition): gathers of the stored index lists and :func:`kwta_code`. In
+    the ONNX graph: the L1 product as four int8 ``MatMulInteger`` products (int32 sums),
+    ``TopK`` on those sums (ONNX ``TopK`` breaks ties by the lower index, the format's rule),
+    the winners scattered into a uint8 code and one ``MatMulInteger`` with the int8 L3
+    weights: the same integers without int64 copies of the ``(B, M)`` tensors.
+    """
+
+    @staticmethod
+    def forward(ctx, x, l1_cols, l1_values, l3_cols, l3_values, k, model):  # noqa: ARG004
+        hid = (x[:, l1_cols] * l1_values).sum(-1)  # (B, M), |hid| < 2**31
+        code = kwta_code(hid, k)
+        return (code[:, l3_cols] * l3_values).sum(-1)  # (B, N)
+
+    @staticmethod
+    def symbolic(g, x, l1_cols, l1_values, l3_cols, l3_values, k, model):  # noqa: ARG004
+        hid = _l1_graph(g, x, model.l1)  # (B, M) int32
+        _, win = g.op("TopK", hid, _const(g, np.asarray([k], np.int64)), outputs=2, axis_i=1,
+                      largest_i=1, sorted_i=0)
+        zeros = g.op("ConstantOfShape", g.op("Shape", hid),
+                     value_t=torch.zeros(1, dtype=torch.uint8))
+        ones = g.op("Expand", _const(g, np.ones((1, 1), np.uint8)), g.op("Shape", win))
+        code = g.op("ScatterElements", zeros, win, ones, axis_i=1)
+        w3 = _const(g, _dense_t(model.l3.cols, model.l3.values, model.l3.hidden, np.int8))
+        return g.op("Cast", g.op("MatMulInteger", code, w3), to_i=_INT64)
 
 
 class IntegerStepModule(nn.Module):
@@ -189,13 +189,14 @@ class IntegerStepModule(nn.Module):
         x = torch.where(var > 0, z.clamp(-X_MAX, X_MAX), torch.zeros_like(z))
         return x.reshape(-1, h * w)
 
-    def hidden(self, x: torch.Tensor) -> torch.Tensor:
-        """Step 3: ``hid[b, m] = sum_f l1.values[m, f] * x[b, l1.cols[m, f]]`` ``(B, M)``."""
-        return _L1Product.apply(x, self.l1_cols, self.l1_values, self.stages.l1)
+    def evidence(self, x: torch.Tensor) -> torch.Tensor:
+        """Steps 3-5: L1 activity ``(B, D)`` -> rescaled evidence ``E`` ``(B, N)`` int64.
 
-    def evidence(self, code: torch.Tensor) -> torch.Tensor:
-        """Step 5: 0/1 code ``(B, M)`` -> rescaled evidence ``E`` ``(B, N)`` int64."""
-        e = _L3Product.apply(code, self.l3_cols, self.l3_values, self.stages.l3)
+        The L1 sums, the k-WTA code and the L3 sums ``e`` (:class:`_SparseCore`), then
+        ``E = round_shift(e * row_scale, e_shift)``.
+        """
+        e = _SparseCore.apply(x, self.l1_cols, self.l1_values, self.l3_cols, self.l3_values,
+                              self.params["k"], self.stages)
         return round_div(e * self.row_scale, 1 << self.params["e_shift"])
 
     def gain_z(self, e: torch.Tensor) -> torch.Tensor:
@@ -213,8 +214,7 @@ class IntegerStepModule(nn.Module):
 
     def drive(self, frames: torch.Tensor) -> torch.Tensor:
         """Steps 1-6, the state-free part: uint8 frames -> ``g`` ``(B, N)`` int64."""
-        code = kwta_code(self.hidden(self.input_stage(frames)), self.params["k"])
-        return self.gain_z(self.evidence(code))
+        return self.gain_z(self.evidence(self.input_stage(frames)))
 
     def ring(self, state: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         """Step 7: previous int32 state and ``g`` -> new activity ``(B, N)`` int32."""
