@@ -44,7 +44,8 @@ def build_integer_onnx(model: IntegerModel,
     integer (uint8 frames, int32/int64 arithmetic, the 12-bit L1 product as four int8
     ``MatMulInteger`` products, the L3 product as one, ``TopK`` k-WTA on unique keys, ``Div``
     on non-negative int64 for rounding, ``isqrt`` bit by bit). The dense product weights take
-    about ``14 * n_input * hidden + 2 * hidden * n_units`` bytes to build, refused past
+    about ``14 * n_input * hidden + 2 * hidden * n_units`` bytes to build (and the one-hot
+    cohort membership ``16 * n_units * n_cohorts``), refused past
     ``memory_budget`` (``IntegerFormatError``).
 
     Inputs: ``frames`` uint8 ``(B, h*pool_h, w*pool_w)``, ``state`` int32 ``(B, N)``.
@@ -53,7 +54,8 @@ def build_integer_onnx(model: IntegerModel,
     """
     p = model.check().params
     check_dense_budget("the integer ONNX graph", 14 * p["n_input"] * p["hidden"]
-                       + 2 * p["hidden"] * p["n_units"], int(memory_budget))
+                       + 2 * p["hidden"] * p["n_units"] + 16 * p["n_units"] * p["n_cohorts"],
+                       int(memory_budget))
     frames = torch.zeros(2, p["height"] * p["pool_h"], p["width"] * p["pool_w"],
                          dtype=torch.uint8)
     state = torch.zeros(2, p["n_units"], dtype=torch.int32)

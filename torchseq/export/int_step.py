@@ -35,9 +35,41 @@ def round_div(a: torch.Tensor, b: torch.Tensor | int) -> torch.Tensor:
     Returns:
         int64 tensor of ``a``'s broadcast shape (exact: ``2|a| + b < 2**63``).
     """
-    # both operands are non-negative, so truncation is the floor (one ONNX integer Div)
-    q = torch.div(2 * a.abs() + b, 2 * b, rounding_mode="trunc")
+    q = _TruncDiv.apply(2 * a.abs() + b, torch.as_tensor(2 * b))
     return torch.where(a < 0, -q, q)
+
+
+class _TruncDiv(torch.autograd.Function):
+    """``a / b`` truncated, for non-negative int64 (so also the floor): one ONNX ``Div``.
+
+    (``torch.div(..., rounding_mode="trunc")`` exports with two extra ``Cast`` nodes.)
+    """
+
+    @staticmethod
+    def forward(ctx, a, b):  # noqa: ARG004
+        return torch.div(a, b, rounding_mode="trunc")
+
+    @staticmethod
+    def symbolic(g, a, b):
+        return g.op("Div", a, b)
+
+
+class _CohortSums(torch.autograd.Function):
+    """Per-cohort sums of ``(B, N)`` int64 -> ``(B, C)``, eager and in the graph.
+
+    Eagerly ``scatter_add`` over the cohort index; in the ONNX graph one int64 ``MatMul``
+    with the one-hot ``(N, C)`` membership (fewer nodes than the exported scatter).
+    """
+
+    @staticmethod
+    def forward(ctx, e, cohort, stage):  # noqa: ARG004
+        zeros = torch.zeros(e.shape[0], stage.n_cohorts, dtype=torch.int64, device=e.device)
+        return zeros.scatter_add(1, cohort.expand(e.shape[0], -1), e)
+
+    @staticmethod
+    def symbolic(g, e, cohort, stage):  # noqa: ARG004
+        members = np.eye(stage.n_cohorts, dtype=np.int64)[stage.cohort.astype(np.int64)]
+        return g.op("MatMul", e, _const(g, members))
 
 
 def isqrt(v: torch.Tensor, bits: int = ISQRT_BITS) -> torch.Tensor:
@@ -49,7 +81,7 @@ def isqrt(v: torch.Tensor, bits: int = ISQRT_BITS) -> torch.Tensor:
     ``r = 0; c = r + 2**b; r = c if c*c <= v``, the same function.
     """
     if torch.onnx.is_in_onnx_export():
-        r = torch.zeros_like(v)
+        r = v * 0  # one node (zeros_like exports as Shape + ConstantOfShape)
         for bit in range(min(bits, ISQRT_BITS) - 1, -1, -1):
             cand = r + (1 << bit)
             r = torch.where(cand * cand <= v, cand, r)
@@ -186,7 +218,7 @@ class IntegerStepModule(nn.Module):
         peak = n * 255 * ph * pw // 2 + 1  # sqrt(V) <= n * 255 * ph * pw / 2
         root = isqrt(var * (1 << (2 * p["sqrt_frac"])), (peak << p["sqrt_frac"]).bit_length())
         z = round_div((n * blocks - total) * p["norm_const"], root.clamp_min(1))
-        x = torch.where(var > 0, z.clamp(-X_MAX, X_MAX), torch.zeros_like(z))
+        x = torch.where(var > 0, z.clamp(-X_MAX, X_MAX), 0)
         return x.reshape(-1, h * w)
 
     def evidence(self, x: torch.Tensor) -> torch.Tensor:
@@ -202,14 +234,13 @@ class IntegerStepModule(nn.Module):
     def gain_z(self, e: torch.Tensor) -> torch.Tensor:
         """Step 6: cohort z-score times gain on the activity grid (rectified), ``(B, N)``."""
         p = self.params
-        zeros = torch.zeros(e.shape[0], p["n_cohorts"], dtype=torch.int64, device=e.device)
-        idx = self.cohort.expand(e.shape[0], -1)
-        total = zeros.scatter_add(1, idx, e)  # (B, C)
-        var = self.cohort_size * zeros.scatter_add(1, idx, e * e) - total * total
+        total = _CohortSums.apply(e, self.cohort, self.stages.cohort)  # (B, C)
+        squares = _CohortSums.apply(e * e, self.cohort, self.stages.cohort)
+        var = self.cohort_size * squares - total * total
         root = isqrt(var, self.cohort_bits)[:, self.cohort]
         dev = self.cohort_size[self.cohort] * e - total[:, self.cohort]
         g = round_div(dev * p["gain_const"], root.clamp_min(1) * (1 << p["gain_shift"]))
-        g = torch.where(var[:, self.cohort] > 0, g, torch.zeros_like(g))
+        g = torch.where(var[:, self.cohort] > 0, g, 0)
         return g.clamp_min(0) if p["rectify"] else g
 
     def drive(self, frames: torch.Tensor) -> torch.Tensor:
