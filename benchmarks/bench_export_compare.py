@@ -30,6 +30,7 @@ import hashlib, json, time
 import numpy as np
 import torch
 torch.set_num_threads(1)
+import torchseq
 from torchseq.demo import make_demo
 from torchseq.export.int_format import decode, encode
 from torchseq.export.int_model import device_frames, integer_model
@@ -69,6 +70,7 @@ out = {
         lambda: sess.run(None, {"frames": u8[:1], "state": state1}), 1.0) * 1e6,
     "integer ONNX b256 (frames/s)": 256 / per_call(
         lambda: sess.run(None, {"frames": batch, "state": state256}), 2.0),
+    "torchseq": torchseq.__file__,
     "sha": hashlib.sha256(data).hexdigest()[:12] + "/"
            + hashlib.sha256(graph.SerializeToString()).hexdigest()[:12],
 }
@@ -78,11 +80,16 @@ print(json.dumps(out))
 
 def run_child(path: Path) -> dict:
     env = dict(os.environ, PYTHONPATH=str(path), OMP_NUM_THREADS="1")
+    # cwd=path: ``python -c`` puts the working directory first on sys.path, before
+    # PYTHONPATH, so started from a checkout both sides would import that checkout's code
     done = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True,
-                          check=False)
+                          check=False, cwd=path)
     if done.returncode:
         sys.exit(f"measurement failed with {path}:\n{done.stderr[-3000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    if Path(out.pop("torchseq")).resolve() != (path / "torchseq" / "__init__.py").resolve():
+        sys.exit(f"the measurement with {path} imported another torchseq")
+    return out
 
 
 def main() -> None:

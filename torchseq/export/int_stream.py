@@ -17,8 +17,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchseq.export.int_format import IntegerModel
-from torchseq.export.int_runtime import INT32_MAX, IntegerRuntime
+from torchseq.export.int_format import IntegerModel, read_integer_model
+from torchseq.export.int_runtime import (
+    INT32_MAX,
+    MEMORY_BUDGET,
+    IntegerRuntime,
+    check_dense_budget,
+)
 from torchseq.neural.fast import Int8Linear
 
 EXACT_F32 = 2**24  # integers below this are exact in float32
@@ -30,12 +35,19 @@ class StreamRuntime(IntegerRuntime):
     Args:
         model: an :class:`IntegerModel` or a path to a ``.tsq`` file.
         chunk: frames per batch of the state-free stages (memory bound, not a result change).
+        memory_budget: bytes of dense weights it may build (``IntegerFormatError`` past it).
     """
 
-    def __init__(self, model: IntegerModel | str | Path, chunk: int = 256) -> None:
-        super().__init__(model)
+    def __init__(self, model: IntegerModel | str | Path, chunk: int = 256,
+                 memory_budget: int = MEMORY_BUDGET) -> None:
+        if not isinstance(model, IntegerModel):
+            model = read_integer_model(model)
+        p = model.params
+        # the L3 matrix of the NumPy kernels plus the dense int64 L1 matrix and the int8 copies
+        check_dense_budget("StreamRuntime", 5 * p["hidden"] * p["n_units"]
+                           + 9 * p["hidden"] * p["n_input"], int(memory_budget))
+        super().__init__(model, kernel="numpy", memory_budget=memory_budget)
         self.chunk = int(chunk)
-        p = self.params
         w1 = np.zeros((p["hidden"], p["n_input"]), np.int64)  # (M, D) dense
         np.put_along_axis(w1, self.l1_cols, self.l1_values.astype(np.int64), axis=1)
         self.l1_int8 = None  # used for chunks whose |x| <= 127 (checked per chunk)
