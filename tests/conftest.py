@@ -1,7 +1,15 @@
+import os
 from pathlib import Path
 
 import pytest
 import torch
+from hypothesis import settings
+
+# Property tests draw the same cases on every run (CI must not flip on a new draw); set
+# HYPOTHESIS_PROFILE=explore to draw fresh cases while hunting for bugs.
+settings.register_profile("torchseq", derandomize=True, database=None, deadline=None)
+settings.register_profile("explore", derandomize=False, database=None, deadline=None)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "torchseq"))
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

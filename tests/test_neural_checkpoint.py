@@ -169,8 +169,34 @@ def test_foreign_tensors_are_refused(saved, tmp_path_factory, name, shape, dtype
     bad = tmp_path_factory.mktemp("sd") / "mutant.pt"
     torch.save(mutant, bad)
     model = _load_or_refuse(bad)
-    if model is not None:  # only the saved tensor itself can pass
-        _same_model(model, blob)
+    if model is not None:  # a resealed file of the right shapes is a valid model: exactly it
+        _same_model(model, mutant)
+
+
+@pytest.mark.parametrize("field, value", [("ring_spread", 2**24), ("uniqueness_window", 10**9)])
+def test_huge_reach_in_a_resealed_config_runs_like_the_ring_it_covers(saved, tmp_path, field,
+                                                                    value):
+    # a window or lag reaching past the ring means "every unit": it must not size a tensor
+    # (found by the hostile-config property: 16 GB for ring_spread 2**24 in band_diagonals)
+    path, _, blob, query = saved
+    n = blob["state_dict"]["unit_to_reference"].shape[0]
+    mutant = dict(blob, config=dict(blob["config"], **{field: value}))
+    mutant["checksum"] = checksum(FORMAT, mutant["config"], mutant["state_dict"],
+                                  mutant["extra"])
+    torch.save(mutant, tmp_path / "reach.pt")
+    same = dict(blob, config=dict(blob["config"], **{field: n}))
+    same["checksum"] = checksum(FORMAT, same["config"], same["state_dict"], same["extra"])
+    torch.save(same, tmp_path / "ring.pt")
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    for kernels in ("auto", "portable"):
+        a = NeuralSeqSLAM.load(tmp_path / "reach.pt")
+        b = NeuralSeqSLAM.load(tmp_path / "ring.pt")
+        a.fold(kernels)
+        b.fold(kernels)
+        ra, rb = a.run(query), b.run(query)
+        assert torch.equal(ra.matches.reference, rb.matches.reference)
+        assert torch.equal(ra.matches.confidence, rb.matches.confidence)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 512 * 1024  # KiB
 
 
 def test_no_mutant_allocated_more_than_the_file_holds(saved):

@@ -67,7 +67,7 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
         raise IntegerFormatError(f"pool must be positive, got {pool}")
     p = {"height": h, "width": w, "pool_h": int(pool[0]), "pool_w": int(pool[1]), "patch": patch,
          "n_input": cfg.n_input, "hidden": cfg.hidden,
-         "k": cfg.k, "n_units": n_units, "window": int(cfg.uniqueness_window),
+         "k": cfg.k, "n_units": n_units, "window": min(int(cfg.uniqueness_window), n_units),
          "sqrt_frac": SQRT_FRAC, "state_frac": STATE_FRAC, "ring_frac": RING_FRAC}
     if patch:
         n = patch * patch

@@ -84,6 +84,7 @@ def band_diagonals(shift: torch.Tensor, max_lag: int) -> torch.Tensor | None:
     ``0 <= i - j <= max_lag``.
     """
     n = shift.shape[0]
+    max_lag = min(int(max_lag), n - 1)  # no lag reaches past the ring: bounds the allocation
     i = torch.arange(n, device=shift.device)
     lag = i[:, None] - i[None, :]  # (N, N) next - current
     if bool((shift[(lag < 0) | (lag > max_lag)] != 0).any()):

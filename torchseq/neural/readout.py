@@ -29,6 +29,9 @@ def decide(activity: torch.Tensor, unit_centre: torch.Tensor, window: int,
     Returns:
         ``(reference (B,) int64, confidence (B,) float)``.
     """
+    # a window reaching past the ring changes nothing (every unit is inside already); clamped
+    # so a hostile checkpoint's 10**9 cannot size an index tensor
+    window = min(int(window), activity.shape[1])
     if kernel == "numpy":
         return _decide_numpy(activity, unit_centre, window)
     if kernel != "torch":
