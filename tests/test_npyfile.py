@@ -148,3 +148,32 @@ def test_size_check_before_allocation():
     h = read_header(fp, "f.npy", Bad)
     with pytest.raises(Bad, match="truncated array data"):
         read_data(fp, h, 16, "f.npy", Bad)
+
+
+def test_event_npy_streams_in_bounded_memory(tmp_path):
+    """A large event ``.npy`` goes through the shared header check and is then streamed from a
+    memory map chunk by chunk, never read whole (13 MB on disk, well under 3 MB traced)."""
+    import tracemalloc
+
+    from torchseq.events import iter_events
+    from torchseq.events.stream import make_events
+    n = 1_000_000
+    rng = np.random.default_rng(1)
+    ev = make_events(np.arange(n), rng.integers(0, 64, n), rng.integers(0, 48, n),
+                     rng.integers(0, 2, n))
+    np.save(tmp_path / "big.npy", ev)
+    with open(tmp_path / "big.npy", "rb") as f:
+        data = read_header(f, "big.npy", Bad).size
+    tracemalloc.start()
+    total, last_t, offsets = 0, -1, []
+    for chunk in iter_events(tmp_path / "big.npy", 1 << 14, sensor_size=(64, 48)):
+        t = chunk.events["t"]
+        assert t[0] == last_t + 1
+        assert np.array_equal(chunk.events["x"], ev["x"][total:total + len(t)])
+        total, last_t = total + len(t), int(t[-1])
+        offsets.append(chunk.offset)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert total == n
+    assert offsets == [data + i * ev.dtype.itemsize for i in range(0, n, 1 << 14)]
+    assert peak < 3_000_000, peak
