@@ -5,24 +5,23 @@
 are read too. CSV/text: one event per line, ``t,x,y,p`` (commas or whitespace), an optional
 header line naming the columns in any order; polarity -1/+1 becomes 0/1.
 
-NumPy headers are parsed here (not by ``np.load``) so that a damaged or hostile header is a
-clear error: the declared shape must fit in the bytes that follow (a 300-byte file cannot
+NumPy headers are parsed by the library's one bounded reader (:mod:`torchseq.npyfile`, not
+``np.load``) so that a damaged or hostile header is a clear :class:`EventFormatError` with
+the byte offset: the declared shape must fit in the bytes that follow (a 300-byte file cannot
 make the reader allocate gigabytes), object dtypes are refused, and ``.npz`` members are
 read in bounded pieces, so memory never exceeds what the archive really decompresses to.
+A large ``.npy`` is streamed through a memory map, ``chunk_events`` at a time.
 Values are converted exactly (:func:`~torchseq.events.stream.make_events`): CSV integers
 are parsed as int64, never through float64.
 """
 
 from __future__ import annotations
 
-import ast
 import io
 import lzma
 import re
-import struct
 import warnings
 import zipfile
-import zlib
 from collections.abc import Iterator
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
@@ -39,71 +38,18 @@ from torchseq.events.stream import (
     file_error,
     make_events,
 )
+from torchseq.npyfile import ZIP_ERRORS, NpyHeader, check_size, read_header, read_member
 
-NPY_MAGIC = b"\x93NUMPY"
-MAX_NPY_HEADER = 1 << 16
-_PIECE = 1 << 24  # bytes read per piece from a compressed .npz member
-_ZIP_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, NotImplementedError,
-               RuntimeError, ValueError, struct.error, zlib.error, lzma.LZMAError)
+_ZIP_ERRORS = ZIP_ERRORS + (lzma.LZMAError,)
 
 
-def read_npy_header(f, path, where: int = 0) -> tuple[np.dtype, tuple[int, ...], int]:
-    """Parse a ``.npy`` header from ``f``'s position: ``(dtype, shape, header bytes)``.
-
-    Every failure (bad magic, version, length, dict literal, descr, shape) is an
-    :class:`EventFormatError` naming ``path`` and the byte offset ``where`` of the header.
-    """
-    head = f.read(8)
-    if len(head) < 8 or head[:6] != NPY_MAGIC:
-        raise file_error(path, where, "not a .npy array (bad magic)")
-    major = head[6]
-    if major == 1:
-        raw = f.read(2)
-        n = struct.unpack("<H", raw)[0] if len(raw) == 2 else -1
-        start = 10
-    elif major in (2, 3):
-        raw = f.read(4)
-        n = struct.unpack("<I", raw)[0] if len(raw) == 4 else -1
-        start = 12
-    else:
-        raise file_error(path, where, f"unsupported .npy version {major}.{head[7]}")
-    if not 0 <= n <= MAX_NPY_HEADER:
-        raise file_error(path, where, "truncated or oversized .npy header")
-    text = f.read(n)
-    if len(text) < n:
-        raise file_error(path, where, "truncated .npy header")
-    try:
-        d = ast.literal_eval(text.decode("utf-8" if major == 3 else "latin1"))
-    except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError) as err:
-        raise file_error(path, where, f"unreadable .npy header ({type(err).__name__})") from None
-    if not isinstance(d, dict) or set(d) != {"descr", "fortran_order", "shape"}:
-        raise file_error(path, where, "the .npy header is not a dict of descr, fortran_order, "
-                         "shape")
-    shape = d["shape"]
-    if (not isinstance(shape, tuple) or not all(type(v) is int and v >= 0 for v in shape)
-            or not isinstance(d["fortran_order"], bool)):
-        raise file_error(path, where, f"bad .npy shape/fortran_order {shape!r}")
-    try:
-        dtype = np.lib.format.descr_to_dtype(d["descr"])
-    except (TypeError, ValueError, KeyError, IndexError, AttributeError, RecursionError,
-            SyntaxError, OverflowError, MemoryError) as err:
-        raise file_error(path, where, f"bad .npy dtype ({type(err).__name__})") from None
-    if dtype.hasobject:
-        raise file_error(path, where, "the .npy array holds Python objects (refused)")
-    if dtype.itemsize == 0:
-        raise file_error(path, where, f"the .npy dtype {dtype} has no size")
-    return dtype, shape, start + n
-
-
-def _count(shape, dtype, available: int, path, where: int, what: str) -> int:
-    """Elements of a 1-D ``shape``, checked against the ``available`` bytes."""
-    if len(shape) != 1:
-        raise file_error(path, where, f"{what} must be a 1-D array, got shape {shape}")
-    n = shape[0]
-    if n * dtype.itemsize > available:
-        raise file_error(path, where, f"{what} declares {n} elements ({n * dtype.itemsize} "
-                         f"bytes) but only {available} bytes follow the header")
-    return n
+def _events_header(f, path, where: int, available, what: str) -> tuple[NpyHeader, int]:
+    """A shared-parser ``.npy`` header of a 1-D array and its element count, bounded."""
+    header = read_header(f, path, EventFormatError, where)
+    if len(header.shape) != 1:
+        raise file_error(path, where, f"{what} must be a 1-D array, got shape {header.shape}")
+    check_size(header, available - header.size, path, EventFormatError, where, what)
+    return header, header.shape[0]
 
 
 def _with_size(events: np.ndarray, sensor_size, path: Path) -> EventStream:
@@ -139,11 +85,11 @@ def iter_npy(path: str | Path, chunk_events: int = 1 << 20,
     if sensor_size is not None:
         sensor_size = check_sensor_size(sensor_size)
     with open(path, "rb") as f:
-        dtype, shape, data = read_npy_header(f, path)
+        header, n = _events_header(f, path, 0, path.stat().st_size, "the event array")
+    dtype, data = header.dtype, header.size
     if dtype.names is None or any(k not in dtype.names for k in "txyp"):
         raise file_error(path, 0, f"not a structured event array with fields t, x, y, p "
                          f"(dtype {dtype})")
-    n = _count(shape, dtype, path.stat().st_size - data, path, 0, "the event array")
     arr = (np.memmap(path, dtype, "r", offset=data, shape=(n,)) if n
            else np.empty(0, dtype))
 
@@ -170,22 +116,13 @@ def iter_npy(path: str | Path, chunk_events: int = 1 << 20,
 
 
 def _read_member(zf: zipfile.ZipFile, name: str, path) -> np.ndarray:
-    """One ``.npy`` member of an archive, read in bounded pieces."""
+    """One 1-D ``.npy`` member of an archive (the shared bounded reader)."""
     info = zf.getinfo(name)
-    where = info.header_offset
-    if info.compress_type == zipfile.ZIP_STORED and info.file_size != info.compress_size:
-        raise file_error(path, where, f"member {name} declares {info.file_size} bytes but "
-                         f"stores {info.compress_size}")
-    with zf.open(info) as f:
-        dtype, shape, head = read_npy_header(f, path, where)
-        n = _count(shape, dtype, info.file_size - head, path, where, f"member {name}")
-        need, parts = n * dtype.itemsize, []
-        while need:
-            parts.append(f.read(min(need, _PIECE)))
-            if not parts[-1]:
-                raise file_error(path, where, f"member {name} ends early")
-            need -= len(parts[-1])
-    return np.frombuffer(b"".join(parts), dtype, n)
+    array = read_member(zf, info, path, EventFormatError)
+    if array.ndim != 1:
+        raise file_error(path, info.header_offset, f"member {name} must be a 1-D array, got "
+                         f"shape {array.shape}")
+    return array
 
 
 def read_npz(path: str | Path, sensor_size: tuple[int, int] | None = None) -> EventStream:
