@@ -278,8 +278,6 @@ def _is_event_file(path: Path) -> bool:
 
 
 def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
-    import inspect
-
     from torchseq.events import load_event_frames
 
     kwargs = {}
@@ -301,10 +299,7 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
         if suffix not in (".aedat", ".aedat4", ".raw"):
             raise TraverseError(f"{path}: 'truncated' applies to .aedat, .aedat4 and .raw")
         kwargs["truncated"] = opts.truncated
-    if opts.anchor != "first":  # today's behaviour needs no keyword
-        if "anchor" not in inspect.signature(load_event_frames).parameters:
-            raise TraverseError("window anchoring ('zero' or a time) needs a torchseq.events "
-                                "with load_event_frames(anchor=...)")
+    if opts.anchor != "first":
         kwargs["anchor"] = opts.anchor
     try:
         return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
