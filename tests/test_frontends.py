@@ -368,3 +368,29 @@ def test_event_crop_mode_and_filters_reach_the_traverse(tmp_path, capsys, monkey
 def test_event_flags_are_checked_before_any_work(tmp_path, capsys, args, message):
     code, err = run_inprocess("eval", capsys, *args, "--out", str(tmp_path))
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def readme_commands(word):
+    """The README's ``torchseq eval`` commands that mention ``word``, as argv lists."""
+    import shlex
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8").replace("\\\n", " ")
+    return [shlex.split(line.split("torchseq eval", 1)[1]) for line in text.splitlines()
+            if line.startswith("torchseq eval") and word in line]
+
+
+def test_readme_event_examples_never_resize_event_frames():
+    # each README event example reads its event frames at the size they are made: no silent
+    # upsampling of 16x16 frames to the default 32x64 (nor squeezing of two-channel frames)
+    from torchseq.cli_eval import parse_args
+    from torchseq.frontend import parse_size
+
+    examples = readme_commands(".aedat")
+    assert len(examples) >= 2 and any("two-channel" in argv for argv in examples)
+    for argv in examples:
+        s = parse_args(argv)[0]
+        h, w = parse_size(s.run.frame_size)
+        frame = (h, 2 * w) if s.run.event_mode.replace("-", "_") == "two_channel" else (h, w)
+        assert tuple(s.seqslam.image_size) == frame, argv
+        if s.run.engine in ("neural", "both"):
+            assert tuple(s.neural.input_size) == frame, argv
