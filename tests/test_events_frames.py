@@ -327,3 +327,15 @@ def test_load_event_frames_pixel_filters(tmp_path):
     np.testing.assert_array_equal(got.numpy(), np.clip(
         loop_frames(allev[keep], 6, 6, None, 10_000, "count"), 0, 255))
     assert got[0, 3, 2] == 0 and 0 < float(got.sum()) < 600
+
+
+def test_tonic_sensor_size_with_polarity_count(tmp_path):
+    # tonic's sensor_size=(W, H, P): P, the polarity count, is not a size
+    ev = sample(300, 12, 8, seed=14)
+    want = accumulate(ev, (12, 8), window_us=20_000, mode="count")
+    assert torch.equal(accumulate(ev, (12, 8, 2), window_us=20_000, mode="count"), want)
+    write_npz(tmp_path / "e.npz", EventStream(ev, (12, 8)))
+    got = load_event_frames(tmp_path / "e.npz", window_ms=20.0, sensor_size=(12, 8, 2))
+    assert torch.equal(got, want.clamp(0, 255))
+    with pytest.raises(ValueError, match="sensor_size"):
+        accumulate(ev, (12, 8, 5), window_us=20_000)

@@ -44,6 +44,7 @@ PUBLIC = {
     "torchseq.events.ensemble": ["accumulate_ensemble", "ensemble_base", "match_ensemble"],
     "torchseq.events.traverse": ["TRAVERSE_MODES", "accumulate_pool", "crop_events",
                                  "load_event_frames"],
+    "torchseq.events.frames": ["MODES", "accumulate", "sensor_wh", "window_origin"],
     "torchseq.events.stream": ["FLOAT_SECONDS_BELOW", "float_times_to_us"],
     "torchseq.seqslam.config": ["PRESETS", "SeqSLAMConfig"],
     "torchseq.neural.fixed_point": [

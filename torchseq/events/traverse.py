@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchseq.events.frames import accumulate, window_origin
+from torchseq.events.frames import accumulate, sensor_wh, window_origin
 from torchseq.events.io import read_events
 from torchseq.events.stream import EventFormatError, EventStream
 
@@ -41,7 +41,7 @@ def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: in
         window_ms: window length in milliseconds (ignored when ``event_count`` is set).
         event_count: events per frame instead of time windows.
         frame_size: ``(H, W)`` to area-pool the frames to, or None for the sensor size.
-        sensor_size: ``(W, H)`` override of the file's sensor size.
+        sensor_size: ``(W, H)`` (or tonic's ``(W, H, P)``) override of the file's sensor size.
         mode: ``"count"``, ``"signed"``, ``"binary"`` or ``"two_channel"`` (see above).
         anchor: where window 0 starts: ``"first"`` (the first event, default), ``"zero"``
             (sensor time 0) or an int sensor time in microseconds; frame ``k`` covers
@@ -73,6 +73,8 @@ def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: in
         raise ValueError(f"start_ms must be a finite time >= 0, got {start_ms}")
     if duration_ms is not None and not (math.isfinite(duration_ms) and duration_ms > 0):
         raise ValueError(f"duration_ms must be a finite time > 0, got {duration_ms}")
+    if sensor_size is not None:
+        sensor_size = sensor_wh(sensor_size)
     stream = read_events(path, sensor_size=sensor_size, sort=True, **options)
     if start_ms or duration_ms is not None:
         stream, anchor = crop_events(stream, anchor, start_ms, duration_ms, path)
