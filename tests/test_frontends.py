@@ -365,9 +365,11 @@ def test_event_crop_mode_and_filters_reach_the_traverse(tmp_path, capsys, monkey
     (["--hot-pixel", "0"], "--hot-pixel must be"),
     (["--refractory-us", "-1"], "--refractory-us must be"),
 ])
-def test_event_flags_are_checked_before_any_work(tmp_path, capsys, args, message):
-    code, err = run_inprocess("eval", capsys, *args, "--out", str(tmp_path))
+@pytest.mark.parametrize("script", ["eval", "train"])
+def test_event_flags_are_checked_before_any_work(tmp_path, capsys, args, message, script):
+    code, err = run_inprocess(script, capsys, *args, "--out", str(tmp_path / "o"))
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()  # refused before the run folder was made
 
 
 def readme_commands(word):
