@@ -34,11 +34,13 @@ def make_events(t, x, y, p) -> np.ndarray:
 def as_event_array(events: np.ndarray, name: str = "events") -> np.ndarray:
     """Convert any structured array with fields ``t, x, y, p`` to :data:`EVENT_DTYPE`.
 
-    Polarity given as -1/+1 (or any signed values) becomes 0/1 (``p > 0``). Floating-point
-    times follow :func:`float_times_to_us` (tonic-style float seconds are converted, with a
-    warning; never read as microseconds).
+    Polarity given as -1/+1 (or any signed values) becomes 0/1 (``p > 0``).
     """
     events = np.asarray(events)
+    if events.dtype.names and "t" in events.dtype.names and events["t"].dtype.kind == "f":
+        from torchseq.events.times import with_us_times  # tonic's float seconds
+
+        events = with_us_times(events, name)
     names = events.dtype.names or ()
     missing = [f for f in "txyp" if f not in names]
     if missing:
@@ -48,43 +50,7 @@ def as_event_array(events: np.ndarray, name: str = "events") -> np.ndarray:
     p = events["p"]
     if p.dtype.kind in "if" and (p < 0).any():
         p = p > 0
-    t = events["t"]
-    if t.dtype.kind == "f":
-        t = float_times_to_us(t, name)
-    return make_events(t, events["x"], events["y"], p)
-
-
-FLOAT_SECONDS_BELOW = 1e5  # float times with fractions under this are seconds (27.7 hours)
-
-
-def float_times_to_us(t: np.ndarray, name: str = "events") -> np.ndarray:
-    """``(N,)`` int64 microseconds from floating-point event times.
-
-    Whole-number floats are microseconds already (a float64 copy of int times). Times with
-    fractional parts and ``|t| < FLOAT_SECONDS_BELOW`` are seconds (tonic and many HDF5 files
-    store float seconds): converted, rounded to the microsecond, with a warning. Fractional
-    times beyond that are neither clearly seconds nor microseconds and are refused.
-
-    Raises:
-        EventFormatError: non-finite times, or fractional times of unclear unit.
-    """
-    t = np.asarray(t, dtype=np.float64)
-    if not len(t):
-        return t.astype(np.int64)
-    if not np.isfinite(t).all():
-        raise EventFormatError(f"{name}: timestamps hold NaN or infinite values")
-    if (t == np.round(t)).all():
-        if np.abs(t).max() >= 2.0 ** 62:
-            raise EventFormatError(f"{name}: timestamps beyond int64 microseconds")
-        return t.astype(np.int64)
-    if np.abs(t).max() < FLOAT_SECONDS_BELOW:
-        warnings.warn(f"{name}: float timestamps with fractions ({t.min():g}..{t.max():g}) read "
-                      f"as seconds and converted to microseconds; store int64 microseconds to "
-                      f"silence this", stacklevel=3)
-        return np.round(t * 1e6).astype(np.int64)
-    raise EventFormatError(
-        f"{name}: float timestamps {t.min():g}..{t.max():g} have fractional parts but are too "
-        f"large to be seconds: convert them to int64 microseconds")
+    return make_events(events["t"], events["x"], events["y"], p)
 
 
 def infer_sensor_size(events: np.ndarray) -> tuple[int, int]:
