@@ -44,10 +44,17 @@ def float_times_to_us(t: np.ndarray, name: str = "events") -> np.ndarray:
 
 
 def with_us_times(events: np.ndarray, name: str = "events") -> np.ndarray:
-    """A copy of a structured event array whose float ``t`` field is int64 microseconds."""
+    """A structured event array whose float ``t`` field follows :func:`float_times_to_us`.
+
+    Only fractional times are this module's business: an array whose float times are all
+    whole numbers (or not finite) is returned as it is, for
+    :func:`torchseq.events.make_events`' exact integer check.
+    """
+    t = np.asarray(events["t"])
+    if not (np.isfinite(t).all() and (t != np.round(t)).any()):
+        return events
     fields = events.dtype.names
     out = np.empty(events.shape, [(f, "<i8" if f == "t" else events.dtype[f]) for f in fields])
     for f in fields:
-        out[f] = float_times_to_us(events[f], name).reshape(events.shape) if f == "t" \
-            else events[f]
+        out[f] = float_times_to_us(t, name).reshape(events.shape) if f == "t" else events[f]
     return out
