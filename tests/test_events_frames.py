@@ -255,3 +255,87 @@ def test_load_event_frames_anchor(tmp_path):
     np.testing.assert_array_equal(given.numpy(), np.clip(loop_frames(
         ev, 32, 32, 10_000, None, "count", 40_000), 0, 255))
     assert float(first.sum()) == 3000 and float(given.sum()) == (ev["t"] >= 40_000).sum()
+
+
+def test_load_event_frames_every_mode_against_loop(tmp_path):
+    # count, signed, binary and two-channel traverse frames from one file, each against the
+    # plain loop; two-channel frames are OFF | ON side by side (H, 2W), each half pooled
+    ev = sample(2000, 16, 8, seed=11, span=45_000)
+    write_npz(tmp_path / "e.npz", EventStream(ev, (16, 8)))
+    count = np.clip(loop_frames(ev, 16, 8, 10_000, None, "count"), 0, 255)
+    expect = {
+        "count": count,
+        "signed": np.clip(np.abs(loop_frames(ev, 16, 8, 10_000, None, "signed")), 0, 255),
+        "binary": 255 * loop_frames(ev, 16, 8, 10_000, None, "binary"),
+    }
+    two = np.clip(loop_frames(ev, 16, 8, 10_000, None, "two_channel"), 0, 255)
+    expect["two_channel"] = np.concatenate([two[:, 0], two[:, 1]], axis=-1)
+    for mode, ref in expect.items():
+        got = load_event_frames(tmp_path / "e.npz", window_ms=10.0, mode=mode)
+        np.testing.assert_array_equal(got.numpy(), ref, err_msg=mode)
+    pooled = load_event_frames(tmp_path / "e.npz", window_ms=10.0, mode="two_channel",
+                               frame_size=(4, 4))
+    assert pooled.shape == (5, 4, 8)
+    np.testing.assert_allclose(pooled.numpy(), np.concatenate(
+        [loop_pool(two[:, 0], 4, 4), loop_pool(two[:, 1], 4, 4)], axis=-1), atol=1e-5)
+    # the halves sum to the count frames: nothing lost, nothing doubled
+    np.testing.assert_array_equal(expect["two_channel"][..., :16] +
+                                  expect["two_channel"][..., 16:], count)
+    with pytest.raises(ValueError, match="mode"):
+        load_event_frames(tmp_path / "e.npz", mode="polarity")
+
+
+def test_load_event_frames_time_crop_against_loop(tmp_path):
+    ev = sample(3000, 16, 8, seed=12, span=90_000)
+    ev["t"] += 7_000
+    write_npz(tmp_path / "e.npz", EventStream(ev, (16, 8)))
+    t = ev["t"].astype(np.int64)
+
+    def ref(begin, end):
+        kept = ev[(t >= begin) & (t < end)]
+        return np.clip(loop_frames(kept, 16, 8, 10_000, None, "count", begin), 0, 255)
+
+    # first event as anchor: skip 15 ms, keep 40 ms -> windows start at t0 + 15 ms
+    t0 = int(t.min())
+    got = load_event_frames(tmp_path / "e.npz", window_ms=10.0, start_ms=15, duration_ms=40)
+    np.testing.assert_array_equal(got.numpy(), ref(t0 + 15_000, t0 + 55_000))
+    assert got.shape[0] == 4
+    # sensor-time anchor: the crop counts from sensor time 0, windows stay on that grid
+    got = load_event_frames(tmp_path / "e.npz", window_ms=10.0, anchor="zero", start_ms=30,
+                            duration_ms=20)
+    np.testing.assert_array_equal(got.numpy(), ref(30_000, 50_000))
+    got = load_event_frames(tmp_path / "e.npz", window_ms=10.0, anchor=20_000, start_ms=5)
+    np.testing.assert_array_equal(got.numpy(), ref(25_000, 10**9))
+    # event-count windows inside the crop
+    got = load_event_frames(tmp_path / "e.npz", event_count=100, start_ms=15, duration_ms=40)
+    assert float(got.sum()) == ((t >= t0 + 15_000) & (t < t0 + 55_000)).sum()
+    with pytest.raises(EventFormatError, match=r"no events in the time crop.*spans 7\d+\.\.9\d+"):
+        load_event_frames(tmp_path / "e.npz", start_ms=500)
+    with pytest.raises(ValueError, match="duration_ms"):
+        load_event_frames(tmp_path / "e.npz", duration_ms=float("nan"))
+
+
+def test_load_event_frames_pixel_filters(tmp_path):
+    ev = sample(600, 6, 6, seed=13, span=50_000)
+    hot = make_events(np.arange(400) * 120, np.full(400, 2), np.full(400, 3), np.ones(400))
+    allev = np.concatenate([ev, hot])
+    allev = allev[np.argsort(allev["t"], kind="stable")]
+    write_npz(tmp_path / "e.npz", EventStream(allev, (6, 6)))
+    keep = hot_pixel_mask(allev, (6, 6), 5.0) & refractory_mask(allev, (6, 6), 300)
+    got = load_event_frames(tmp_path / "e.npz", event_count=10_000, hot_pixel=5.0,
+                            refractory_us=300)
+    np.testing.assert_array_equal(got.numpy(), np.clip(
+        loop_frames(allev[keep], 6, 6, None, 10_000, "count"), 0, 255))
+    assert got[0, 3, 2] == 0 and 0 < float(got.sum()) < 600
+
+
+def test_tonic_sensor_size_with_polarity_count(tmp_path):
+    # tonic's sensor_size=(W, H, P): P, the polarity count, is not a size
+    ev = sample(300, 12, 8, seed=14)
+    want = accumulate(ev, (12, 8), window_us=20_000, mode="count")
+    assert torch.equal(accumulate(ev, (12, 8, 2), window_us=20_000, mode="count"), want)
+    write_npz(tmp_path / "e.npz", EventStream(ev, (12, 8)))
+    got = load_event_frames(tmp_path / "e.npz", window_ms=20.0, sensor_size=(12, 8, 2))
+    assert torch.equal(got, want.clamp(0, 255))
+    with pytest.raises(ValueError, match="sensor_size"):
+        accumulate(ev, (12, 8, 5), window_us=20_000)

@@ -314,3 +314,85 @@ def test_a_recording_too_short_for_the_windows_says_what_fits(tmp_path, capsys):
     # 6.89 s of events fill 4 windows of 2 s; windows of 600 ms give 12 >= ds = 10 frames
     assert "fills 4 windows of 2000 ms (more than 6000 ms of events); --window-ms 600 " \
         "or less gives at least 10 frames" in err
+
+
+def test_event_crop_mode_and_filters_reach_the_traverse(tmp_path, capsys, monkeypatch):
+    # a tiny synthetic recording: 300 ms on a 16x16 sensor, starting at sensor time 1 s
+    import torchseq.events as events
+    from torchseq.events import EventStream, make_events, write_npz
+
+    rng = np.random.default_rng(3)
+    n = 6000
+    t = np.sort(rng.integers(1_000_000, 1_300_000, n))
+    write_npz(tmp_path / "e.npz", EventStream(make_events(
+        t, rng.integers(0, 16, n), rng.integers(0, 16, n), rng.integers(0, 2, n)), (16, 16)))
+    seen = []
+    real = events.load_event_frames
+
+    def spy(path, **kwargs):
+        seen.append(kwargs)
+        return real(path, **kwargs)
+
+    monkeypatch.setattr(events, "load_event_frames", spy)
+    out = tmp_path / "o"
+    code, err = run_inprocess(
+        "eval", capsys, "--engine", "seqslam", "--reference", str(tmp_path / "e.npz"),
+        "--query", str(tmp_path / "e.npz"), "--tolerance", "1", "--window-anchor", "zero",
+        "--t-start", "1050", "--duration", "200", "--event-mode", "two-channel",
+        "--hot-pixel", "20", "--refractory-us", "100", "--image-size", "16x32",
+        "--patch-size", "4", "--out", str(out), "--no-tensorboard")
+    assert code == 0, err
+    assert seen and all(k["mode"] == "two_channel" and k["anchor"] == "zero" and
+                        k["start_ms"] == 1050 and k["duration_ms"] == 200 and
+                        k["hot_pixel"] == 20 and k["refractory_us"] == 100 for k in seen)
+    m = json.loads((out / "metrics.json").read_text())
+    # 200 ms of 10 ms windows from sensor time 1.05 s; OFF | ON side by side: 16x32 frames
+    assert m["seqslam"]["n_queries"] == 20
+    assert m["inputs"]["reference_frame_size"] == [16, 32] and not m["warnings"]
+    cfg = json.loads((out / "config.json").read_text())
+    assert (cfg["t_start"], cfg["duration"], cfg["event_mode"]) == (1050, 200, "two-channel")
+    # a crop past the recording's end says what the recording spans
+    code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--reference",
+                              str(tmp_path / "e.npz"), "--query", str(tmp_path / "e.npz"),
+                              "--t-start", "5000", "--out", str(tmp_path / "late"))
+    assert code == 2 and "no events in the time crop" in err and "spans 1000" in err
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--event-mode", "polarity"], "--event-mode must be one of count, signed, two-channel"),
+    (["--duration", "0"], "--duration must be in"),
+    (["--t-start", "-5"], "--t-start must be in"),
+    (["--hot-pixel", "0"], "--hot-pixel must be"),
+    (["--refractory-us", "-1"], "--refractory-us must be"),
+])
+@pytest.mark.parametrize("script", ["eval", "train"])
+def test_event_flags_are_checked_before_any_work(tmp_path, capsys, args, message, script):
+    code, err = run_inprocess(script, capsys, *args, "--out", str(tmp_path / "o"))
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()  # refused before the run folder was made
+
+
+def readme_commands(word):
+    """The README's ``torchseq eval`` commands that mention ``word``, as argv lists."""
+    import shlex
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8").replace("\\\n", " ")
+    return [shlex.split(line.split("torchseq eval", 1)[1]) for line in text.splitlines()
+            if line.startswith("torchseq eval") and word in line]
+
+
+def test_readme_event_examples_never_resize_event_frames():
+    # each README event example reads its event frames at the size they are made: no silent
+    # upsampling of 16x16 frames to the default 32x64 (nor squeezing of two-channel frames)
+    from torchseq.cli_eval import parse_args
+    from torchseq.frontend import parse_size
+
+    examples = readme_commands(".aedat")
+    assert len(examples) >= 2 and any("two-channel" in argv for argv in examples)
+    for argv in examples:
+        s = parse_args(argv)[0]
+        h, w = parse_size(s.run.frame_size)
+        frame = (h, 2 * w) if s.run.event_mode.replace("-", "_") == "two_channel" else (h, w)
+        assert tuple(s.seqslam.image_size) == frame, argv
+        if s.run.engine in ("neural", "both"):
+            assert tuple(s.neural.input_size) == frame, argv

@@ -37,12 +37,31 @@ PUBLIC = {
         "iter_aedat4", "iter_events", "iter_raw", "load_event_frames", "make_events",
         "read_csv", "read_events", "read_npz", "refractory_mask", "simulate_run",
         "write_aedat2", "write_npz",
+        # HDF5 / Parquet readers and writers, window anchors, positions along a route
+        "iter_hdf5", "read_hdf5_positions", "write_hdf5", "iter_parquet", "write_parquet",
+        "window_origin", "window_times", "positions_at", "geodetic_to_ecef",
+        "ground_truth_within",
     ],
+    "torchseq.events.ensemble": ["accumulate_ensemble", "ensemble_base", "match_ensemble"],
+    "torchseq.events.traverse": ["TRAVERSE_MODES", "accumulate_pool", "crop_events",
+                                 "load_event_frames"],
+    "torchseq.events.frames": ["MODES", "accumulate", "sensor_wh", "window_origin"],
+    "torchseq.events.times": ["FLOAT_SECONDS_BELOW", "float_times_to_us", "with_us_times"],
+    "torchseq.seqslam.config": ["PRESETS", "SeqSLAMConfig"],
     "torchseq.neural.fixed_point": [
         "factor_power_of_two", "factor_rows", "integer_weights", "quantise_input", "round_rows",
     ],
     "torchseq.ground_truth": ["GroundTruthError", "alignment_ground_truth", "load_ground_truth"],
-    "torchseq.sources": ["EventFrameOptions", "TraverseError", "load_traverse"],
+    "torchseq.sources": [
+        "EventFrameOptions", "FrameSelection", "TraverseError", "frames_from_array",
+        "iter_image_folder", "iter_traverse", "iter_video", "load_image_folder",
+        "load_traverse", "load_traverse_sizes", "load_video", "natural_key", "thumbnail_size",
+    ],
+    # the command lines: one console script and the eval/train front ends it dispatches to
+    "torchseq.cli": ["COMMANDS", "main"],
+    "torchseq.cli_eval": ["EvalConfig", "Settings", "build_parser", "cli", "main",
+                          "parse_args", "seqslam_preset"],
+    "torchseq.cli_train": ["TrainConfig", "build_parser", "cli", "main", "parse_args"],
     "torchseq.plots": [
         "figure_to_array", "plot_activity_raster", "plot_difference_matrix", "plot_matched_pairs",
         "plot_matrix", "plot_pr_curves", "save_figure",
@@ -58,3 +77,25 @@ def test_public_names_exist(module):
     if hasattr(mod, "__all__"):
         assert set(PUBLIC[module]) <= set(mod.__all__), \
             f"{module}.__all__ lacks {set(PUBLIC[module]) - set(mod.__all__)}"
+
+
+def test_seqslam_presets_build():
+    # every named preset is a valid config; the events preset reads 16x16 event frames
+    from torchseq.seqslam import SeqSLAMConfig
+    from torchseq.seqslam.config import PRESETS
+
+    assert set(PRESETS) >= {"default", "openseqslam", "events"}
+    for name in PRESETS:
+        assert isinstance(SeqSLAMConfig.preset(name), SeqSLAMConfig)
+    assert tuple(SeqSLAMConfig.preset("events").image_size) == (16, 16)
+    with pytest.raises(ValueError, match="preset"):
+        SeqSLAMConfig.preset("bogus")
+
+
+def test_event_modes_of_the_library_and_the_command_line_agree():
+    # every --event-mode the CLI offers is a mode load_event_frames accepts, and vice versa
+    from torchseq.events.traverse import TRAVERSE_MODES
+    from torchseq.frontend import EVENT_MODES
+
+    assert {m.replace("-", "_") for m in EVENT_MODES} == set(TRAVERSE_MODES) == {
+        "count", "signed", "two_channel", "binary"}

@@ -352,3 +352,41 @@ def test_window_anchor_reaches_the_accumulator_or_is_refused():
     else:  # an accumulator without anchoring: said, not ignored
         with pytest.raises(TraverseError, match="window anchoring"):
             load_traverse(aedat, opts, progress=False)
+
+
+def test_tonic_float_seconds_are_converted_never_read_as_microseconds(tmp_path):
+    # tonic-style structured events with float seconds: converted (with a warning) to the same
+    # frames as the int64 microseconds; never truncated to t = 0 us as a cast would
+    from torchseq.events import EventFormatError, accumulate
+    from torchseq.sources import EventFrameOptions
+
+    rng = np.random.default_rng(4)
+    n = 500
+    us = np.sort(rng.integers(0, 50_000, n))
+    tonic = np.zeros(n, dtype=[("x", "<i2"), ("y", "<i2"), ("t", "<f8"), ("p", "i1")])
+    tonic["t"], tonic["x"], tonic["y"] = us / 1e6, rng.integers(0, 8, n), rng.integers(0, 4, n)
+    tonic["p"] = rng.integers(0, 2, n)
+    exact = tonic.astype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "i1")])
+    exact["t"] = us
+    want = accumulate(exact, (8, 4), window_us=10_000, mode="count")
+    assert want.shape[0] == 5
+    with pytest.warns(UserWarning, match="read as seconds"):
+        got = accumulate(tonic, (8, 4), window_us=10_000, mode="count")
+    assert torch.equal(got, want)
+    np.save(tmp_path / "tonic.npy", tonic)
+    opts = EventFrameOptions(window_ms=10.0, sensor_size=(8, 4, 2))
+    with pytest.warns(UserWarning, match="read as seconds"):
+        frames = load_traverse(tmp_path / "tonic.npy", opts, progress=False)
+    assert torch.equal(frames, want)
+    # whole-number floats are microseconds (a float copy of int times): no conversion
+    whole = tonic.copy()
+    whole["t"] = us.astype(np.float64)
+    assert torch.equal(accumulate(whole, (8, 4), window_us=10_000, mode="count"), want)
+    # fractional times too large to be seconds: refused with the library's error
+    odd = tonic.copy()
+    odd["t"] = us + 0.5 + 1e6
+    with pytest.raises(EventFormatError, match="too large to be seconds"):
+        accumulate(odd, (8, 4), window_us=10_000)
+    np.save(tmp_path / "odd.npy", odd)
+    with pytest.raises(TraverseError, match="odd.npy.*too large to be seconds"):
+        load_traverse(tmp_path / "odd.npy", opts, progress=False)

@@ -77,6 +77,10 @@ class EvalConfig:
     event_mode: str = "count"
     evt3_time: str = "spec"
     truncated: str = "error"
+    t_start: float = 0.0
+    duration: float | None = None
+    hot_pixel: float | None = None
+    refractory_us: int | None = None
     start: int = 0
     stop: int | None = None
     frame_step: int = 1
@@ -116,7 +120,15 @@ HELP = {
     "window_anchor": "event files: where the first window starts: 'first' (first event), "
                      "'zero' (sensor time 0) or a sensor time in microseconds",
     "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
-    "event_mode": "event files: pixel value of a frame: count (events) or signed (|ON - OFF|)",
+    "event_mode": "event files: pixel value of a frame: count (events), signed (|ON - OFF|), "
+                  "binary (255 where a pixel fired) or two-channel (OFF and ON counts side "
+                  "by side: HxW event frames reach the engines as Hx2W images)",
+    "t_start": "event files: time crop start, in milliseconds after the window anchor (windows "
+               "start there)",
+    "duration": "event files: time crop length in milliseconds (default: to the end)",
+    "hot_pixel": "event files: drop pixels firing more than this many times the median active "
+                 "pixel (default: off)",
+    "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
     "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
     "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
                  "incomplete record",
@@ -234,7 +246,8 @@ def event_frame_options(cfg: EvalConfig):
 
     return event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
                          cfg.window_anchor, cfg.sensor_size, cfg.event_mode,
-                         cfg.evt3_time, cfg.truncated)
+                         cfg.evt3_time, cfg.truncated,
+                         cfg.t_start, cfg.duration, cfg.hot_pixel, cfg.refractory_us)
 
 
 def size_key(size) -> str:

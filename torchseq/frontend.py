@@ -177,7 +177,9 @@ def parse_anchor(text: str | int) -> str | int:
     return text
 
 
-EVENT_MODES = ("count", "signed")
+EVENT_MODES = ("count", "signed", "two-channel", "binary")
+MAX_CROP_MS = 1e12  # about 31 years of sensor time
+MAX_REFRACTORY_US = 2 ** 40
 
 
 def parse_sensor_size(text: str | None) -> tuple[int, int] | None:
@@ -200,22 +202,41 @@ def parse_sensor_size(text: str | None) -> tuple[int, int] | None:
 def event_options(window_ms: float, event_count: int | None,
                   frame_size: tuple[int, int] | None, anchor: str | int = "first",
                   sensor_size: str | None = None, mode: str = "count",
-                  evt3_time: str = "spec", truncated: str = "error") -> EventFrameOptions:
-    """Check and bundle the event-accumulation flags."""
+                  evt3_time: str = "spec", truncated: str = "error", t_start: float = 0.0,
+                  duration: float | None = None, hot_pixel: float | None = None,
+                  refractory_us: int | None = None) -> EventFrameOptions:
+    """Check and bundle the event-accumulation flags.
+
+    ``--event-mode two-channel`` (or ``two_channel``) puts the OFF and ON counts side by side
+    (``(H, 2W)`` frames); ``--t-start``/``--duration`` crop in milliseconds after the window
+    anchor; ``--hot-pixel`` and ``--refractory-us`` switch the pixel filters on.
+    """
     if evt3_time not in ("spec", "carry"):
         raise UsageError(f"--evt3-time must be spec or carry, got {evt3_time!r}")
     if truncated not in ("error", "drop"):
         raise UsageError(f"--truncated must be error or drop, got {truncated!r}")
-    if mode not in EVENT_MODES:
+    if str(mode).replace("_", "-") not in EVENT_MODES:
         raise UsageError(f"--event-mode must be one of {', '.join(EVENT_MODES)}, got {mode!r}")
     if not (math.isfinite(window_ms) and 0 < window_ms <= MAX_WINDOW_MS):
         raise UsageError(f"--window-ms must be in (0, {MAX_WINDOW_MS:g}] ms, got {window_ms}")
     if event_count is not None and not 0 < event_count <= MAX_EVENT_COUNT:
         raise UsageError(f"--event-count must be in 1..{MAX_EVENT_COUNT}, got {event_count}")
+    if not (math.isfinite(t_start) and 0 <= t_start <= MAX_CROP_MS):
+        raise UsageError(f"--t-start must be in 0..{MAX_CROP_MS:g} ms, got {t_start}")
+    if duration is not None and not (math.isfinite(duration) and 0 < duration <= MAX_CROP_MS):
+        raise UsageError(f"--duration must be in (0, {MAX_CROP_MS:g}] ms, got {duration}")
+    if hot_pixel is not None and not (math.isfinite(hot_pixel) and 0 < hot_pixel <= 1e9):
+        raise UsageError(f"--hot-pixel must be a factor in (0, 1e9], got {hot_pixel}")
+    if refractory_us is not None and not 0 <= refractory_us <= MAX_REFRACTORY_US:
+        raise UsageError(f"--refractory-us must be in 0..{MAX_REFRACTORY_US}, got "
+                         f"{refractory_us}")
     return EventFrameOptions(window_ms=window_ms, event_count=event_count, frame_size=frame_size,
                              anchor=parse_anchor(anchor),
-                             sensor_size=parse_sensor_size(sensor_size), mode=mode,
-                             evt3_time=evt3_time, truncated=truncated)
+                             sensor_size=parse_sensor_size(sensor_size),
+                             mode=str(mode).replace("-", "_"), evt3_time=evt3_time,
+                             truncated=truncated, start_ms=float(t_start),
+                             duration_ms=duration, hot_pixel=hot_pixel,
+                             refractory_us=refractory_us)
 
 
 def load_frames(path: str, what: str, events: EventFrameOptions, progress: bool,

@@ -45,7 +45,14 @@ class EventFrameOptions:
             with ground truth given in sensor time).
         sensor_size: ``(W, H)`` of the sensor, overriding the file; tonic's ``(W, H, P)``
             is accepted (``P``, the polarity count, is dropped).
-        mode: ``"count"`` (events per pixel) or ``"signed"`` (``|ON - OFF|``).
+        mode: ``"count"`` (events per pixel), ``"signed"`` (``|ON - OFF|``), ``"binary"``
+            (255 where a pixel fired) or ``"two_channel"`` (OFF and ON counts side by side:
+            ``(H, 2W)`` frames).
+        start_ms: time crop: skip this many milliseconds after the anchor; windows start there.
+        duration_ms: time crop: keep this many milliseconds of events (None: to the end).
+        hot_pixel: drop the events of pixels firing more than this many times the median
+            active pixel (None: off).
+        refractory_us: per-pixel refractory period in microseconds (None: off).
         evt3_time: Prophesee EVT 3 ``.raw`` time rule, ``"spec"`` or ``"carry"`` (see
             :func:`torchseq.events.prophesee.decode_evt3`).
         truncated: a recording cut short (AEDAT 2.0/4, ``.raw``): ``"error"`` or ``"drop"``
@@ -60,6 +67,10 @@ class EventFrameOptions:
     mode: str = "count"
     evt3_time: str = "spec"
     truncated: str = "error"
+    start_ms: float = 0.0
+    duration_ms: float | None = None
+    hot_pixel: float | None = None
+    refractory_us: int | None = None
 
     def __post_init__(self) -> None:
         if self.sensor_size is not None:  # tonic's (W, H, P): the polarity count is not a size
@@ -267,8 +278,6 @@ def _is_event_file(path: Path) -> bool:
 
 
 def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
-    import inspect
-
     from torchseq.events import load_event_frames
 
     kwargs = {}
@@ -276,6 +285,11 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
         kwargs["sensor_size"] = tuple(opts.sensor_size)
     if opts.mode != "count":
         kwargs["mode"] = opts.mode
+    for name in ("hot_pixel", "refractory_us", "duration_ms"):
+        if getattr(opts, name) is not None:
+            kwargs[name] = getattr(opts, name)
+    if opts.start_ms:
+        kwargs["start_ms"] = opts.start_ms
     suffix = path.suffix.lower()
     if opts.evt3_time != "spec":
         if suffix != ".raw":
@@ -285,10 +299,7 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
         if suffix not in (".aedat", ".aedat4", ".raw"):
             raise TraverseError(f"{path}: 'truncated' applies to .aedat, .aedat4 and .raw")
         kwargs["truncated"] = opts.truncated
-    if opts.anchor != "first":  # today's behaviour needs no keyword
-        if "anchor" not in inspect.signature(load_event_frames).parameters:
-            raise TraverseError("window anchoring ('zero' or a time) needs a torchseq.events "
-                                "with load_event_frames(anchor=...)")
+    if opts.anchor != "first":
         kwargs["anchor"] = opts.anchor
     try:
         return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,

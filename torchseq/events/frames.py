@@ -55,6 +55,20 @@ def window_origin(t: np.ndarray, anchor: str | int = "first") -> int:
     return int(anchor)
 
 
+def sensor_wh(size) -> tuple[int, int]:
+    """``(W, H)`` from a sensor size given as ``(W, H)`` or tonic's ``(W, H, P)``.
+
+    Raises:
+        ValueError: any other length (``P``, the polarity count, must be 1 or 2).
+    """
+    size = tuple(int(v) for v in size)
+    if len(size) == 3 and size[2] in (1, 2):
+        return size[:2]
+    if len(size) != 2:
+        raise ValueError(f"sensor_size must be (W, H) or tonic's (W, H, P), got {size}")
+    return size
+
+
 def window_index(t: np.ndarray, window_us: int | None, event_count: int | None,
                  t_start: int | None = None) -> tuple[np.ndarray, int]:
     """``(N,)`` window of each event and the number of windows ``T`` (reference form).
@@ -91,7 +105,8 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
 
     Args:
         events: an :class:`EventStream` or a structured array with ``t, x, y, p``.
-        sensor_size: ``(W, H)``; default the stream's (arrays: inferred from coordinates).
+        sensor_size: ``(W, H)`` (or tonic's ``(W, H, P)``); default the stream's (arrays:
+            inferred from coordinates).
         window_us: window length in microseconds (used when ``event_count`` is None).
         event_count: events per frame instead of time windows (sets ``window_us`` aside).
         mode: ``"signed"`` (ON - OFF), ``"two_channel"`` (channel 0 OFF, 1 ON counts),
@@ -129,7 +144,7 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
         events = events.events
     events = as_event_array(events)
     check_events_present(events)
-    sensor_size = tuple(sensor_size) if sensor_size else infer_sensor_size(events)
+    sensor_size = sensor_wh(sensor_size) if sensor_size else infer_sensor_size(events)
     EventStream(events[:0], sensor_size)  # checks the size
     w, h = sensor_size
     t = events["t"]

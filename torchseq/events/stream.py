@@ -89,6 +89,10 @@ def as_event_array(events: np.ndarray, name: str = "events") -> np.ndarray:
     so a file gives the same events whole or in chunks).
     """
     events = np.asarray(events)
+    if events.dtype.names and "t" in events.dtype.names and events["t"].dtype.kind == "f":
+        from torchseq.events.times import with_us_times  # tonic's float seconds
+
+        events = with_us_times(events, name)
     names = events.dtype.names or ()
     missing = [f for f in "txyp" if f not in names]
     if missing:

@@ -2,53 +2,128 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
+import numpy as np
 import torch
 
-from torchseq.events.frames import accumulate
+from torchseq.events.frames import accumulate, sensor_wh, window_origin
 from torchseq.events.io import read_events
+from torchseq.events.stream import EventFormatError, EventStream
+
+TRAVERSE_MODES = ("count", "signed", "two_channel", "binary")
 
 
 def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: int | None = None,
                       frame_size: tuple[int, int] | None = None,
                       sensor_size: tuple[int, int] | None = None, mode: str = "count",
-                      anchor: str | int = "first", **options) -> torch.Tensor:
+                      anchor: str | int = "first", start_ms: float = 0.0,
+                      duration_ms: float | None = None, hot_pixel: float | None = None,
+                      refractory_us: int | None = None, **options) -> torch.Tensor:
     """Read an event file and accumulate it into grey frames.
 
-    Each pixel of a frame is the number of events (both polarities) it fired in the window
-    (``mode="count"``, like the event-count images of the LENS data), or ``|ON - OFF|``
-    (``mode="signed"``), clipped to 0..255 and then area-pooled to ``frame_size``. Empty
-    windows give zero frames. Events whose time goes backwards are reordered (with a warning).
+    Pixel values per ``mode``, each clipped to 0..255 and then area-pooled to ``frame_size``:
+
+    - ``"count"``: events of both polarities (like the event-count images of the LENS data);
+    - ``"signed"``: ``|ON - OFF|``;
+    - ``"binary"``: 255 where the pixel fired at all in the window, else 0;
+    - ``"two_channel"``: OFF and ON counts **side by side**: frame ``[:, :, :W]`` holds the
+      OFF counts and ``[:, :, W:]`` the ON counts, so the engines, which read one grey image
+      per frame, see a ``(H, 2W)`` image (``frame_size`` is the size of each half).
+
+    Empty windows give zero frames. Events whose time goes backwards are reordered (with a
+    warning).
 
     Args:
-        path: ``.aedat``, ``.aedat4``, ``.raw``, ``.csv``/``.txt``, ``.npz`` or structured ``.npy``.
+        path: ``.aedat``, ``.aedat4``, ``.raw``, ``.csv``/``.txt``, ``.npz``, structured
+            ``.npy``, ``.h5``/``.hdf5`` or ``.parquet``.
         window_ms: window length in milliseconds (ignored when ``event_count`` is set).
         event_count: events per frame instead of time windows.
         frame_size: ``(H, W)`` to area-pool the frames to, or None for the sensor size.
-        sensor_size: ``(W, H)`` override of the file's sensor size.
-        mode: ``"count"`` or ``"signed"`` (its absolute value).
+        sensor_size: ``(W, H)`` (or tonic's ``(W, H, P)``) override of the file's sensor size.
+        mode: ``"count"``, ``"signed"``, ``"binary"`` or ``"two_channel"`` (see above).
         anchor: where window 0 starts: ``"first"`` (the first event, default), ``"zero"``
             (sensor time 0) or an int sensor time in microseconds; frame ``k`` covers
             ``[origin + k * window, origin + (k + 1) * window)``. Events before the anchor
             are dropped (see :func:`torchseq.events.accumulate`).
+        start_ms: time crop: skip this many milliseconds after the anchor's origin; windows
+            then start at ``origin + start_ms`` (so frame ``k`` covers
+            ``[origin + start + k * window, origin + start + (k + 1) * window)``).
+        duration_ms: time crop: keep only events before ``origin + start_ms + duration_ms``
+            (None: to the end of the recording).
+        hot_pixel: drop the events of pixels firing more than this many times the median
+            count of active pixels (None: off), counted over the cropped events.
+        refractory_us: drop events within this many microseconds of the pixel's last kept
+            event (None: off).
         **options: reader options (see :func:`torchseq.events.iter_events`).
 
     Returns:
-        ``(T, H, W)`` float32 frames in 0..255.
+        ``(T, H, W)`` float32 frames in 0..255 (``(T, H, 2W)`` for ``"two_channel"``).
+
+    Raises:
+        EventFormatError: no events in the crop (the message gives the recording's span).
+        ValueError: bad mode, window or crop.
     """
-    if mode not in ("count", "signed"):
-        raise ValueError(f"mode must be 'count' or 'signed', got {mode!r}")
+    if mode not in TRAVERSE_MODES:
+        raise ValueError(f"mode must be one of {', '.join(TRAVERSE_MODES)}, got {mode!r}")
     if event_count is None and not window_ms > 0:
         raise ValueError(f"window_ms must be > 0, got {window_ms}")
+    if not (math.isfinite(start_ms) and start_ms >= 0):
+        raise ValueError(f"start_ms must be a finite time >= 0, got {start_ms}")
+    if duration_ms is not None and not (math.isfinite(duration_ms) and duration_ms > 0):
+        raise ValueError(f"duration_ms must be a finite time > 0, got {duration_ms}")
+    if sensor_size is not None:
+        sensor_size = sensor_wh(sensor_size)
     stream = read_events(path, sensor_size=sensor_size, sort=True, **options)
+    if start_ms or duration_ms is not None:
+        stream, anchor = crop_events(stream, anchor, start_ms, duration_ms, path)
     window_us = None if event_count is not None else max(1, int(round(window_ms * 1000)))
     frames = accumulate(stream, window_us=window_us, event_count=event_count, mode=mode,
-                        anchor=anchor)
+                        anchor=anchor, hot_pixel=hot_pixel, refractory_us=refractory_us)
+    if mode == "binary":
+        frames = frames * 255
     frames = frames.abs().clamp_(0, 255)
+    if mode == "two_channel":  # (T, 2, H, W): pool each channel, then OFF | ON side by side
+        if frame_size is not None:
+            frames = accumulate_pool(frames.flatten(0, 1), frame_size).unflatten(0, (-1, 2))
+        return torch.cat([frames[:, 0], frames[:, 1]], dim=-1).to(torch.float32)
     if frame_size is not None:
         frames = accumulate_pool(frames, frame_size)
     return frames.to(torch.float32)
+
+
+def crop_events(stream: EventStream, anchor: str | int, start_ms: float,
+                duration_ms: float | None, name: object = "events"
+                ) -> tuple[EventStream, int]:
+    """The events of a time crop and the sensor time (us) where its windows start.
+
+    Args:
+        stream: time-ordered events.
+        anchor: as :func:`torchseq.events.window_origin`.
+        start_ms: the crop starts this long after the anchor's origin.
+        duration_ms: the crop's length (None: to the end).
+        name: what to call the events in an error (the file).
+
+    Returns:
+        ``(cropped stream, crop start in us)``; the crop start is the new anchor.
+
+    Raises:
+        EventFormatError: no events in the crop; the message says what the recording spans.
+    """
+    t = stream.events["t"]
+    if len(t) == 0:
+        raise EventFormatError(f"{name}: no events")
+    begin = window_origin(t, anchor) + int(round(start_ms * 1000))
+    end = None if duration_ms is None else begin + max(1, int(round(duration_ms * 1000)))
+    lo = int(np.searchsorted(t, begin, side="left"))
+    hi = len(t) if end is None else int(np.searchsorted(t, end, side="left"))
+    if hi <= lo:
+        span = f"[{begin}, {'end' if end is None else end}) us"
+        raise EventFormatError(
+            f"{name}: no events in the time crop {span}; the recording spans "
+            f"{int(t[0])}..{int(t[-1])} us ({(int(t[-1]) - int(t[0])) / 1000:g} ms)")
+    return EventStream(stream.events[lo:hi], stream.sensor_size), begin
 
 
 def accumulate_pool(frames: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
