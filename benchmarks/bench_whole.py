@@ -96,7 +96,8 @@ def run_instrumented(argv: list[str], result: Path) -> None:
                                                      "alignment_ranges") if hasattr(cli_eval, n)],
             "engine": [(cli_eval, "run_engines")],
             "metrics": [(cli_eval, "engine_metrics"), (metrics, "precision_recall_curve")],
-            "plots": [(plots, n) for n in dir(plots) if n.startswith(("plot_", "save_", "figure_"))],
+            "plots": [(plots, n) for n in dir(plots)
+                      if n.startswith(("plot_", "save_", "figure_"))],
             "tensorboard": [(cli_eval, "log_tensorboard")]}
     for phase, targets in wrap.items():
         for module, name in targets:

@@ -43,7 +43,7 @@ from torchseq.frontend import (
     to_jsonable,
     warn,
 )
-from torchseq.ground_truth import alignment_ground_truth, load_ground_truth
+from torchseq.ground_truth import GroundTruthRanges, alignment_ranges, load_ground_truth
 from torchseq.neural import NeuralConfig
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
 from torchseq.sources import FrameSelection, load_traverse_sizes
@@ -281,8 +281,10 @@ def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -
                     frames["thumbnail"], info)
 
 
-def selected_ground_truth(gt_full: np.ndarray, ref: Traverse, query: Traverse) -> np.ndarray:
+def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
     """Rows and columns of the selected frames of a ground truth over whole traverses."""
+    if isinstance(gt_full, GroundTruthRanges):
+        return gt_full.take(ref.info["indices"], query.info["indices"])
     return gt_full[np.ix_(ref.info["indices"], query.info["indices"])]
 
 
@@ -313,7 +315,7 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: list):
         source["ground_truth"] = cfg.ground_truth + (
             f", widened by {cfg.tolerance} frames" if cfg.tolerance else "")
     elif cfg.tolerance is not None:
-        gt = alignment_ground_truth(n_ref, n_query, cfg.tolerance, offset=cfg.gt_offset)
+        gt = alignment_ranges(n_ref, n_query, cfg.tolerance, offset=cfg.gt_offset)  # sparse
         source["ground_truth"] = f"index alignment, tolerance {cfg.tolerance}" + (
             f", offset {cfg.gt_offset}" if cfg.gt_offset else "")
     if selected and cfg.reference is not None and gt is not None:
@@ -471,10 +473,11 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list)
     figures = {}
     if "seqslam" in results:
         r = results["seqslam"]
-        full = not r.get("matrix_reduced")  # overlays need the full matrix's coordinates
+        full = not r.get("matrix_reduced")  # else the engine's reduced copy, overlays scaled
         figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
-            r["matrix"], r["matches"] if full else None, gt if full else None,
-            "SeqSLAM contrast-enhanced difference matrix" + ("" if full else " (reduced)"))
+            r["matrix"], r["matches"], gt,
+            "SeqSLAM contrast-enhanced difference matrix" + ("" if full else " (reduced)"),
+            shape=None if full else (len(ref), len(query)))
     if "neural" in results:
         figures["neural_activity"] = plots.plot_activity_raster(
             results["neural"]["activity"], title="neural output activity over the query")
