@@ -1,4 +1,4 @@
-"""Difference-matrix plots of long routes: drawn from a reduced copy, overlays in full coordinates."""
+"""Difference-matrix plots of long routes: a reduced copy, overlays in full coordinates."""
 
 import numpy as np
 import pytest
