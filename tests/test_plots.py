@@ -102,3 +102,19 @@ def test_small_matrix_drawn_as_is():
     assert np.array_equal(image.get_array(), matrix)
     rows, cols = np.nonzero(gt.dense())
     assert np.array_equal(dots["ground truth"], np.c_[cols, rows])
+
+
+def test_save_image_writes_the_drawn_figure(tmp_path):
+    import cv2
+
+    gt, ref, m = _case(40, 30)
+    fig = plots.plot_difference_matrix(np.random.default_rng(4).random((40, 30)), m, gt)
+    image = plots.figure_to_array(fig)
+    plots.save_image(image, tmp_path / "a.png")
+    back = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(back[..., ::-1], image)  # RGB kept, pixel for pixel
+    plots.save_figure(fig, tmp_path / "b.png")  # the figure's own PNG: same size
+    assert cv2.imread(str(tmp_path / "b.png")).shape == back.shape
+    assert [p.name for p in tmp_path.iterdir()] != [] and not list(tmp_path.glob(".*tmp*"))
+    with pytest.raises(ValueError, match="uint8"):
+        plots.save_image(image.astype(np.float32), tmp_path / "c.png")

@@ -487,9 +487,10 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list)
             title=f"{name}: query (top) and matched reference")
     if curves:
         figures["pr_curve"] = plots.plot_pr_curves(curves)
-    images = {k: plots.figure_to_array(f) for k, f in figures.items()}
-    for k, f in figures.items():
-        plots.save_figure(f, out / f"{k}.png")
+    images = {k: plots.figure_to_array(f) for k, f in figures.items()}  # drawn once
+    for k, img in images.items():
+        plots.save_image(img, out / f"{k}.png")
+        figures[k].clear()
     if s.run.tensorboard:
         log_tensorboard(s, out, summary, results, gt, images)
     return summary

@@ -1,7 +1,8 @@
 """Figures for reports and TensorBoard: difference matrices, PR curves, rasters, frame pairs.
 
 Every ``plot_*`` function returns a matplotlib figure; :func:`save_figure` writes it atomically
-as PNG and :func:`figure_to_array` turns it into an ``(H, W, 3)`` uint8 image for TensorBoard.
+as PNG and :func:`figure_to_array` turns it into an ``(H, W, 3)`` uint8 image for TensorBoard;
+:func:`save_image` writes such an image as PNG without drawing the figure again.
 Figures are made with the non-interactive Agg canvas directly (``matplotlib.figure.Figure``),
 so importing this module leaves matplotlib's backend and ``pyplot``'s figure list alone.
 """
@@ -239,3 +240,21 @@ def save_figure(fig: Figure, path: str | Path, close: bool = True) -> None:
         fig.savefig(tmp, format="png")
     if close:
         fig.clear()
+
+
+def save_image(image: np.ndarray, path: str | Path) -> None:
+    """Save an ``(H, W, 3)`` uint8 RGB image (e.g. from :func:`figure_to_array`) as PNG atomically.
+
+    The figure is drawn once for TensorBoard and the file alike (``savefig`` would draw it
+    again: about 0.3 s per figure).
+    """
+    import cv2
+
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"need an (H, W, 3) uint8 image, got {image.shape} {image.dtype}")
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(image[..., ::-1]))  # OpenCV is BGR
+    if not ok:
+        raise ValueError(f"cannot encode a {image.shape} image as PNG")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(png.tobytes())
