@@ -118,3 +118,15 @@ def test_save_image_writes_the_drawn_figure(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] != [] and not list(tmp_path.glob(".*tmp*"))
     with pytest.raises(ValueError, match="uint8"):
         plots.save_image(image.astype(np.float32), tmp_path / "c.png")
+
+
+def test_activity_raster_of_a_long_run_is_reduced_in_frame_coordinates():
+    activity = np.random.default_rng(5).random((3000, 40))
+    fig = plots.plot_activity_raster(activity)
+    ax = fig.axes[0]
+    image = ax.get_images()[0]
+    assert image.get_array().shape == (40, plots.PLOT_SIDE)
+    assert tuple(image.get_extent()) == (-0.5, 2999.5, -0.5, 39.5)
+    line = ax.get_lines()[0]
+    assert np.array_equal(line.get_ydata(), activity.argmax(1))  # winners, every frame
+    assert np.array_equal(line.get_xdata(), np.arange(3000))

@@ -351,9 +351,10 @@ def run_seqslam(s: Settings, ref, query, device, notes: list):
     size = s.seqslam.image_size
     result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
                                                      progress=s.run.progress)
-    reduced = result.enhanced is None  # long routes: only the engine's reduced copy
-    return {"matches": result.matches, "ranked": result.ranked,
-            "matrix": result.preview if reduced else result.enhanced, "matrix_reduced": reduced,
+    # plots draw the engine's reduced copy (area averages, at most 1024 a side; the whole
+    # matrix below that) in full-matrix coordinates; long routes keep nothing else
+    return {"matches": result.matches, "ranked": result.ranked, "matrix": result.preview,
+            "matrix_shape": (len(ref), len(query)), "matrix_reduced": result.enhanced is None,
             "seconds": result.seconds["total"], "parameters": to_jsonable(s.seqslam)}
 
 
@@ -473,11 +474,10 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list)
     figures = {}
     if "seqslam" in results:
         r = results["seqslam"]
-        full = not r.get("matrix_reduced")  # else the engine's reduced copy, overlays scaled
         figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
-            r["matrix"], r["matches"], gt,
-            "SeqSLAM contrast-enhanced difference matrix" + ("" if full else " (reduced)"),
-            shape=None if full else (len(ref), len(query)))
+            r["matrix"], r["matches"], gt, "SeqSLAM contrast-enhanced difference matrix"
+            + (" (banded run: reduced copy)" if r["matrix_reduced"] else ""),
+            shape=r["matrix_shape"])
     if "neural" in results:
         figures["neural_activity"] = plots.plot_activity_raster(
             results["neural"]["activity"], title="neural output activity over the query")

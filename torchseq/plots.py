@@ -155,14 +155,18 @@ def plot_activity_raster(activity, winners=None, title: str = "output activity")
     """Output-unit activity over time with the winning unit marked (the seed's Figures 7 and 9).
 
     Args:
-        activity: ``(T, N)`` unit activity per frame.
+        activity: ``(T, N)`` unit activity per frame (area-reduced to at most
+            :data:`PLOT_SIDE` a side for drawing).
         winners: ``(T,)`` winning unit per frame (default: the argmax).
         title: figure title.
     """
-    a = _np(activity).astype(np.float64)
+    a = _np(activity)
     w = _np(winners) if winners is not None else a.argmax(1)
+    n_frames, n_units = a.shape
     fig, ax = _figure((7, 4))
-    ax.imshow(a.T, cmap="magma", aspect="auto", origin="lower", interpolation="nearest")
+    # long runs: area-reduced first (as plot_difference_matrix), drawn in frame/unit coordinates
+    ax.imshow(reduce_matrix(a.T), cmap="magma", aspect="auto", origin="lower",
+              interpolation="nearest", extent=(-0.5, n_frames - 0.5, -0.5, n_units - 0.5))
     ax.plot(np.arange(len(w)), w, ".", ms=2, c="cyan", label="winner")
     ax.set_xlabel("frame")
     ax.set_ylabel("output unit")
