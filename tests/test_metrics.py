@@ -195,3 +195,46 @@ def test_metrics_from_ranges_equal_the_dense_metrics(seed):
     curve = metrics.precision_recall_curve(m, ranges)
     assert np.allclose(curve.precision, [p for p, _ in points])
     assert np.allclose(curve.recall, [r for _, r in points])
+
+
+@pytest.mark.parametrize("extra", [[], ["--frame-step", "3", "--start", "2"],
+                                   ["--no-keep-matrices"]])
+def test_eval_metrics_with_sparse_ground_truth_equal_the_dense_ones(tmp_path, extra):
+    """eval.py's index-alignment ground truth is ranges; its metrics equal the dense form's."""
+    import json
+
+    from torchseq import cli_eval
+    from torchseq.demo import make_demo
+    from torchseq.ground_truth import alignment_ground_truth
+
+    demo = make_demo(n_reference=90, speed=1.3, size=(32, 64), seed=3)
+    ref, query = tmp_path / "ref.npy", tmp_path / "query.npy"
+    np.save(ref, demo.reference.numpy())
+    np.save(query, demo.query.numpy())
+    out = tmp_path / "out"
+    assert cli_eval.main(["--engine", "seqslam", "--reference", str(ref), "--query", str(query),
+                          "--tolerance", "2", "--gt-offset", "1.5", "--ds", "6", "--out",
+                          str(out), "--no-progress", "--no-tensorboard", *extra]) == 0
+    got = json.loads((out / "metrics.json").read_text())["seqslam"]
+    assert (out / "seqslam_difference_matrix.png").stat().st_size > 0
+    kept = json.loads((out / "config.json").read_text())["seqslam"]["keep_matrices"]
+    assert kept is (False if "--no-keep-matrices" in extra else None)  # banded run too
+    rows = list(csv_rows(out / "matches.csv"))
+    r_idx = np.arange(90)[2::3] if extra[:1] == ["--frame-step"] else np.arange(90)
+    q_idx = np.arange(len(demo.query))[2::3] if extra[:1] == ["--frame-step"] else \
+        np.arange(len(demo.query))
+    dense = alignment_ground_truth(90, len(demo.query), 2.0, offset=1.5)[np.ix_(r_idx, q_idx)]
+    reference = np.array([int(r["reference"]) if r["reference"] else -1 for r in rows])
+    score = np.array([float(r["score"]) if r["score"] else np.nan for r in rows])
+    m = Matches(torch.as_tensor(reference), torch.as_tensor(score), lower_is_better=True)
+    assert got["n_positive_queries"] == int(dense.any(0).sum())
+    want = metrics.evaluate(m, dense)
+    for key in ("recall_at_1", "correct_coverage", "n_matched"):
+        assert got[key] == pytest.approx(want[key])
+
+
+def csv_rows(path):
+    import csv
+
+    with open(path, newline="") as f:
+        yield from csv.DictReader(f)
