@@ -402,9 +402,10 @@ def test_parallel_decode_gives_the_same_frames_bit_for_bit(tmp_path, workers, mo
     monkeypatch.setattr(sources, "_decode", spy)
     got = sources.load_image_folder(folder, progress=False, workers=workers)
     assert got.dtype == torch.float32 and np.array_equal(got.numpy(), want)
-    # the workers really decode (in pool threads) unless one was asked for
-    assert all(t.startswith("torchseq-decode") for t in threads) == (workers > 1)
-    assert len(threads) <= workers
+    # the workers really decode (in pool threads; the first file sizes the tasks, here)
+    pool = {t for t in threads if t.startswith("torchseq-decode")}
+    assert threads - pool == {threading.current_thread().name}
+    assert (len(pool) > 0) == (workers > 1) and len(pool) <= workers
     select = sources.FrameSelection(start=3, step=7, max_frames=4)
     x = load_traverse(folder, progress=False, select=select)
     assert np.array_equal(x.numpy(), want[[3, 10, 17, 24]])
@@ -419,11 +420,22 @@ def test_parallel_decode_reads_ahead_a_bounded_number_of_frames(tmp_path, monkey
     calls = []
     decode = sources._decode
     monkeypatch.setattr(sources, "_decode", lambda p: calls.append(p) or decode(p))
+    monkeypatch.setattr(sources, "DECODE_CHUNK", 2)
     frames = sources.iter_image_folder(folder, progress=False, workers=3)
     next(frames)
     next(frames)
     time.sleep(0.3)  # the threads decode whatever they are allowed to
-    assert len(calls) <= 2 * 3 + 2  # never the whole folder
+    assert len(calls) <= 1 + (2 * 3 + 1) * 2  # the first, then 2 x workers tasks + 1 ahead
+    frames.close()
+    # tasks hold at most DECODE_CHUNK_BYTES of frames: big frames go one file a task
+    monkeypatch.setattr(sources, "DECODE_CHUNK", 16)
+    monkeypatch.setattr(sources, "DECODE_CHUNK_BYTES", 24 * 32 * 4)
+    calls.clear()
+    frames = sources.iter_image_folder(folder, progress=False, workers=3)
+    next(frames)
+    next(frames)
+    time.sleep(0.3)
+    assert len(calls) <= 1 + 2 * 3 + 1
     frames.close()
 
 

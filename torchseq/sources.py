@@ -193,28 +193,53 @@ def _decode(path: Path) -> np.ndarray:
     return _grey_uint(_imread(path), path)
 
 
+DECODE_CHUNK = 16  # at most this many files per decode task: fewer hand-offs between threads
+DECODE_CHUNK_BYTES = 8 * 2 ** 20  # and at most this much decoded float32 grey per task
+
+
+def _decode_chunk(paths: list[Path]) -> tuple[list[np.ndarray], TraverseError | None]:
+    """Decode consecutive files; stop at a damaged one: (the frames before it, its error)."""
+    frames = []
+    for p in paths:
+        try:
+            frames.append(_decode(p))
+        except TraverseError as err:
+            return frames, err
+    return frames, None
+
+
 def _decoded_in_order(files: list[Path], workers: int) -> Iterator[np.ndarray]:
     """Decode ``files`` with ``workers`` threads, yielding the frames in order.
 
-    At most ``2 * workers`` frames are decoded ahead of the consumer, so memory stays bounded
-    by a few frames; a damaged file raises its :class:`TraverseError` in its turn.
+    The first file is decoded here, to size the tasks: each task decodes up to
+    :data:`DECODE_CHUNK` consecutive files (at most :data:`DECODE_CHUNK_BYTES` of frames), and
+    at most ``2 * workers`` tasks run ahead of the consumer, so memory stays bounded by a few
+    tasks' frames. A damaged file raises its :class:`TraverseError` in its turn, after the
+    frames before it.
     """
+    if not files:
+        return
+    first = _decode(files[0])
+    yield first
     if workers == 1:
-        for f in files:
+        for f in files[1:]:
             yield _decode(f)
         return
+    chunk = max(1, min(DECODE_CHUNK, DECODE_CHUNK_BYTES // max(first.nbytes, 1)))
     pool = ThreadPoolExecutor(workers, thread_name_prefix="torchseq-decode")
     try:
         pending: deque = deque()
-        todo = iter(files)
-        for f in islice(todo, 2 * workers):
-            pending.append(pool.submit(_decode, f))
+        tasks = (files[i:i + chunk] for i in range(1, len(files), chunk))
+        for paths in islice(tasks, 2 * workers):
+            pending.append(pool.submit(_decode_chunk, paths))
         while pending:
-            frame = pending.popleft().result()  # a damaged file raises its TraverseError here
-            nxt = next(todo, None)
-            if nxt is not None:
-                pending.append(pool.submit(_decode, nxt))
-            yield frame
+            frames, damaged = pending.popleft().result()
+            nxt = next(tasks, None)
+            if nxt is not None and damaged is None:
+                pending.append(pool.submit(_decode_chunk, nxt))
+            yield from frames
+            if damaged is not None:  # in its turn, after the frames before it
+                raise damaged
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
