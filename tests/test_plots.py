@@ -130,3 +130,24 @@ def test_activity_raster_of_a_long_run_is_reduced_in_frame_coordinates():
     line = ax.get_lines()[0]
     assert np.array_equal(line.get_ydata(), activity.argmax(1))  # winners, every frame
     assert np.array_equal(line.get_xdata(), np.arange(3000))
+
+
+@pytest.mark.parametrize("shape,side", [((12, 8), 4), ((37, 23), 5), ((600, 530), 512),
+                                        ((30, 20), 512)])
+def test_sparse_matrix_reduces_as_its_dense_form_with_blanks(shape, side):
+    rng = np.random.default_rng(6)
+    dense = np.full(shape, np.nan)
+    keep = rng.random(shape) < 0.2  # candidate mode: a few evaluated entries per column
+    dense[keep] = rng.random(int(keep.sum()))
+    rows, cols = np.nonzero(keep)
+    sparse = torch.sparse_coo_tensor(np.stack([rows, cols]), dense[keep], shape,
+                                     check_invariants=True)
+    got = plots.reduce_matrix(sparse, side)
+    want = loop_block_mean(dense, min(shape[0], side), min(shape[1], side)) \
+        if shape[0] < 100 else plots.reduce_matrix(dense, side)
+    assert got.shape == want.shape
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-5)
+    fig = plots.plot_difference_matrix(sparse, title="candidates")
+    assert fig.axes[0].get_images()[0].get_array().shape == (min(shape[0], 512),
+                                                             min(shape[1], 512))

@@ -352,8 +352,10 @@ def run_seqslam(s: Settings, ref, query, device, notes: list):
     result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
                                                      progress=s.run.progress)
     # plots draw the engine's reduced copy (area averages, at most 1024 a side; the whole
-    # matrix below that) in full-matrix coordinates; long routes keep nothing else
-    return {"matches": result.matches, "ranked": result.ranked, "matrix": result.preview,
+    # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
+    # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)
+    matrix = result.preview if result.preview is not None else result.enhanced
+    return {"matches": result.matches, "ranked": result.ranked, "matrix": matrix,
             "matrix_shape": (len(ref), len(query)), "matrix_reduced": result.enhanced is None,
             "seconds": result.seconds["total"], "parameters": to_jsonable(s.seqslam)}
 

@@ -42,14 +42,18 @@ def reduce_matrix(matrix, side: int = PLOT_SIDE) -> np.ndarray:
 
     Each output cell is the mean of the finite entries of its block (adaptive pooling, the
     blocks of :func:`torch.nn.functional.adaptive_avg_pool2d`); NaN where a block has none.
+    A sparse COO tensor (candidate mode's evaluated entries) is read as NaN where it holds no
+    entry, without building the dense matrix (:func:`_reduce_sparse`, tested equal).
 
     Args:
-        matrix: ``(R, Q)``.
+        matrix: ``(R, Q)``, dense or a sparse COO tensor.
         side: the longest side kept.
 
     Returns:
         ``(min(R, side), min(Q, side))`` float64 (averaged in float32 when reduced).
     """
+    if isinstance(matrix, torch.Tensor) and matrix.is_sparse:
+        return _reduce_sparse(matrix, side)
     m = torch.as_tensor(_np(matrix))
     out_size = (min(m.shape[0], side), min(m.shape[1], side))
     if tuple(out_size) == tuple(m.shape):
@@ -60,6 +64,39 @@ def reduce_matrix(matrix, side: int = PLOT_SIDE) -> np.ndarray:
     total = pool(torch.where(finite, m, 0.0)[None], out_size)[0]
     count = pool(finite.to(torch.float32)[None], out_size)[0]
     return torch.where(count > 0, total / count.clamp_min(1e-30), np.nan).to(torch.float64).numpy()
+
+
+def _bins(idx: torch.Tensor, n: int, out: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Adaptive-pooling blocks holding each index, ``(first, second or -1)``.
+
+    ``first = floor(idx out / n)``; the next block too where the blocks overlap (with
+    ``out <= n`` an index lies in at most two).
+    """
+    first = (idx * out) // n
+    last = ((idx + 1) * out + n - 1) // n - 1
+    return first, torch.where(last > first, last, -1)
+
+
+def _reduce_sparse(matrix: torch.Tensor, side: int) -> np.ndarray:
+    """:func:`reduce_matrix` of a sparse COO ``(R, Q)`` tensor, absent entries as NaN."""
+    n_r, n_q = (int(v) for v in matrix.shape)
+    out_r, out_q = min(n_r, side), min(n_q, side)
+    m = matrix.coalesce()
+    rows, cols = m.indices()
+    vals = m.values().to(torch.float64)
+    keep = torch.isfinite(vals)
+    rows, cols, vals = rows[keep], cols[keep], vals[keep]
+    total = torch.zeros(out_r * out_q, dtype=torch.float64)
+    count = torch.zeros(out_r * out_q, dtype=torch.float64)
+    for r_bin in _bins(rows, n_r, out_r):
+        for c_bin in _bins(cols, n_q, out_q):
+            ok = (r_bin >= 0) & (c_bin >= 0)
+            cell = r_bin[ok] * out_q + c_bin[ok]
+            total.index_add_(0, cell, vals[ok])
+            count.index_add_(0, cell, torch.ones_like(vals[ok]))
+    # each block's mean over its finite entries, as the dense pooling's total / count
+    mean = torch.where(count > 0, total / count.clamp_min(1.0), np.nan)
+    return mean.reshape(out_r, out_q).numpy()
 
 
 def _any_pool(gt: np.ndarray, out_size: tuple[int, int]) -> np.ndarray:
@@ -80,8 +117,9 @@ def plot_difference_matrix(matrix, matches: Matches | None = None, gt=None,
     drawn in full-matrix coordinates either way.
 
     Args:
-        matrix: ``(R, Q)`` reference rows by query columns (lower = more similar), or a reduced
-            ``(R', Q')`` copy of one (give ``shape``).
+        matrix: ``(R, Q)`` reference rows by query columns (lower = more similar), dense or
+            sparse COO (candidate mode: blank where not evaluated), or a reduced ``(R', Q')``
+            copy of one (give ``shape``).
         matches: the engine's matches (drawn as dots: green correct, red wrong).
         gt: ``(R, Q)`` bool ground truth or :class:`torchseq.ground_truth.GroundTruthRanges`
             (drawn as a faint band).
@@ -89,7 +127,8 @@ def plot_difference_matrix(matrix, matches: Matches | None = None, gt=None,
         shape: ``(R, Q)`` of the full matrix when ``matrix`` is a reduced copy; None: the
             matrix is the full one.
     """
-    m = _np(matrix)
+    sparse = isinstance(matrix, torch.Tensor) and matrix.is_sparse  # candidate mode
+    m = matrix if sparse else _np(matrix)
     n_ref, n_query = (int(v) for v in (shape if shape is not None else m.shape))
     if m.ndim != 2 or m.shape[0] > n_ref or m.shape[1] > n_query:
         raise ValueError(f"matrix {m.shape} does not reduce a ({n_ref}, {n_query}) matrix")
