@@ -119,3 +119,122 @@ def test_operating_point_against_a_plain_sweep():
             if best[1] is not None:
                 assert op["score_threshold"] == pytest.approx(best[1])
                 assert op["precision"] >= target
+
+
+def loop_alignment(n_ref, n_query, tol, offset=0.0):
+    """Index-alignment ground truth by plain loops (the documented rule, independently)."""
+    scale = (n_ref - 1 - offset) / (n_query - 1) if n_query > 1 else 0.0
+    gt = np.zeros((n_ref, n_query), bool)
+    for j in range(n_query):
+        for r in range(n_ref):
+            gt[r, j] = abs(r - (offset + j * scale)) <= tol + 1e-9
+    return gt
+
+
+ALIGNMENT_CASES = [(11, 21, 1.0, 0.0), (21, 11, 1.0, 0.0), (37, 23, 0.0, 0.0),
+                   (37, 23, 0.4, 3.5), (50, 50, 2.0, 0.0), (17, 40, 0.5, 0.0),
+                   (9, 1, 2.0, 4.0), (1, 5, 3.0, 0.0), (64, 29, 100.0, 10.0),
+                   (100, 33, 2.999999999, 7.25), (30, 7, 1e-10, 29.0)]
+
+
+@pytest.mark.parametrize("n_ref,n_query,tol,offset", ALIGNMENT_CASES)
+def test_alignment_ranges_equal_the_dense_matrix(n_ref, n_query, tol, offset):
+    from torchseq.ground_truth import alignment_ground_truth, alignment_ranges
+
+    ranges = alignment_ranges(n_ref, n_query, tol, offset)
+    loop = loop_alignment(n_ref, n_query, tol, offset)
+    assert ranges.shape == (n_ref, n_query)
+    assert np.array_equal(ranges.dense(), loop)
+    assert np.array_equal(alignment_ground_truth(n_ref, n_query, tol, offset), loop)
+
+
+def test_ranges_selection_equals_dense_selection():
+    from torchseq.ground_truth import alignment_ranges
+
+    ranges = alignment_ranges(100, 77, 3.0, 5.0)
+    for rows, cols in ((range(3, 100, 4), range(2, 77, 3)), (range(0, 60), range(10, 11)),
+                       ([0, 7, 8, 50, 99], [76, 0, 5])):
+        want = ranges.dense()[np.ix_(list(rows), list(cols))]
+        assert np.array_equal(ranges.take(rows, cols).dense(), want)
+
+
+def test_ranges_need_no_dense_allocation():
+    from torchseq.ground_truth import GroundTruthError, alignment_ranges
+
+    n = 100_000  # 10^10 cells dense: far above MAX_CELLS, a few MB as ranges
+    ranges = alignment_ranges(n, n, 2.0)
+    assert ranges.lo.nbytes + ranges.hi.nbytes == 16 * n
+    assert ranges.lo[5000] == 4998 and ranges.hi[5000] == 5003
+    with pytest.raises(GroundTruthError, match="larger than"):
+        ranges.dense()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_metrics_from_ranges_equal_the_dense_metrics(seed):
+    from torchseq.ground_truth import alignment_ranges
+
+    rng = np.random.default_rng(seed)
+    n_ref, n_query = int(rng.integers(20, 60)), int(rng.integers(20, 60))
+    ranges = alignment_ranges(n_ref, n_query, float(rng.choice([0.0, 1.0, 2.5])),
+                              float(rng.integers(0, 5)))
+    dense = ranges.dense()
+    truth = dense.argmax(0)
+    ref = np.where(rng.random(n_query) < 0.5, truth, rng.integers(0, n_ref, n_query))
+    ref = np.where(rng.random(n_query) < 0.1, -1, ref)
+    ref[: 3] = [n_ref - 1, 0, -1]  # the ends of the reference
+    score = rng.random(n_query).round(2)
+    m = Matches(torch.as_tensor(ref), torch.as_tensor(score), lower_is_better=False)
+    ranked = np.stack([ref] + [rng.integers(-1, n_ref, n_query) for _ in range(9)], 1)
+    sparse_out = metrics.evaluate(m, ranges, ranked)
+    dense_out = metrics.evaluate(m, dense, ranked)
+    assert sparse_out == dense_out
+    assert np.array_equal(metrics.correct(m, ranges), metrics.correct(m, dense))
+    assert metrics.operating_point(m, ranges, 0.9) == metrics.operating_point(m, dense, 0.9)
+    # and the dense metrics themselves against the plain loops
+    points = brute_force_pr(ref, score, dense)
+    curve = metrics.precision_recall_curve(m, ranges)
+    assert np.allclose(curve.precision, [p for p, _ in points])
+    assert np.allclose(curve.recall, [r for _, r in points])
+
+
+@pytest.mark.parametrize("extra", [[], ["--frame-step", "3", "--start", "2"],
+                                   ["--no-keep-matrices"]])
+def test_eval_metrics_with_sparse_ground_truth_equal_the_dense_ones(tmp_path, extra):
+    """eval.py's index-alignment ground truth is ranges; its metrics equal the dense form's."""
+    import json
+
+    from torchseq import cli_eval
+    from torchseq.demo import make_demo
+    from torchseq.ground_truth import alignment_ground_truth
+
+    demo = make_demo(n_reference=90, speed=1.3, size=(32, 64), seed=3)
+    ref, query = tmp_path / "ref.npy", tmp_path / "query.npy"
+    np.save(ref, demo.reference.numpy())
+    np.save(query, demo.query.numpy())
+    out = tmp_path / "out"
+    assert cli_eval.main(["--engine", "seqslam", "--reference", str(ref), "--query", str(query),
+                          "--tolerance", "2", "--gt-offset", "1.5", "--ds", "6", "--out",
+                          str(out), "--no-progress", "--no-tensorboard", *extra]) == 0
+    got = json.loads((out / "metrics.json").read_text())["seqslam"]
+    assert (out / "seqslam_difference_matrix.png").stat().st_size > 0
+    kept = json.loads((out / "config.json").read_text())["seqslam"]["keep_matrices"]
+    assert kept is (False if "--no-keep-matrices" in extra else None)  # banded run too
+    rows = list(csv_rows(out / "matches.csv"))
+    r_idx = np.arange(90)[2::3] if extra[:1] == ["--frame-step"] else np.arange(90)
+    q_idx = np.arange(len(demo.query))[2::3] if extra[:1] == ["--frame-step"] else \
+        np.arange(len(demo.query))
+    dense = alignment_ground_truth(90, len(demo.query), 2.0, offset=1.5)[np.ix_(r_idx, q_idx)]
+    reference = np.array([int(r["reference"]) if r["reference"] else -1 for r in rows])
+    score = np.array([float(r["score"]) if r["score"] else np.nan for r in rows])
+    m = Matches(torch.as_tensor(reference), torch.as_tensor(score), lower_is_better=True)
+    assert got["n_positive_queries"] == int(dense.any(0).sum())
+    want = metrics.evaluate(m, dense)
+    for key in ("recall_at_1", "correct_coverage", "n_matched"):
+        assert got[key] == pytest.approx(want[key])
+
+
+def csv_rows(path):
+    import csv
+
+    with open(path, newline="") as f:
+        yield from csv.DictReader(f)

@@ -390,3 +390,103 @@ def test_tonic_float_seconds_are_converted_never_read_as_microseconds(tmp_path):
     np.save(tmp_path / "odd.npy", odd)
     with pytest.raises(TraverseError, match="odd.npy.*too large to be seconds"):
         load_traverse(tmp_path / "odd.npy", opts, progress=False)
+
+
+def _mixed_folder(folder, n=40, seed=0):
+    """Colour, grey and 16-bit PNGs and grey JPEGs, natural names, random content."""
+    rng = np.random.default_rng(seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        kind = i % 4
+        if kind == 0:
+            img, ext = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8), "png"
+        elif kind == 1:
+            img, ext = rng.integers(0, 256, (24, 32), dtype=np.uint8), "png"
+        elif kind == 2:
+            img, ext = rng.integers(0, 65536, (24, 32), dtype=np.uint16), "png"
+        else:
+            img, ext = rng.integers(0, 256, (24, 32), dtype=np.uint8), "jpg"
+        cv2.imwrite(str(folder / f"f{i}.{ext}"), img)
+    return folder
+
+
+def _plain_decode(folder, n):
+    """The reference: one cv2.imread per file, in natural order, by the documented rules."""
+    out = []
+    for i in range(n):
+        path = next(folder.glob(f"f{i}.*"))
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        out.append(img.astype(np.float32) / (np.float32(257) if img.dtype == np.uint16 else 1))
+    return np.stack(out)
+
+
+@pytest.mark.parametrize("workers", [1, 2, 5])
+def test_parallel_decode_gives_the_same_frames_bit_for_bit(tmp_path, workers, monkeypatch):
+    import threading
+
+    import torchseq.sources as sources
+
+    folder = _mixed_folder(tmp_path / "t")
+    want = _plain_decode(folder, 40)
+    threads = set()
+    decode = sources._decode
+
+    def spy(path):
+        threads.add(threading.current_thread().name)
+        return decode(path)
+
+    monkeypatch.setattr(sources, "_decode", spy)
+    got = sources.load_image_folder(folder, progress=False, workers=workers)
+    assert got.dtype == torch.float32 and np.array_equal(got.numpy(), want)
+    # the workers really decode (in pool threads; the first file sizes the tasks, here)
+    pool = {t for t in threads if t.startswith("torchseq-decode")}
+    assert threads - pool == {threading.current_thread().name}
+    assert (len(pool) > 0) == (workers > 1) and len(pool) <= workers
+    select = sources.FrameSelection(start=3, step=7, max_frames=4)
+    x = load_traverse(folder, progress=False, select=select)
+    assert np.array_equal(x.numpy(), want[[3, 10, 17, 24]])
+
+
+def test_parallel_decode_reads_ahead_a_bounded_number_of_frames(tmp_path, monkeypatch):
+    import time
+
+    import torchseq.sources as sources
+
+    folder = _mixed_folder(tmp_path / "t", n=60)
+    calls = []
+    decode = sources._decode
+    monkeypatch.setattr(sources, "_decode", lambda p: calls.append(p) or decode(p))
+    monkeypatch.setattr(sources, "DECODE_CHUNK", 2)
+    frames = sources.iter_image_folder(folder, progress=False, workers=3)
+    next(frames)
+    next(frames)
+    time.sleep(0.3)  # the threads decode whatever they are allowed to
+    assert len(calls) <= 1 + (2 * 3 + 1) * 2  # the first, then 2 x workers tasks + 1 ahead
+    frames.close()
+    # tasks hold at most DECODE_CHUNK_BYTES of frames: big frames go one file a task
+    monkeypatch.setattr(sources, "DECODE_CHUNK", 16)
+    monkeypatch.setattr(sources, "DECODE_CHUNK_BYTES", 24 * 32 * 4)
+    calls.clear()
+    frames = sources.iter_image_folder(folder, progress=False, workers=3)
+    next(frames)
+    next(frames)
+    time.sleep(0.3)
+    assert len(calls) <= 1 + 2 * 3 + 1
+    frames.close()
+
+
+def test_parallel_decode_names_a_damaged_file_in_its_turn(tmp_path):
+    import torchseq.sources as sources
+
+    folder = _mixed_folder(tmp_path / "t", n=30)
+    (folder / "f21.png").unlink()
+    (folder / "f21.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))  # damaged
+    frames = sources.iter_image_folder(folder, progress=False, workers=4)
+    got = [next(frames) for _ in range(21)]  # the frames before it arrive
+    assert len(got) == 21
+    with pytest.raises(TraverseError, match="f21.png"):
+        next(frames)
+    with pytest.raises(TraverseError, match="decode workers"):
+        sources.load_image_folder(folder, progress=False, workers=0)

@@ -43,10 +43,9 @@ from torchseq.frontend import (
     to_jsonable,
     warn,
 )
-from torchseq.ground_truth import alignment_ground_truth, load_ground_truth
+from torchseq.ground_truth import GroundTruthRanges, alignment_ranges, load_ground_truth
 from torchseq.neural import NeuralConfig
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
-from torchseq.seqslam.candidates import evaluated_dense
 from torchseq.sources import FrameSelection, load_traverse_sizes
 
 PROG = "torchseq eval"  # set by main() to the name the user ran
@@ -295,8 +294,10 @@ def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -
                     frames["thumbnail"], info)
 
 
-def selected_ground_truth(gt_full: np.ndarray, ref: Traverse, query: Traverse) -> np.ndarray:
+def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
     """Rows and columns of the selected frames of a ground truth over whole traverses."""
+    if isinstance(gt_full, GroundTruthRanges):
+        return gt_full.take(ref.info["indices"], query.info["indices"])
     return gt_full[np.ix_(ref.info["indices"], query.info["indices"])]
 
 
@@ -327,7 +328,7 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: list):
         source["ground_truth"] = cfg.ground_truth + (
             f", widened by {cfg.tolerance} frames" if cfg.tolerance else "")
     elif cfg.tolerance is not None:
-        gt = alignment_ground_truth(n_ref, n_query, cfg.tolerance, offset=cfg.gt_offset)
+        gt = alignment_ranges(n_ref, n_query, cfg.tolerance, offset=cfg.gt_offset)  # sparse
         source["ground_truth"] = f"index alignment, tolerance {cfg.tolerance}" + (
             f", offset {cfg.gt_offset}" if cfg.gt_offset else "")
     if selected and cfg.reference is not None and gt is not None:
@@ -363,12 +364,12 @@ def run_seqslam(s: Settings, ref, query, device, notes: list):
     size = s.seqslam.image_size
     result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
                                                      progress=s.run.progress)
-    reduced = result.enhanced is None  # long routes: only the engine's reduced copy
-    matrix = result.preview if reduced else result.enhanced
-    if matrix.is_sparse:  # candidate mode: the evaluated entries only, NaN (blank) elsewhere
-        matrix = evaluated_dense(matrix)
-    return {"matches": result.matches, "ranked": result.ranked,
-            "matrix": matrix, "matrix_reduced": reduced,
+    # plots draw the engine's reduced copy (area averages, at most 1024 a side; the whole
+    # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
+    # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)
+    matrix = result.preview if result.preview is not None else result.enhanced
+    return {"matches": result.matches, "ranked": result.ranked, "matrix": matrix,
+            "matrix_shape": (len(ref), len(query)), "matrix_reduced": result.enhanced is None,
             "seconds": result.seconds["total"], "parameters": to_jsonable(s.seqslam)}
 
 
@@ -488,10 +489,10 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list)
     figures = {}
     if "seqslam" in results:
         r = results["seqslam"]
-        full = not r.get("matrix_reduced")  # overlays need the full matrix's coordinates
         figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
-            r["matrix"], r["matches"] if full else None, gt if full else None,
-            "SeqSLAM contrast-enhanced difference matrix" + ("" if full else " (reduced)"))
+            r["matrix"], r["matches"], gt, "SeqSLAM contrast-enhanced difference matrix"
+            + (" (banded run: reduced copy)" if r["matrix_reduced"] else ""),
+            shape=r["matrix_shape"])
     if "neural" in results:
         figures["neural_activity"] = plots.plot_activity_raster(
             results["neural"]["activity"], title="neural output activity over the query")
@@ -501,9 +502,10 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list)
             title=f"{name}: query (top) and matched reference")
     if curves:
         figures["pr_curve"] = plots.plot_pr_curves(curves)
-    images = {k: plots.figure_to_array(f) for k, f in figures.items()}
-    for k, f in figures.items():
-        plots.save_figure(f, out / f"{k}.png")
+    images = {k: plots.figure_to_array(f) for k, f in figures.items()}  # drawn once
+    for k, img in images.items():
+        plots.save_image(img, out / f"{k}.png")
+        figures[k].clear()
     if s.run.tensorboard:
         log_tensorboard(s, out, summary, results, gt, images)
     return summary

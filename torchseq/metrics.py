@@ -8,6 +8,9 @@ Conventions (the usual ones in visual place recognition):
   positive when the ground truth admits it, else a false positive.
 - Precision = TP / (TP + FP), recall = TP / positives, swept over every threshold.
 - AUC is the area under the precision-recall curve by step integration (average precision).
+
+Ground truth ``gt`` is a ``(R, Q)`` bool array or the sparse
+:class:`torchseq.ground_truth.GroundTruthRanges` (long routes); both give the same metrics.
 """
 
 from __future__ import annotations
@@ -17,37 +20,41 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from torchseq.ground_truth import GroundTruthRanges, admits, positives
 from torchseq.matches import Matches
+
+GroundTruth = np.ndarray | GroundTruthRanges
 
 
 def _as_numpy(matches: Matches) -> tuple[np.ndarray, np.ndarray]:
     return matches.reference.cpu().numpy().astype(np.int64), matches.confidence.cpu().numpy()
 
 
-def _check_gt(gt: np.ndarray, n_query: int) -> np.ndarray:
-    gt = np.asarray(gt, dtype=bool)
-    if gt.ndim != 2 or gt.shape[1] != n_query:
+def _check_gt(gt: GroundTruth, n_query: int) -> GroundTruth:
+    if not isinstance(gt, GroundTruthRanges):
+        gt = np.asarray(gt, dtype=bool)
+    if len(gt.shape) != 2 or gt.shape[1] != n_query:
         raise ValueError(f"ground truth must be (R, {n_query}), got {gt.shape}")
     return gt
 
 
-def correct(matches: Matches, gt: np.ndarray) -> np.ndarray:
+def correct(matches: Matches, gt: GroundTruth) -> np.ndarray:
     """``(Q,)`` bool: the query got a match and the ground truth admits it."""
     ref, _ = _as_numpy(matches)
     gt = _check_gt(gt, len(ref))
     ok = (ref >= 0) & (ref < gt.shape[0])
     out = np.zeros(len(ref), dtype=bool)
-    out[ok] = gt[ref[ok], np.nonzero(ok)[0]]
+    out[ok] = admits(gt, ref[ok], np.nonzero(ok)[0])
     return out
 
 
-def recall_at_k(ranked: np.ndarray | torch.Tensor, gt: np.ndarray, k: int = 1) -> float:
+def recall_at_k(ranked: np.ndarray | torch.Tensor, gt: GroundTruth, k: int = 1) -> float:
     """Fraction of positive queries with an admissible reference among their top ``k``.
 
     Args:
         ranked: ``(Q, K')`` candidate reference indices per query, best first, ``-1`` for none
             (a ``(Q,)`` vector is read as ``K' = 1``).
-        gt: ``(R, Q)`` bool ground truth.
+        gt: ``(R, Q)`` bool ground truth (or :class:`GroundTruthRanges`).
         k: how many candidates count.
 
     Returns:
@@ -57,15 +64,15 @@ def recall_at_k(ranked: np.ndarray | torch.Tensor, gt: np.ndarray, k: int = 1) -
     if ranked.ndim == 1:
         ranked = ranked[:, None]
     gt = _check_gt(gt, ranked.shape[0])
-    positives = gt.any(0)
-    if not positives.any():
+    positive = positives(gt)
+    if not positive.any():
         return float("nan")
     top = ranked[:, :k]
     valid = (top >= 0) & (top < gt.shape[0])
     hit = np.zeros(top.shape, dtype=bool)
     q = np.broadcast_to(np.arange(top.shape[0])[:, None], top.shape)
-    hit[valid] = gt[top[valid], q[valid]]
-    return float(hit.any(1)[positives].mean())
+    hit[valid] = admits(gt, top[valid], q[valid])
+    return float(hit.any(1)[positive].mean())
 
 
 @dataclass
@@ -77,11 +84,11 @@ class PRCurve:
     thresholds: np.ndarray
 
 
-def precision_recall_curve(matches: Matches, gt: np.ndarray) -> PRCurve:
+def precision_recall_curve(matches: Matches, gt: GroundTruth) -> PRCurve:
     """Sweep the acceptance threshold over every match confidence."""
     ref, conf = _as_numpy(matches)
     gt = _check_gt(gt, len(ref))
-    positives = int(gt.any(0).sum())
+    n_positive = int(positives(gt).sum())
     ok = correct(matches, gt)
     has = ref >= 0
     order = np.argsort(-conf[has], kind="stable")
@@ -90,7 +97,7 @@ def precision_recall_curve(matches: Matches, gt: np.ndarray) -> PRCurve:
     last = np.r_[np.nonzero(np.diff(c))[0], len(c) - 1] if len(c) else np.array([], int)
     tp, fp = tp[last], fp[last]
     precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1), 1.0)
-    recall = tp / positives if positives else np.zeros_like(tp, dtype=float)
+    recall = tp / n_positive if n_positive else np.zeros_like(tp, dtype=float)
     return PRCurve(precision.astype(float), recall.astype(float), c[last])
 
 
@@ -112,7 +119,7 @@ def recall_at_100_precision(curve: PRCurve) -> float:
     return float(curve.recall[first_bad - 1])
 
 
-def operating_point(matches: Matches, gt: np.ndarray, precision: float = 0.99) -> dict:
+def operating_point(matches: Matches, gt: GroundTruth, precision: float = 0.99) -> dict:
     """The acceptance threshold that reaches ``precision`` with the most recall.
 
     As OpenSeqSLAM2.0 tunes its match threshold: among the thresholds of the PR sweep whose
@@ -122,7 +129,7 @@ def operating_point(matches: Matches, gt: np.ndarray, precision: float = 0.99) -
 
     Args:
         matches: the engine's matches.
-        gt: ``(R, Q)`` bool ground truth.
+        gt: ``(R, Q)`` bool ground truth (or :class:`GroundTruthRanges`).
         precision: the precision to reach, 0..1.
 
     Returns:
@@ -146,7 +153,7 @@ def operating_point(matches: Matches, gt: np.ndarray, precision: float = 0.99) -
     return out
 
 
-def coverage(matches: Matches, gt: np.ndarray | None = None) -> float:
+def coverage(matches: Matches, gt: GroundTruth | None = None) -> float:
     """Fraction of query frames that get a match; with ``gt``, a correct match."""
     ref, _ = _as_numpy(matches)
     if len(ref) == 0:
@@ -154,7 +161,7 @@ def coverage(matches: Matches, gt: np.ndarray | None = None) -> float:
     return float((correct(matches, gt) if gt is not None else ref >= 0).mean())
 
 
-def evaluate(matches: Matches, gt: np.ndarray, ranked: np.ndarray | None = None) -> dict:
+def evaluate(matches: Matches, gt: GroundTruth, ranked: np.ndarray | None = None) -> dict:
     """All headline metrics of one engine on one query traverse, as a JSON-ready dict."""
     curve = precision_recall_curve(matches, gt)
     out = {
@@ -165,7 +172,7 @@ def evaluate(matches: Matches, gt: np.ndarray, ranked: np.ndarray | None = None)
         "correct_coverage": coverage(matches, gt),
         "n_queries": len(matches),
         "n_matched": int((matches.reference >= 0).sum()),
-        "n_positive_queries": int(np.asarray(gt, bool).any(0).sum()),
+        "n_positive_queries": int(positives(_check_gt(gt, len(matches))).sum()),
     }
     if ranked is not None:
         for k in (5, 10):

@@ -1,7 +1,8 @@
 """Figures for reports and TensorBoard: difference matrices, PR curves, rasters, frame pairs.
 
 Every ``plot_*`` function returns a matplotlib figure; :func:`save_figure` writes it atomically
-as PNG and :func:`figure_to_array` turns it into an ``(H, W, 3)`` uint8 image for TensorBoard.
+as PNG and :func:`figure_to_array` turns it into an ``(H, W, 3)`` uint8 image for TensorBoard;
+:func:`save_image` writes such an image as PNG without drawing the figure again.
 Figures are made with the non-interactive Agg canvas directly (``matplotlib.figure.Figure``),
 so importing this module leaves matplotlib's backend and ``pyplot``'s figure list alone.
 """
@@ -16,6 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from torchseq.atomic import atomic_path
+from torchseq.ground_truth import GroundTruthRanges, admits
 from torchseq.matches import Matches
 from torchseq.metrics import PRCurve
 
@@ -32,33 +34,136 @@ def _np(x) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
-def plot_difference_matrix(matrix, matches: Matches | None = None, gt: np.ndarray | None = None,
-                           title: str = "contrast-enhanced difference matrix") -> Figure:
-    """Show a ``(R, Q)`` difference matrix with ground truth and matches overlaid.
+PLOT_SIDE = 512  # matrices are area-reduced to at most this on a side before drawing
+
+
+def reduce_matrix(matrix, side: int = PLOT_SIDE) -> np.ndarray:
+    """Area-average a ``(R, Q)`` matrix to at most ``side`` on a side (non-finite cells skipped).
+
+    Each output cell is the mean of the finite entries of its block (adaptive pooling, the
+    blocks of :func:`torch.nn.functional.adaptive_avg_pool2d`); NaN where a block has none.
+    A sparse COO tensor (candidate mode's evaluated entries) is read as NaN where it holds no
+    entry, without building the dense matrix (:func:`_reduce_sparse`, tested equal).
 
     Args:
-        matrix: ``(R, Q)`` reference rows by query columns (lower = more similar).
-        matches: the engine's matches (drawn as dots: green correct, red wrong).
-        gt: ``(R, Q)`` bool ground truth (drawn as a faint band).
-        title: figure title.
+        matrix: ``(R, Q)``, dense or a sparse COO tensor.
+        side: the longest side kept.
+
+    Returns:
+        ``(min(R, side), min(Q, side))`` float64 (averaged in float32 when reduced).
     """
-    m = _np(matrix).astype(np.float64)
+    if isinstance(matrix, torch.Tensor) and matrix.is_sparse:
+        return _reduce_sparse(matrix, side)
+    m = torch.as_tensor(_np(matrix))
+    out_size = (min(m.shape[0], side), min(m.shape[1], side))
+    if tuple(out_size) == tuple(m.shape):
+        return m.to(torch.float64).numpy()
+    m = m.to(torch.float32)  # a display copy: float32 sums are ample
+    finite = torch.isfinite(m)
+    pool = torch.nn.functional.adaptive_avg_pool2d
+    total = pool(torch.where(finite, m, 0.0)[None], out_size)[0]
+    count = pool(finite.to(torch.float32)[None], out_size)[0]
+    return torch.where(count > 0, total / count.clamp_min(1e-30), np.nan).to(torch.float64).numpy()
+
+
+def _bins(idx: torch.Tensor, n: int, out: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Adaptive-pooling blocks holding each index, ``(first, second or -1)``.
+
+    ``first = floor(idx out / n)``; the next block too where the blocks overlap (with
+    ``out <= n`` an index lies in at most two).
+    """
+    first = (idx * out) // n
+    last = ((idx + 1) * out + n - 1) // n - 1
+    return first, torch.where(last > first, last, -1)
+
+
+def _reduce_sparse(matrix: torch.Tensor, side: int) -> np.ndarray:
+    """:func:`reduce_matrix` of a sparse COO ``(R, Q)`` tensor, absent entries as NaN."""
+    n_r, n_q = (int(v) for v in matrix.shape)
+    out_r, out_q = min(n_r, side), min(n_q, side)
+    m = matrix.coalesce()
+    rows, cols = m.indices()
+    vals = m.values().to(torch.float64)
+    keep = torch.isfinite(vals)
+    rows, cols, vals = rows[keep], cols[keep], vals[keep]
+    total = torch.zeros(out_r * out_q, dtype=torch.float64)
+    count = torch.zeros(out_r * out_q, dtype=torch.float64)
+    for r_bin in _bins(rows, n_r, out_r):
+        for c_bin in _bins(cols, n_q, out_q):
+            ok = (r_bin >= 0) & (c_bin >= 0)
+            cell = r_bin[ok] * out_q + c_bin[ok]
+            total.index_add_(0, cell, vals[ok])
+            count.index_add_(0, cell, torch.ones_like(vals[ok]))
+    # each block's mean over its finite entries, as the dense pooling's total / count
+    mean = torch.where(count > 0, total / count.clamp_min(1.0), np.nan)
+    return mean.reshape(out_r, out_q).numpy()
+
+
+def _any_pool(gt: np.ndarray, out_size: tuple[int, int]) -> np.ndarray:
+    """``(R, Q)`` bool -> ``out_size`` bool: a cell is set when any entry of its block is."""
+    m = torch.as_tensor(np.asarray(gt, dtype=bool)).to(torch.float32)[None]
+    return (torch.nn.functional.adaptive_max_pool2d(m, out_size)[0] > 0).numpy()
+
+
+def plot_difference_matrix(matrix, matches: Matches | None = None, gt=None,
+                           title: str = "contrast-enhanced difference matrix",
+                           shape: tuple[int, int] | None = None) -> Figure:
+    """Show a ``(R, Q)`` difference matrix with ground truth and matches overlaid.
+
+    A matrix larger than :data:`PLOT_SIDE` on a side is area-reduced first
+    (:func:`reduce_matrix`) and stretched over the full ``(R, Q)`` coordinates, so matplotlib
+    never resamples millions of cells; ``matrix`` may also be such a reduced copy already
+    (``SeqSLAMResult.preview``), with ``shape`` the full matrix's. Matches and ground truth are
+    drawn in full-matrix coordinates either way.
+
+    Args:
+        matrix: ``(R, Q)`` reference rows by query columns (lower = more similar), dense or
+            sparse COO (candidate mode: blank where not evaluated), or a reduced ``(R', Q')``
+            copy of one (give ``shape``).
+        matches: the engine's matches (drawn as dots: green correct, red wrong).
+        gt: ``(R, Q)`` bool ground truth or :class:`torchseq.ground_truth.GroundTruthRanges`
+            (drawn as a faint band).
+        title: figure title.
+        shape: ``(R, Q)`` of the full matrix when ``matrix`` is a reduced copy; None: the
+            matrix is the full one.
+    """
+    sparse = isinstance(matrix, torch.Tensor) and matrix.is_sparse  # candidate mode
+    m = matrix if sparse else _np(matrix)
+    n_ref, n_query = (int(v) for v in (shape if shape is not None else m.shape))
+    if m.ndim != 2 or m.shape[0] > n_ref or m.shape[1] > n_query:
+        raise ValueError(f"matrix {m.shape} does not reduce a ({n_ref}, {n_query}) matrix")
+    if gt is not None and tuple(gt.shape) != (n_ref, n_query):
+        raise ValueError(f"ground truth {tuple(gt.shape)} does not fit the matrix's "
+                         f"({n_ref}, {n_query})")
+    small = reduce_matrix(m)
+    extent = (-0.5, n_query - 0.5, n_ref - 0.5, -0.5)  # cell centres at full-matrix indices
     fig, ax = _figure((6, 5))
-    finite = m[np.isfinite(m)]
+    finite = small[np.isfinite(small)]
     lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0, 1))
-    ax.imshow(m, cmap="gray", aspect="auto", vmin=lo, vmax=hi, interpolation="nearest")
-    if gt is not None:
+    ax.imshow(small, cmap="gray", aspect="auto", vmin=lo, vmax=hi, interpolation="nearest",
+              extent=extent)
+    if isinstance(gt, GroundTruthRanges):
+        q = np.arange(n_query)
+        ax.fill_between(q, gt.lo - 0.5, gt.hi - 0.5, where=gt.hi > gt.lo, step="mid",
+                        color="tab:blue", alpha=0.25, lw=0, label="ground truth")
+    elif gt is not None and gt.shape[0] * gt.shape[1] > PLOT_SIDE ** 2:
+        band = _any_pool(gt, small.shape)
+        ax.imshow(np.ma.masked_where(~band, band.astype(float)), cmap="Blues", vmin=0,
+                  vmax=1.5, alpha=0.4, aspect="auto", interpolation="nearest", extent=extent)
+        ax.fill_between([], [], [], color="tab:blue", alpha=0.25, label="ground truth")
+    elif gt is not None:
         rows, cols = np.nonzero(gt)
         ax.scatter(cols, rows, s=1, c="tab:blue", alpha=0.15, marker="s", label="ground truth")
     if matches is not None:
-        ref = _np(matches.reference)
-        q = np.nonzero(ref >= 0)[0]
-        ok = np.zeros(len(q), bool)
-        if gt is not None:
-            valid = ref[q] < gt.shape[0]
-            ok[valid] = gt[ref[q][valid], q[valid]]
+        ref = _np(matches.reference).astype(np.int64)
+        if len(ref) != n_query:
+            raise ValueError(f"{len(ref)} matches for a matrix of {n_query} queries")
+        q = np.nonzero((ref >= 0) & (ref < n_ref))[0]
+        ok = admits(gt, ref[q], q) if gt is not None else np.zeros(len(q), bool)
         ax.scatter(q[ok], ref[q][ok], s=4, c="tab:green", label="correct match")
         ax.scatter(q[~ok], ref[q][~ok], s=4, c="tab:red", label="wrong match")
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
     ax.set_xlabel("query frame")
     ax.set_ylabel("reference frame")
     ax.set_title(title)
@@ -89,14 +194,18 @@ def plot_activity_raster(activity, winners=None, title: str = "output activity")
     """Output-unit activity over time with the winning unit marked (the seed's Figures 7 and 9).
 
     Args:
-        activity: ``(T, N)`` unit activity per frame.
+        activity: ``(T, N)`` unit activity per frame (area-reduced to at most
+            :data:`PLOT_SIDE` a side for drawing).
         winners: ``(T,)`` winning unit per frame (default: the argmax).
         title: figure title.
     """
-    a = _np(activity).astype(np.float64)
+    a = _np(activity)
     w = _np(winners) if winners is not None else a.argmax(1)
+    n_frames, n_units = a.shape
     fig, ax = _figure((7, 4))
-    ax.imshow(a.T, cmap="magma", aspect="auto", origin="lower", interpolation="nearest")
+    # long runs: area-reduced first (as plot_difference_matrix), drawn in frame/unit coordinates
+    ax.imshow(reduce_matrix(a.T), cmap="magma", aspect="auto", origin="lower",
+              interpolation="nearest", extent=(-0.5, n_frames - 0.5, -0.5, n_units - 0.5))
     ax.plot(np.arange(len(w)), w, ".", ms=2, c="cyan", label="winner")
     ax.set_xlabel("frame")
     ax.set_ylabel("output unit")
@@ -137,7 +246,7 @@ def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None
         reference: ``(R, H, W)`` reference frames.
         query: ``(Q, H, W)`` query frames.
         matches: matches of the query traverse.
-        gt: ``(R, Q)`` ground truth, to label pairs correct or wrong.
+        gt: ``(R, Q)`` ground truth (bool or ranges), to label pairs correct or wrong.
         n: number of pairs, evenly spaced over the matched queries.
         title: figure title.
     """
@@ -148,7 +257,8 @@ def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None
     fig, axes = _figure((2 * max(len(pick), 1), 4.2), 2, max(len(pick), 1), squeeze=False)
     for col, q in enumerate(pick):
         r = int(idx[q])
-        good = bool(gt[r, q]) if gt is not None and r < gt.shape[0] else None
+        good = bool(admits(gt, np.array([r]), np.array([q]))[0]) \
+            if gt is not None and r < gt.shape[0] else None
         colour = {True: "green", False: "red", None: "black"}[good]
         axes[0, col].imshow(qry[q], cmap="gray", **_grey_range(qry[q]))
         axes[0, col].set_title(f"query {q}", fontsize=8)
@@ -173,3 +283,21 @@ def save_figure(fig: Figure, path: str | Path, close: bool = True) -> None:
         fig.savefig(tmp, format="png")
     if close:
         fig.clear()
+
+
+def save_image(image: np.ndarray, path: str | Path) -> None:
+    """Save an ``(H, W, 3)`` uint8 RGB image (e.g. from :func:`figure_to_array`) as PNG atomically.
+
+    The figure is drawn once for TensorBoard and the file alike (``savefig`` would draw it
+    again: about 0.3 s per figure).
+    """
+    import cv2
+
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"need an (H, W, 3) uint8 image, got {image.shape} {image.dtype}")
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(image[..., ::-1]))  # OpenCV is BGR
+    if not ok:
+        raise ValueError(f"cannot encode a {image.shape} image as PNG")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(png.tobytes())

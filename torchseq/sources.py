@@ -6,10 +6,14 @@ event frames, see :mod:`torchseq.events`).
 
 from __future__ import annotations
 
+import os
 import re
 import struct
 import zipfile
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
 from typing import Iterator, Union
 
@@ -175,15 +179,101 @@ def _image_files(folder: Path) -> list[Path]:
     return files
 
 
+MAX_DECODE_WORKERS = 8
+
+
+def decode_workers(workers: int | None = None) -> int:
+    """Threads that decode an image folder: ``workers``, or the usable CPUs (at most 8).
+
+    OpenCV releases the GIL while it reads and decodes a file, so a few Python threads decode
+    images in parallel; they block (no spin-wait) when the machine is busy.
+    """
+    if workers is not None:
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise TraverseError(f"decode workers must be an integer >= 1, got {workers!r}")
+        return workers
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    return max(1, min(MAX_DECODE_WORKERS, cpus))
+
+
+def _decode(path: Path) -> np.ndarray:
+    """One image file -> ``(H, W)`` float32 grey (runs in a decode thread)."""
+    return _grey_uint(_imread(path), path)
+
+
+DECODE_CHUNK = 16  # at most this many files per decode task: fewer hand-offs between threads
+DECODE_CHUNK_BYTES = 8 * 2 ** 20  # and at most this much decoded float32 grey per task
+
+
+def _decode_chunk(paths: list[Path]) -> tuple[list[np.ndarray], TraverseError | None]:
+    """Decode consecutive files; stop at a damaged one: (the frames before it, its error)."""
+    frames = []
+    for p in paths:
+        try:
+            frames.append(_decode(p))
+        except TraverseError as err:
+            return frames, err
+    return frames, None
+
+
+def _decoded_in_order(files: list[Path], workers: int) -> Iterator[np.ndarray]:
+    """Decode ``files`` with ``workers`` threads, yielding the frames in order.
+
+    The first file is decoded here, to size the tasks: each task decodes up to
+    :data:`DECODE_CHUNK` consecutive files (at most :data:`DECODE_CHUNK_BYTES` of frames), and
+    at most ``2 * workers`` tasks run ahead of the consumer, so memory stays bounded by a few
+    tasks' frames. A damaged file raises its :class:`TraverseError` in its turn, after the
+    frames before it.
+    """
+    if not files:
+        return
+    first = _decode(files[0])
+    yield first
+    if workers == 1:
+        for f in files[1:]:
+            yield _decode(f)
+        return
+    chunk = max(1, min(DECODE_CHUNK, DECODE_CHUNK_BYTES // max(first.nbytes, 1)))
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="torchseq-decode")
+    try:
+        pending: deque = deque()
+        tasks = (files[i:i + chunk] for i in range(1, len(files), chunk))
+        for paths in islice(tasks, 2 * workers):
+            pending.append(pool.submit(_decode_chunk, paths))
+        while pending:
+            frames, damaged = pending.popleft().result()
+            nxt = next(tasks, None)
+            if nxt is not None and damaged is None:
+                pending.append(pool.submit(_decode_chunk, nxt))
+            yield from frames
+            if damaged is not None:  # in its turn, after the frames before it
+                raise damaged
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def iter_image_folder(folder: Path, progress: bool = True,
-                      select: FrameSelection | None = None) -> Iterator[np.ndarray]:
-    """Yield the (selected) images of a folder in natural order, one ``(H, W)`` float32 each."""
+                      select: FrameSelection | None = None,
+                      workers: int | None = None) -> Iterator[np.ndarray]:
+    """Yield the (selected) images of a folder in natural order, one ``(H, W)`` float32 each.
+
+    Args:
+        folder: the image folder.
+        progress: show a progress bar.
+        select: which frames to keep (default: all).
+        workers: decode threads (see :func:`decode_workers`; None: the usable CPUs, at most
+            8). The frames are the same for any count.
+    """
     files = _image_files(folder)
     keep = (select or FrameSelection()).indices(len(files))
+    chosen = [files[i] for i in keep]
     first = None
-    for i in tqdm(keep, desc=f"reading {folder.name}", disable=not progress, leave=False):
-        f = files[i]
-        grey = _grey_uint(_imread(f), f)
+    frames = _decoded_in_order(chosen, decode_workers(workers))
+    for f, grey in zip(chosen, tqdm(frames, total=len(chosen), desc=f"reading {folder.name}",
+                                    disable=not progress, leave=False)):
         if first is None:
             first = (f, grey.shape)
         elif grey.shape != first[1]:
@@ -231,9 +321,14 @@ def iter_video(path: Path, progress: bool = True,
                             + (" in the selected range" if select != FrameSelection() else ""))
 
 
-def load_image_folder(folder: Path, progress: bool = True) -> torch.Tensor:
-    """Load every image of a folder in natural sort order as ``(T, H, W)`` float32 grey."""
-    return torch.from_numpy(np.stack(list(iter_image_folder(folder, progress))))
+def load_image_folder(folder: Path, progress: bool = True,
+                      workers: int | None = None) -> torch.Tensor:
+    """Load every image of a folder in natural sort order as ``(T, H, W)`` float32 grey.
+
+    ``workers``: decode threads, as :func:`iter_image_folder`.
+    """
+    return torch.from_numpy(np.stack(list(iter_image_folder(folder, progress,
+                                                            workers=workers))))
 
 
 def load_video(path: Path, progress: bool = True) -> torch.Tensor:

@@ -1,0 +1,153 @@
+"""Difference-matrix plots of long routes: a reduced copy, overlays in full coordinates."""
+
+import numpy as np
+import pytest
+import torch
+
+from torchseq import plots
+from torchseq.ground_truth import alignment_ranges
+from torchseq.matches import Matches
+
+
+def loop_block_mean(m, out_h, out_w):
+    """Mean of the finite entries of each adaptive-pooling block, by plain loops."""
+    n_r, n_q = m.shape
+    out = np.full((out_h, out_w), np.nan)
+    for i in range(out_h):
+        r0, r1 = (i * n_r) // out_h, -((-(i + 1) * n_r) // out_h)
+        for j in range(out_w):
+            c0, c1 = (j * n_q) // out_w, -((-(j + 1) * n_q) // out_w)
+            vals = [v for v in m[r0:r1, c0:c1].ravel() if np.isfinite(v)]
+            if vals:
+                out[i, j] = sum(vals) / len(vals)
+    return out
+
+
+@pytest.mark.parametrize("shape,side", [((12, 8), 4), ((37, 23), 5), ((6, 50), 7)])
+def test_reduce_matrix_is_the_block_mean(shape, side):
+    rng = np.random.default_rng(0)
+    m = rng.random(shape)
+    m[1, 2] = np.nan
+    m[3:, 0] = np.inf  # whole blocks without a finite entry become NaN
+    got = plots.reduce_matrix(m, side)
+    want = loop_block_mean(m, min(shape[0], side), min(shape[1], side))
+    assert got.shape == want.shape
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-5)
+    small = rng.random((3, 4))
+    assert np.array_equal(plots.reduce_matrix(small, side), small)  # small ones untouched
+
+
+def _drawn(fig):
+    ax = fig.axes[0]
+    image = ax.get_images()[0]
+    dots = {c.get_label(): c.get_offsets() for c in ax.collections}
+    return ax, image, dots
+
+
+def _case(n_ref, n_query, seed=0):
+    rng = np.random.default_rng(seed)
+    gt = alignment_ranges(n_ref, n_query, 2.0)
+    ref = np.round(np.arange(n_query) * (n_ref - 1) / (n_query - 1)).astype(np.int64)
+    wrong = rng.random(n_query) < 0.2
+    ref[wrong] = rng.integers(0, n_ref, int(wrong.sum()))
+    ref[5] = -1
+    m = Matches(torch.as_tensor(ref), torch.as_tensor(rng.random(n_query)),
+                lower_is_better=False)
+    return gt, ref, m
+
+
+def test_large_matrix_is_reduced_and_overlays_keep_full_coordinates():
+    n_ref, n_query = 1500, 1100
+    gt, ref, m = _case(n_ref, n_query)
+    matrix = np.random.default_rng(1).random((n_ref, n_query)).astype(np.float32)
+    fig = plots.plot_difference_matrix(matrix, m, gt)
+    ax, image, dots = _drawn(fig)
+    assert image.get_array().shape == (plots.PLOT_SIDE, plots.PLOT_SIDE)
+    assert tuple(image.get_extent()) == (-0.5, n_query - 0.5, n_ref - 0.5, -0.5)
+    ok = gt.dense()[np.maximum(ref, 0), np.arange(n_query)] & (ref >= 0)
+    q = np.arange(n_query)
+    assert np.array_equal(dots["correct match"], np.c_[q[ok], ref[ok]])
+    bad = ~ok & (ref >= 0)
+    assert np.array_equal(dots["wrong match"], np.c_[q[bad], ref[bad]])
+    assert "ground truth" in dots  # the ranges' band
+    # the same ground truth dense gives the same dots (the band is then a pooled image)
+    fig2 = plots.plot_difference_matrix(matrix, m, gt.dense())
+    _, images2, dots2 = fig2.axes[0], fig2.axes[0].get_images(), _drawn(fig2)[2]
+    assert len(images2) == 2 and images2[1].get_array().shape == (512, 512)
+    assert np.array_equal(dots2["correct match"], dots["correct match"])
+
+
+def test_engine_preview_is_stretched_over_the_full_matrix():
+    n_ref, n_query = 3000, 2000
+    gt, ref, m = _case(n_ref, n_query)
+    preview = np.random.default_rng(2).random((1024, 1024))
+    fig = plots.plot_difference_matrix(preview, m, gt, shape=(n_ref, n_query))
+    ax, image, dots = _drawn(fig)
+    assert image.get_array().shape == (512, 512)
+    assert tuple(image.get_extent()) == (-0.5, n_query - 0.5, n_ref - 0.5, -0.5)
+    assert ax.get_xlim() == (-0.5, n_query - 0.5) and ax.get_ylim() == (n_ref - 0.5, -0.5)
+    assert dots["correct match"][:, 1].max() > 1024  # not the preview's coordinates
+    with pytest.raises(ValueError, match="reduce"):
+        plots.plot_difference_matrix(preview, m, gt, shape=(100, n_query))
+    with pytest.raises(ValueError, match="ground truth"):
+        plots.plot_difference_matrix(preview, m, gt, shape=(n_ref + 1, n_query))
+
+
+def test_small_matrix_drawn_as_is():
+    gt, ref, m = _case(40, 30)
+    matrix = np.random.default_rng(3).random((40, 30))
+    fig = plots.plot_difference_matrix(matrix, m, gt.dense())
+    _, image, dots = _drawn(fig)
+    assert np.array_equal(image.get_array(), matrix)
+    rows, cols = np.nonzero(gt.dense())
+    assert np.array_equal(dots["ground truth"], np.c_[cols, rows])
+
+
+def test_save_image_writes_the_drawn_figure(tmp_path):
+    import cv2
+
+    gt, ref, m = _case(40, 30)
+    fig = plots.plot_difference_matrix(np.random.default_rng(4).random((40, 30)), m, gt)
+    image = plots.figure_to_array(fig)
+    plots.save_image(image, tmp_path / "a.png")
+    back = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(back[..., ::-1], image)  # RGB kept, pixel for pixel
+    plots.save_figure(fig, tmp_path / "b.png")  # the figure's own PNG: same size
+    assert cv2.imread(str(tmp_path / "b.png")).shape == back.shape
+    assert [p.name for p in tmp_path.iterdir()] != [] and not list(tmp_path.glob(".*tmp*"))
+    with pytest.raises(ValueError, match="uint8"):
+        plots.save_image(image.astype(np.float32), tmp_path / "c.png")
+
+
+def test_activity_raster_of_a_long_run_is_reduced_in_frame_coordinates():
+    activity = np.random.default_rng(5).random((3000, 40))
+    fig = plots.plot_activity_raster(activity)
+    ax = fig.axes[0]
+    image = ax.get_images()[0]
+    assert image.get_array().shape == (40, plots.PLOT_SIDE)
+    assert tuple(image.get_extent()) == (-0.5, 2999.5, -0.5, 39.5)
+    line = ax.get_lines()[0]
+    assert np.array_equal(line.get_ydata(), activity.argmax(1))  # winners, every frame
+    assert np.array_equal(line.get_xdata(), np.arange(3000))
+
+
+@pytest.mark.parametrize("shape,side", [((12, 8), 4), ((37, 23), 5), ((600, 530), 512),
+                                        ((30, 20), 512)])
+def test_sparse_matrix_reduces_as_its_dense_form_with_blanks(shape, side):
+    rng = np.random.default_rng(6)
+    dense = np.full(shape, np.nan)
+    keep = rng.random(shape) < 0.2  # candidate mode: a few evaluated entries per column
+    dense[keep] = rng.random(int(keep.sum()))
+    rows, cols = np.nonzero(keep)
+    sparse = torch.sparse_coo_tensor(np.stack([rows, cols]), dense[keep], shape,
+                                     check_invariants=True)
+    got = plots.reduce_matrix(sparse, side)
+    want = loop_block_mean(dense, min(shape[0], side), min(shape[1], side)) \
+        if shape[0] < 100 else plots.reduce_matrix(dense, side)
+    assert got.shape == want.shape
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.allclose(got[~np.isnan(got)], want[~np.isnan(want)], rtol=1e-5)
+    fig = plots.plot_difference_matrix(sparse, title="candidates")
+    assert fig.axes[0].get_images()[0].get_array().shape == (min(shape[0], 512),
+                                                             min(shape[1], 512))
