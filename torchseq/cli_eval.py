@@ -25,6 +25,8 @@ from torchseq import metrics, plots
 from torchseq.atomic import write_json, write_text
 from torchseq.demo import make_demo
 from torchseq.frontend import (
+    EVENT_HELP,
+    EventFlags,
     Parser,
     UsageError,
     add_config_flags,
@@ -33,7 +35,7 @@ from torchseq.frontend import (
     config_file_defaults,
     config_from_args,
     config_text,
-    event_options,
+    event_frame_options,
     frame_selection,
     load_model,
     resolve_device,
@@ -54,7 +56,7 @@ MAX_DEMO_QUERY = 50_000  # demo query frames (96x128 float32 each)
 
 
 @dataclass
-class EvalConfig:
+class EvalConfig(EventFlags):
     """What an evaluation run depends on besides the engines' own configs."""
 
     reference: str | None = None
@@ -68,18 +70,6 @@ class EvalConfig:
     out: str | None = None
     overwrite: bool = False
     target_precision: float = 0.99
-    window_ms: float = 10.0
-    event_count: int | None = None
-    frame_size: str | None = None
-    window_anchor: str = "first"
-    sensor_size: str | None = None
-    event_mode: str = "count"
-    evt3_time: str = "spec"
-    truncated: str = "error"
-    t_start: float = 0.0
-    duration: float | None = None
-    hot_pixel: float | None = None
-    refractory_us: int | None = None
     start: int = 0
     stop: int | None = None
     frame_step: int = 1
@@ -113,24 +103,6 @@ HELP = {
     "overwrite": "replace a previous run's --out folder instead of refusing",
     "target_precision": "metrics.json operating point: the confidence threshold that reaches "
                         "this precision with the most recall",
-    "window_ms": "event files: accumulation window in milliseconds",
-    "event_count": "event files: events per frame instead of a time window",
-    "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
-    "window_anchor": "event files: where the first window starts: 'first' (first event), "
-                     "'zero' (sensor time 0) or a sensor time in microseconds",
-    "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
-    "event_mode": "event files: pixel value of a frame: count (events), signed (|ON - OFF|), "
-                  "binary (255 where a pixel fired) or two-channel (OFF and ON counts side "
-                  "by side: HxW event frames reach the engines as Hx2W images)",
-    "t_start": "event files: time crop start, in milliseconds after the window anchor (windows "
-               "start there)",
-    "duration": "event files: time crop length in milliseconds (default: to the end)",
-    "hot_pixel": "event files: drop pixels firing more than this many times the median active "
-                 "pixel (default: off)",
-    "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
-    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
-    "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
-                 "incomplete record",
     "start": "first frame of each traverse to use (0-based; OpenSeqSLAM's image indices)",
     "stop": "frame index of each traverse to stop before",
     "frame_step": "use every N-th frame from --start (OpenSeqSLAM's image skip)",
@@ -178,7 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--sweep", action="append", default=[], metavar="NAME=V1,V2,...",
                         help="run every setting of a small grid (repeat for more axes), e.g. "
                         "--sweep ds=10,20,40; writes sweep.csv with one row per setting")
-    add_config_flags(parser, EvalConfig, HELP)
+    add_config_flags(parser, EvalConfig, HELP, skip=EventFlags)
+    add_config_flags(parser.add_argument_group("event files"), EventFlags, EVENT_HELP)
     add_config_flags(parser.add_argument_group("SeqSLAM (SeqSLAMConfig)"), SeqSLAMConfig,
                      {k: v for k, v in HELP.items() if k in ("ds", "image_size")})
     add_config_flags(parser.add_argument_group("Neural SeqSLAM (NeuralConfig)"), NeuralConfig,
@@ -237,16 +210,6 @@ def parse_args(argv: list[str] | None
     grid = sweep_grid(args.sweep, parser)
     points = [settings_from(parser.parse_args(argv + extra)) for extra in grid]
     return base, points, grid, list(args.sweep)
-
-
-def event_frame_options(cfg: EvalConfig):
-    """The event-accumulation flags of a run, checked."""
-    from torchseq.frontend import parse_size
-
-    return event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
-                         cfg.window_anchor, cfg.sensor_size, cfg.event_mode,
-                         cfg.evt3_time, cfg.truncated,
-                         cfg.t_start, cfg.duration, cfg.hot_pixel, cfg.refractory_us)
 
 
 def size_key(size) -> str:

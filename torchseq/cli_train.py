@@ -21,6 +21,8 @@ from torchseq import plots
 from torchseq.atomic import write_text
 from torchseq.demo import make_demo
 from torchseq.frontend import (
+    EVENT_HELP,
+    EventFlags,
     Parser,
     UsageError,
     add_config_flags,
@@ -29,7 +31,7 @@ from torchseq.frontend import (
     config_file_defaults,
     config_from_args,
     config_text,
-    event_options,
+    event_frame_options,
     frame_selection,
     parse_size,
     resolve_device,
@@ -44,24 +46,12 @@ PROG = "torchseq train"  # set by main() to the name the user ran
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(EventFlags):
     """What a training run depends on besides the model's own :class:`NeuralConfig`."""
 
     reference: str | None = None
     out: str | None = None
     overwrite: bool = False
-    window_ms: float = 10.0
-    event_count: int | None = None
-    frame_size: str | None = None
-    window_anchor: str = "first"
-    sensor_size: str | None = None
-    event_mode: str = "count"
-    evt3_time: str = "spec"
-    truncated: str = "error"
-    t_start: float = 0.0
-    duration: float | None = None
-    hot_pixel: float | None = None
-    refractory_us: int | None = None
     start: int = 0
     stop: int | None = None
     frame_step: int = 1
@@ -82,29 +72,11 @@ HELP = {
                  "default: the built-in demo route",
     "out": "output folder of this run (default: a new runs/train-<UTC time>)",
     "overwrite": "replace a previous run's --out folder instead of refusing",
-    "window_ms": "event files: accumulation window in milliseconds",
-    "event_count": "event files: events per frame instead of a time window",
-    "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
-    "window_anchor": "event files: where the first window starts: 'first' (first event), "
-                     "'zero' (sensor time 0) or a sensor time in microseconds",
     "demo_frames": "demo: reference frames",
     "demo_seed": "demo: random seed of the route",
     "device": "cpu, cuda or auto",
     "tensorboard": "write TensorBoard logs",
     "progress": "show progress bars",
-    "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
-    "event_mode": "event files: pixel value of a frame: count (events), signed (|ON - OFF|), "
-                  "binary (255 where a pixel fired) or two-channel (OFF and ON counts side "
-                  "by side: HxW event frames reach the engines as Hx2W images)",
-    "t_start": "event files: time crop start, in milliseconds after the window anchor (windows "
-               "start there)",
-    "duration": "event files: time crop length in milliseconds (default: to the end)",
-    "hot_pixel": "event files: drop pixels firing more than this many times the median active "
-                 "pixel (default: off)",
-    "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
-    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
-    "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
-                 "incomplete record",
     "start": "first reference frame to use (0-based)",
     "stop": "reference frame index to stop before",
     "frame_step": "use every N-th reference frame from --start",
@@ -125,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog=PROG, description=__doc__.split("\n")[0])
     parser.add_argument("--config", help="replay a run: its config.json gives the defaults, "
                         "flags override them")
-    add_config_flags(parser, TrainConfig, HELP)
+    add_config_flags(parser, TrainConfig, HELP, skip=EventFlags)
+    add_config_flags(parser.add_argument_group("event files"), EventFlags, EVENT_HELP)
     add_config_flags(parser.add_argument_group("model (NeuralConfig)"), NeuralConfig, {})
     return parser
 
@@ -185,10 +158,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     PROG = prog or PROG
     cfg, ncfg = parse_args(argv)
     device = resolve_device(cfg.device)
-    events = event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
-                           cfg.window_anchor, cfg.sensor_size, cfg.event_mode,
-                           cfg.evt3_time, cfg.truncated,
-                           cfg.t_start, cfg.duration, cfg.hot_pixel, cfg.refractory_us)
+    events = event_frame_options(cfg)
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "train", cfg.overwrite)
     if cfg.reference is None:

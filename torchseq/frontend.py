@@ -123,14 +123,19 @@ def _plain(text: str) -> str:
     return text.replace("%", "%%")
 
 
-def add_config_flags(parser, config_cls: type, help: dict[str, str], prefix: str = "") -> None:
+def add_config_flags(parser, config_cls: type, help: dict[str, str], prefix: str = "",
+                     skip: type | None = None) -> None:
     """Add one ``--flag`` per dataclass field, defaulting to the dataclass default.
 
     Tuple fields (sizes) take ``HxW`` strings; booleans get ``--flag/--no-flag``; floats must
-    be finite. ``prefix`` namespaces the flags (``--neural-patch-size`` for ``patch_size``).
+    be finite. ``prefix`` namespaces the flags (``--neural-patch-size`` for ``patch_size``);
+    the fields of a base dataclass ``skip`` are left out (added in a group of their own).
     """
     help = {**docstring_help(config_cls), **help}
+    skipped = {f.name for f in dataclasses.fields(skip)} if skip is not None else set()
     for f in dataclasses.fields(config_cls):
+        if f.name in skipped:
+            continue
         flag = "--" + (prefix + f.name).replace("_", "-")
         default = f.default if f.default is not dataclasses.MISSING else None
         shown = "x".join(map(str, default)) if isinstance(default, tuple) else default
@@ -237,6 +242,57 @@ def event_options(window_ms: float, event_count: int | None,
                              truncated=truncated, start_ms=float(t_start),
                              duration_ms=duration, hot_pixel=hot_pixel,
                              refractory_us=refractory_us)
+
+
+@dataclasses.dataclass
+class EventFlags:
+    """The flags of event-file inputs, shared by the scripts' config dataclasses.
+
+    :func:`event_frame_options` checks and bundles them.
+    """
+
+    window_ms: float = 10.0
+    event_count: int | None = None
+    frame_size: str | None = None
+    window_anchor: str = "first"
+    sensor_size: str | None = None
+    event_mode: str = "count"
+    evt3_time: str = "spec"
+    truncated: str = "error"
+    t_start: float = 0.0
+    duration: float | None = None
+    hot_pixel: float | None = None
+    refractory_us: int | None = None
+
+
+EVENT_HELP = {
+    "window_ms": "event files: accumulation window in milliseconds",
+    "event_count": "event files: events per frame instead of a time window",
+    "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
+    "window_anchor": "event files: where the first window starts: 'first' (first event), "
+                     "'zero' (sensor time 0) or a sensor time in microseconds",
+    "sensor_size": "event files: sensor size WxH (or tonic's W,H,P), overriding the file's",
+    "event_mode": "event files: pixel value of a frame: count (events), signed (|ON - OFF|), "
+                  "binary (255 where a pixel fired) or two-channel (OFF and ON counts side "
+                  "by side: HxW event frames reach the engines as Hx2W images)",
+    "t_start": "event files: time crop start, in milliseconds after the window anchor (windows "
+               "start there)",
+    "duration": "event files: time crop length in milliseconds (default: to the end)",
+    "hot_pixel": "event files: drop pixels firing more than this many times the median active "
+                 "pixel (default: off)",
+    "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
+    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
+                 "incomplete record",
+}
+
+
+def event_frame_options(cfg: EventFlags) -> EventFrameOptions:
+    """The event flags of a run, checked (:func:`event_options`)."""
+    return event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
+                         cfg.window_anchor, cfg.sensor_size, cfg.event_mode, cfg.evt3_time,
+                         cfg.truncated, cfg.t_start, cfg.duration, cfg.hot_pixel,
+                         cfg.refractory_us)
 
 
 def load_frames(path: str, what: str, events: EventFrameOptions, progress: bool,
