@@ -255,3 +255,16 @@ def test_bfloat16_l1_is_close_and_opt_in(fitted, route):
     same = (approx.matches.reference == exact.matches.reference).float().mean()
     assert same >= 0.95
     assert not torch.equal(approx.activity, exact.activity)
+
+
+def test_progress_callback_starts_at_zero_and_ends_at_the_total(route):
+    # a bar must start its clock before the work (else a one-batch fit shows millions of
+    # frames/s), then count up to the total in batches
+    model = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=20, chunk=16))
+    calls = []
+    model.fit(route.reference[:40], progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(0, 40), (16, 40), (32, 40), (40, 40)]
+    calls.clear()
+    model.run(route.query[:20], progress=lambda done, total: calls.append((done, total)))
+    assert calls[0] == (0, 20) and calls[-1] == (20, 20)
+    assert all(a[0] < b[0] for a, b in zip(calls, calls[1:]))

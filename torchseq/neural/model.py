@@ -338,7 +338,13 @@ def checked_grey(frames: torch.Tensor, size: tuple[int, int], device) -> torch.T
 
 
 def _chunks(n: int, size: int, progress: Progress | None = None):
-    """``(lo, hi)`` bounds of batches of ``size``; ``progress(hi, n)`` after each is taken."""
+    """``(lo, hi)`` bounds of batches of ``size``, reporting to ``progress``.
+
+    ``progress(0, n)`` comes first (a bar starts its clock before the work), then
+    ``progress(hi, n)`` after each batch.
+    """
+    if progress is not None:
+        progress(0, n)
     for lo in range(0, n, size):
         hi = min(lo + size, n)
         yield lo, hi
