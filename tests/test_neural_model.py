@@ -268,3 +268,17 @@ def test_progress_callback_starts_at_zero_and_ends_at_the_total(route):
     model.run(route.query[:20], progress=lambda done, total: calls.append((done, total)))
     assert calls[0] == (0, 20) and calls[-1] == (20, 20)
     assert all(a[0] < b[0] for a, b in zip(calls, calls[1:]))
+
+
+def test_the_engine_times_nothing():
+    # timing belongs to the scripts (issue 10, section 4): results carry no wall times
+    import dataclasses
+
+    from torchseq.neural import NeuralFitLog
+
+    assert [f.name for f in dataclasses.fields(NeuralResult)] == ["matches", "activity"]
+    assert [f.name for f in dataclasses.fields(NeuralFitLog)] == [
+        "winners", "evidence", "unit_to_reference"]
+    import torchseq.neural.model as model_module
+
+    assert not hasattr(model_module, "time")

@@ -9,7 +9,6 @@ equations of one step are in ``docs/neural.md`` ("Step maths").
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -171,7 +170,6 @@ class NeuralSeqSLAM(nn.Module):
         Returns:
             :class:`NeuralFitLog`.
         """
-        t0 = time.perf_counter()
         if reference.dim() not in (3, 4) or reference.shape[0] < 2:
             raise NeuralError(f"reference must be (T, H, W) with T >= 2 frames, got "
                               f"{tuple(reference.shape)}")
@@ -193,7 +191,7 @@ class NeuralSeqSLAM(nn.Module):
             parts = [self.evidence(self.code(self.encode(reference[lo:hi])))
                      for lo, hi in _chunks(t_len, cfg.chunk)]
             evidence = torch.cat(parts).cpu()
-        return NeuralFitLog(unit_of_frame, evidence, spans, time.perf_counter() - t0)
+        return NeuralFitLog(unit_of_frame, evidence, spans)
 
     # ------------------------------------------------------------------ recognition
     def inference(self, kernels: str | dict = "auto") -> NeuralInference:
@@ -246,7 +244,6 @@ class NeuralSeqSLAM(nn.Module):
         Returns:
             :class:`NeuralResult`.
         """
-        t0 = time.perf_counter()
         self._require_fit()
         if query.dim() not in (3, 4) or query.shape[0] == 0:
             raise NeuralError(f"query must be a non-empty (T, H, W), got {tuple(query.shape)}")
@@ -257,7 +254,7 @@ class NeuralSeqSLAM(nn.Module):
         activity = module.scan(torch.cat(parts))  # (T, N)
         reference, confidence = module.decide(activity)
         matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
-        return NeuralResult(matches, activity.cpu(), time.perf_counter() - t0)
+        return NeuralResult(matches, activity.cpu())
 
     def _run_module(self, l1_dtype: torch.dtype | None) -> NeuralInference:
         if l1_dtype is not None and l1_dtype not in (torch.bfloat16, torch.float32):

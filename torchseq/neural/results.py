@@ -31,12 +31,12 @@ class NeuralResult:
     Attributes:
         matches: per-frame decisions (``lower_is_better=False``).
         activity: ``(T, N)`` output-ring activity (a raster).
-        seconds: wall time of :meth:`NeuralSeqSLAM.run`.
+
+    The engine times nothing: callers time :meth:`NeuralSeqSLAM.run` themselves.
     """
 
     matches: Matches
     activity: torch.Tensor
-    seconds: float
 
 
 @dataclass
@@ -48,10 +48,8 @@ class NeuralFitLog:
         evidence: ``(T, N)`` normalised feed-forward evidence of each reference frame after
             learning (a raster; its argmax should equal ``winners``).
         unit_to_reference: ``(N, 2)`` int64 first and one-past-last reference frame per unit.
-        seconds: wall time of the fit.
     """
 
     winners: torch.Tensor
     evidence: torch.Tensor
     unit_to_reference: torch.Tensor
-    seconds: float
