@@ -159,6 +159,9 @@ def test_hostile_parameters_are_refused(v1, name, value, match):
 @pytest.mark.parametrize("section, index, value, match", [
     ("l3.values", (0, 0), -128, "l3.values: -128 is outside the symmetric int8 range"),
     ("l1.values", (1, 2), 2048, "l1.values: values exceed \\+-2047"),
+    ("l1.values", (2, 0), -2048, "l1.values: values exceed \\+-2047"),
+    ("l1.cols", (3, -1), 768, "l1.cols: index 768 out of range 0..767"),
+    ("l3.cols", (4, -1), 65535, "l3.cols: index 65535 out of range"),
     ("l1.cols", (0, 1), None, "l1.cols: index lists must be strictly ascending"),
     ("l3.cols", (5, 1), None, "l3.cols: index lists must be strictly ascending"),
     ("l3.row_scale", (3,), -1, "l3.row_scale: scales must lie in 0..32768"),
@@ -195,6 +198,22 @@ def test_stages_check_themselves(v1):
     with pytest.raises(ValueError, match="read-only"):
         model.l1.values[0, 0] = 1  # a checked model cannot be edited into an invalid one
     assert encode(model) == V1.read_bytes()
+
+
+def test_a_model_holds_its_own_copy(v1):
+    """Neither the decoded buffer nor the caller's arrays alias the model's (read-only) ones."""
+    d, _ = v1
+    data = bytearray(V1.read_bytes())
+    model = decode(data)
+    arrays = {k: np.array(v) for k, v in d["arrays"].items()}
+    built = IntegerModel.from_params(d["params"], arrays)
+    start, nbytes = _layout(bytes(data))[1][1:]  # l1.cols
+    data[start:start + nbytes] = bytes(nbytes)
+    arrays["l1.cols"][:] = 0
+    for m in (model, built):
+        assert not m.l1.cols.flags.writeable
+        assert np.array_equal(m.l1.cols, d["arrays"]["l1.cols"])
+    assert encode(model) == encode(built) == V1.read_bytes()
 
 
 # --------------------------------------------------------------------- mutated v1 files

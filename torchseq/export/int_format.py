@@ -171,7 +171,7 @@ class IntegerModel:
         for name in sorted(names):
             dtype, dims = SECTIONS[name]
             want = tuple(p[x] if isinstance(x, str) else x for x in dims)
-            a[name] = section(name, arrays[name], dtype.str, want)
+            a[name] = section(name, arrays[name], dtype.str, want, copy=False)  # stages copy
         stage = InputStage(p["height"], p["width"], p["pool_h"], p["pool_w"], p["patch"],
                            p["input_mode"], p["x_frac"], p["sqrt_frac"], p["norm_const"])
         if p["n_input"] != stage.n_input:
@@ -257,7 +257,8 @@ def decode(data: bytes, source: str = "<bytes>") -> IntegerModel:
     if len(data) > total:
         raise bad(f"{len(data) - total} unexpected bytes after the end of the model")
     (crc,) = _TRAILER.unpack_from(data, total - _TRAILER.size)
-    if zlib.crc32(data[: total - _TRAILER.size]) != crc:
+    view = memoryview(data).cast("B")  # slices of it check and read without copying
+    if zlib.crc32(view[: total - _TRAILER.size]) != crc:
         raise bad("corrupt file (CRC32 mismatch)")
     pos, found = _HEADER.size, {}
     for _ in range(n_sections):
@@ -280,10 +281,11 @@ def decode(data: bytes, source: str = "<bytes>") -> IntegerModel:
             raise bad(f"section {name}: {nbytes} bytes inconsistent with shape {shape}")
         if pos + nbytes > total - _TRAILER.size:
             raise bad(f"section {name}: payload runs past the end of the file")
-        payload = data[pos:pos + nbytes]
+        payload = view[pos:pos + nbytes]
         if zlib.crc32(payload) != pcrc:
             raise bad(f"section {name}: corrupt payload (CRC32 mismatch)")
-        found[name] = np.frombuffer(payload, dtype=dtype).reshape(shape).copy()
+        # a view of the bytes: the stage that takes it stores its own read-only copy
+        found[name] = np.frombuffer(payload, dtype=dtype).reshape(shape)
         pos += nbytes
     if pos != total - _TRAILER.size:
         raise bad("unexpected bytes after the last section")

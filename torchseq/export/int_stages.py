@@ -47,8 +47,12 @@ def integer(name: str, value, lo: int, hi: int) -> int:
     return v
 
 
-def section(name: str, a, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
-    """``a`` as a read-only little-endian copy of ``dtype`` and ``shape``, or an error."""
+def section(name: str, a, dtype: str, shape: tuple[int, ...], copy: bool = True) -> np.ndarray:
+    """``a`` as a read-only little-endian copy of ``dtype`` and ``shape``, or an error.
+
+    With ``copy=False`` the same checks, and ``a`` itself comes back (as an array): for a
+    caller that hands it on to a stage, which makes the one stored copy.
+    """
     a = np.asarray(a)
     want = np.dtype(dtype)
     if a.dtype.kind not in "iu" or a.dtype.newbyteorder("<") != want:
@@ -56,16 +60,24 @@ def section(name: str, a, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
     if a.shape != tuple(shape):
         _fail(f"section {name}: shape {a.shape} inconsistent with the header (expected "
               f"{tuple(shape)})")
+    if not copy:
+        return a
     out = np.array(a, dtype=want)
     out.setflags(write=False)
     return out
 
 
 def _index_lists(name: str, cols: np.ndarray, bound: int, ascending: bool) -> None:
-    if cols.size and int(cols.max()) >= bound:
-        _fail(f"section {name}: index {int(cols.max())} out of range 0..{bound - 1}")
-    if ascending and cols.shape[1] > 1 and not (np.diff(cols.astype(np.int64), axis=1) > 0).all():
+    """Every index of the unsigned ``(R, F)`` lists below ``bound`` (rows strictly ascending).
+
+    Compared in the stored unsigned dtype (exact, no wider copy); an ascending row's largest
+    index is its last, so only that column is searched for the bound.
+    """
+    if ascending and cols.shape[1] > 1 and not (cols[:, 1:] > cols[:, :-1]).all():
         _fail(f"section {name}: index lists must be strictly ascending")
+    top = int((cols[:, -1] if ascending else cols).max()) if cols.size else -1
+    if top >= bound:
+        _fail(f"section {name}: index {top} out of range 0..{bound - 1}")
 
 
 def _frozen(obj, **values) -> None:
@@ -164,7 +176,7 @@ class L1Product:
         cols = section("l1.cols", self.cols, "<u2", shape)
         values = section("l1.values", self.values, "<i2", shape)
         _index_lists("l1.cols", cols, d, ascending=True)
-        if values.size and int(np.abs(values.astype(np.int64)).max()) > X_MAX:
+        if values.size and not -X_MAX <= int(values.min()) <= int(values.max()) <= X_MAX:
             _fail(f"section l1.values: values exceed +-{X_MAX}")
         _frozen(self, cols=cols, values=values, n_input=d)
 
