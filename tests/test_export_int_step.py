@@ -96,6 +96,25 @@ def test_module_numpy_kernels_and_onnx_graph_agree_on_three_streams(kind):
             assert np.array_equal(got[2], conf[t])
 
 
+def test_integer_graph_keeps_the_hand_built_operators():
+    """The exported graph's operators where they matter for speed (measured with
+    benchmarks/bench_export_compare.py): five int8 MatMulInteger products, lower bounds as
+    Max (a one-sided Clip runs slower in onnxruntime), the confidence's column dropped by
+    Squeeze (not a Gather), no float, scalar constants 0-d."""
+    model, _ = tiny()  # z-score input, rectified: three lower bounds
+    graph = build_integer_onnx(model).graph
+    ops = [node.op_type for node in graph.node]
+    assert ops.count("MatMulInteger") == 5 and ops.count("TopK") == 1
+    assert ops.count("Max") == 3 and "Squeeze" in ops and "Sqrt" not in ops
+    for node in graph.node:
+        if node.op_type == "Clip":
+            assert len(node.input) == 3 and all(node.input), "a one-sided Clip"
+    consts = {node.output[0]: onnx.numpy_helper.to_array(node.attribute[0].t)
+              for node in graph.node if node.op_type == "Constant"}
+    mod = next(node for node in graph.node if node.op_type == "Mod")
+    assert consts[mod.input[1]].shape == ()
+
+
 def test_module_equals_numpy_stream_and_onnx_on_a_larger_model():
     _, _, _, frames, im = small_setup()
     act, ref, conf = module_run(im, frames)

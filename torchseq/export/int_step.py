@@ -91,8 +91,19 @@ def isqrt(v: torch.Tensor, bits: int = ISQRT_BITS) -> torch.Tensor:
     return r + ((r + 1) * (r + 1) <= v).long()
 
 
+def _at_least(x: torch.Tensor, v: int) -> torch.Tensor:
+    """``max(x, v)`` elementwise, exported as one ONNX ``Max``.
+
+    ``clamp_min`` exports as a one-sided ``Clip``; with three of those (and a ``Gather`` for
+    the confidence's ``squeeze``) the graph took 1.03x the hand-built graph's time per step
+    at batch 1 in onnxruntime, 1.00x with ``Max`` and ``Squeeze``.
+    """
+    return torch.maximum(x, torch.tensor(v, dtype=x.dtype, device=x.device))
+
+
 def _const(g, value: np.ndarray):
-    return g.op("Constant", value_t=torch.from_numpy(np.ascontiguousarray(value)))
+    # np.array, not np.ascontiguousarray (which makes a 0-d scalar 1-d)
+    return g.op("Constant", value_t=torch.from_numpy(np.array(value, order="C")))
 
 
 def _dense_t(cols: np.ndarray, values: np.ndarray, n_in: int, dtype) -> np.ndarray:
@@ -217,7 +228,7 @@ class IntegerStepModule(nn.Module):
         var = n * (blocks * blocks).sum((2, 4), keepdim=True) - total * total  # V >= 0
         peak = n * 255 * ph * pw // 2 + 1  # sqrt(V) <= n * 255 * ph * pw / 2
         root = isqrt(var * (1 << (2 * p["sqrt_frac"])), (peak << p["sqrt_frac"]).bit_length())
-        z = round_div((n * blocks - total) * p["norm_const"], root.clamp_min(1))
+        z = round_div((n * blocks - total) * p["norm_const"], _at_least(root, 1))
         x = torch.where(var > 0, z.clamp(-X_MAX, X_MAX), 0)
         return x.reshape(-1, h * w)
 
@@ -239,9 +250,9 @@ class IntegerStepModule(nn.Module):
         var = self.cohort_size * squares - total * total
         root = isqrt(var, self.cohort_bits)[:, self.cohort]
         dev = self.cohort_size[self.cohort] * e - total[:, self.cohort]
-        g = round_div(dev * p["gain_const"], root.clamp_min(1) * (1 << p["gain_shift"]))
+        g = round_div(dev * p["gain_const"], _at_least(root, 1) * (1 << p["gain_shift"]))
         g = torch.where(var[:, self.cohort] > 0, g, 0)
-        return g.clamp_min(0) if p["rectify"] else g
+        return _at_least(g, 0) if p["rectify"] else g
 
     def drive(self, frames: torch.Tensor) -> torch.Tensor:
         """Steps 1-6, the state-free part: uint8 frames -> ``g`` ``(B, N)`` int64."""
@@ -260,7 +271,7 @@ class IntegerStepModule(nn.Module):
         rival = (self.units[None, :] - unit[:, None]).abs() > self.params["window"]
         floor = act.min(1, keepdim=True).values
         second = torch.where(rival, act, floor).max(1, keepdim=True).values.to(torch.int64)
-        return self.unit_centre[unit], (best - second)[:, 0]
+        return self.unit_centre[unit], (best - second).squeeze(1)
 
     def forward(self, frames: torch.Tensor,
                 state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
