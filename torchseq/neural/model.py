@@ -57,6 +57,7 @@ class NeuralSeqSLAM(nn.Module):
         self.ring: OutputRing | None = None
         self._inference: NeuralInference | None = None  # set by fold(): step uses it
         self._run_modules: dict = {}  # run's own inference modules, by l1 dtype
+        self.register_state_dict_post_hook(_drop_derived)
 
     # ------------------------------------------------------------------ structure
     @property
@@ -332,6 +333,15 @@ def checked_grey(frames: torch.Tensor, size: tuple[int, int], device) -> torch.T
     if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
         raise NeuralError("frames hold NaN or infinite values")
     return resize(x, size)
+
+
+def _drop_derived(module, state_dict, prefix, local_metadata) -> None:
+    """State-dict post-hook: the folded inference module's buffers are derived, not state.
+
+    A folded model's ``state_dict`` (and checkpoint) holds the model's own tensors only.
+    """
+    for key in [k for k in state_dict if k.startswith(prefix + "_inference.")]:
+        del state_dict[key]
 
 
 def _chunks(n: int, size: int, progress: Progress | None = None):
