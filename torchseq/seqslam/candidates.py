@@ -83,15 +83,6 @@ def resolve_candidates(config: SeqSLAMConfig, n_ref: int, n_query: int) -> int:
     return DEFAULT_CANDIDATES
 
 
-def evaluated_dense(sparse: torch.Tensor, fill: float = math.nan) -> torch.Tensor:
-    """A candidate-mode ``(R, Q)`` sparse matrix as a dense one, ``fill`` where not evaluated."""
-    sparse = sparse.coalesce()
-    out = torch.full(sparse.shape, fill, dtype=sparse.dtype)
-    rows, cols = sparse.indices()
-    out[rows, cols] = sparse.values()
-    return out
-
-
 def pair_differences(reference: torch.Tensor, query: torch.Tensor, metric: str) -> torch.Tensor:
     """Distances of matched rows: ``(..., D)`` against ``(..., D)`` -> ``(...)``.
 
