@@ -38,6 +38,7 @@ from torchseq.events.stream import (
     file_error,
     make_events,
 )
+from torchseq.events.times import FloatTimeRule, float_times_to_us, with_us_times
 from torchseq.npyfile import ZIP_ERRORS, NpyHeader, check_size, read_header, read_member
 
 _ZIP_ERRORS = ZIP_ERRORS + (lzma.LZMAError,)
@@ -67,8 +68,11 @@ def _with_size(events: np.ndarray, sensor_size, path: Path) -> EventStream:
     return EventStream(events, sensor_size)
 
 
-def _convert(arr: np.ndarray, path, offset: int | None) -> np.ndarray:
+def _convert(arr: np.ndarray, path, offset: int | None,
+             rule: FloatTimeRule | None = None) -> np.ndarray:
     try:
+        if arr.dtype.names and "t" in arr.dtype.names:
+            arr = with_us_times(arr, "the array", rule)
         return as_event_array(arr, "the array")
     except EventFormatError as err:
         raise file_error(path, offset, str(err)) from None
@@ -93,10 +97,12 @@ def iter_npy(path: str | Path, chunk_events: int = 1 << 20,
     arr = (np.memmap(path, dtype, "r", offset=data, shape=(n,)) if n
            else np.empty(0, dtype))
 
+    rule = FloatTimeRule("the array")  # float times: one decision per file
+
     def pieces():
         for i in range(0, max(n, 1), chunk_events):
-            yield data + i * dtype.itemsize, _convert(np.array(arr[i : i + chunk_events]),
-                                                      path, data + i * dtype.itemsize)
+            at = data + i * dtype.itemsize
+            yield at, _convert(np.array(arr[i : i + chunk_events]), path, at, rule)
 
     if sensor_size is None:
         if n == 0:
@@ -145,6 +151,8 @@ def read_npz(path: str | Path, sensor_size: tuple[int, int] | None = None) -> Ev
             elif {"t", "x", "y", "p"} <= files:
                 cols = [member(zf, f"{k}.npy") for k in "txyp"]
                 try:
+                    if cols[0].dtype.kind == "f":
+                        cols[0] = float_times_to_us(cols[0], "t")
                     events = make_events(*cols)
                 except EventFormatError as err:  # point at the member the message names
                     name = f"{str(err)[0]}.npy"
