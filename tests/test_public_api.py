@@ -46,6 +46,7 @@ PUBLIC = {
     "torchseq.events.traverse": ["TRAVERSE_MODES", "accumulate_pool", "crop_events",
                                  "load_event_frames"],
     "torchseq.events.frames": ["MODES", "accumulate", "sensor_wh", "window_origin"],
+    "torchseq.area": ["Partial", "area_mean", "finish", "reduce_rows"],
     "torchseq.events.times": ["FLOAT_SECONDS_BELOW", "float_times_to_us", "with_us_times",
                               "float_time_unit", "FloatTimeRule", "UNITS_PER_US"],
     "torchseq.seqslam.config": ["PRESETS", "SeqSLAMConfig"],
