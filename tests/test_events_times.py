@@ -182,3 +182,22 @@ def test_parquet_float_times(tmp_path, chunk):
         read(write("e.parquet", arr["t"] + 1.6e9))
     np.testing.assert_array_equal(read(tmp_path / "e.parquet", time_unit="s")["t"],
                                   loop_us(arr["t"] + 1.6e9))
+
+
+def test_npy_messages_name_the_file_once(tmp_path):
+    np.save(tmp_path / "e.npy", events_with(seconds()))
+    with pytest.warns(UserWarning, match=r"e\.npy: float timestamps with fractions"):
+        read_events(tmp_path / "e.npy", sensor_size=(8, 4))
+    np.save(tmp_path / "odd.npy", events_with(seconds() + 2e6))
+    with pytest.raises(EventFormatError) as err:
+        read_events(tmp_path / "odd.npy", sensor_size=(8, 4))
+    assert str(err.value).count("odd.npy") == 1 and "too large to be seconds" in str(err.value)
+    odd = events_with(seconds() + 2e6)
+    np.savez(tmp_path / "c.npz", **{k: odd[k] for k in "txyp"}, sensor_size=np.array([8, 4]))
+    with pytest.raises(EventFormatError) as err:
+        read_events(tmp_path / "c.npz")
+    assert str(err.value).count("c.npz") == 1 and "t.npy: " in str(err.value)
+    with pytest.warns(UserWarning, match=r"c\.npz: float timestamps with fractions"):
+        np.savez(tmp_path / "c.npz", **{k: events_with(seconds())[k] for k in "txyp"},
+                 sensor_size=np.array([8, 4]))
+        read_events(tmp_path / "c.npz")
