@@ -14,7 +14,11 @@ type) float times are scaled to microseconds and rounded; nothing is guessed. Wi
   :class:`EventFormatError` (declare the unit, or store int64 microseconds).
 
 Seconds are never read as microseconds. A file read in chunks decides once, on its first
-chunk (:class:`FloatTimeRule`), so a file gives the same events whole or in chunks.
+chunk (:class:`FloatTimeRule`), and warns once; a later chunk with fractions after a
+whole-number first chunk is refused. Reads with different chunk sizes agree unless their
+first chunks decide differently (whole numbers in one, fractions in another; a recording
+crossing ``FLOAT_SECONDS_BELOW`` seconds after its first chunk reads as seconds in chunks,
+and is refused when the first chunk already spans the crossing).
 """
 
 from __future__ import annotations
