@@ -339,3 +339,42 @@ def test_tonic_sensor_size_with_polarity_count(tmp_path):
     assert torch.equal(got, want.clamp(0, 255))
     with pytest.raises(ValueError, match="sensor_size"):
         accumulate(ev, (12, 8, 5), window_us=20_000)
+
+
+def test_huge_declared_sensor_is_bounded():
+    # a header declaring the largest sensor an int16 coordinate allows, with three events:
+    # a full frame would be 2**30 float32 (4 GiB); accumulate refuses before allocating it
+    side = 1 << 15
+    ev = make_events([0, 5, 9], [0, 4095, side - 1], [0, 2047, side - 1], [1, 0, 1])
+    stream = EventStream(ev, (side, side))
+    for mode in ("signed", "two_channel"):
+        with pytest.raises(ValueError, match="MAX_FRAME_PIXELS"):
+            accumulate(stream, mode=mode)
+    with pytest.raises(ValueError, match="MAX_FRAME_PIXELS"):  # no divisor: full-size buffer
+        accumulate(stream, downsample=(3, 3))
+    # a dividing downsample bins straight into pooled pixels: small buffer, exact blocks
+    got = accumulate(stream, downsample=(16, 16), mode="two_channel")
+    want = np.zeros((1, 2, 16, 16))
+    block = (side // 16) ** 2
+    want[0, 1, 0, 0] = 1 / block
+    want[0, 0, 0, 1] = 1 / block  # x = 4095 lies in block column 1 (2048-wide blocks)
+    want[0, 1, 15, 15] = 1 / block
+    np.testing.assert_array_equal(got.numpy(), want)
+
+
+def test_frame_pixel_budget_boundary(monkeypatch):
+    ev = sample(200, 12, 8, seed=3)
+    full = accumulate(ev, (12, 8), mode="two_channel")
+    monkeypatch.setattr(frames_module, "MAX_FRAME_PIXELS", 2 * 8 * 12)  # exactly one frame
+    np.testing.assert_array_equal(accumulate(ev, (12, 8), mode="two_channel").numpy(),
+                                  full.numpy())
+    np.testing.assert_array_equal(
+        accumulate(ev, (12, 8), mode="two_channel").numpy(),
+        loop_frames(ev, 12, 8, window_us=10_000, mode="two_channel"))
+    monkeypatch.setattr(frames_module, "MAX_FRAME_PIXELS", 2 * 8 * 12 - 1)
+    with pytest.raises(ValueError, match="2x8x12"):
+        accumulate(ev, (12, 8), mode="two_channel")
+    monkeypatch.setattr(frames_module, "MAX_FRAME_PIXELS", 4 * 6)  # pooled frame fits
+    np.testing.assert_allclose(accumulate(ev, (12, 8), downsample=(4, 6)).numpy(),
+                               loop_pool(loop_frames(ev, 12, 8, window_us=10_000), 4, 6),
+                               rtol=0, atol=1e-6)

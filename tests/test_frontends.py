@@ -397,3 +397,68 @@ def test_readme_event_examples_never_resize_event_frames():
         assert tuple(s.seqslam.image_size) == frame, argv
         if s.run.engine in ("neural", "both"):
             assert tuple(s.neural.input_size) == frame, argv
+
+
+@pytest.mark.parametrize("script", ["eval", "train"])
+def test_event_flags_without_event_files_are_refused(tmp_path, capsys, script):
+    # --window-ms & co. used to be ignored silently for the demo, image folders and arrays
+    np.save(tmp_path / "frames.npy", np.zeros((12, 8, 8), np.uint8))
+    inputs = [[], ["--reference", str(tmp_path / "frames.npy")]]
+    if script == "eval":
+        inputs[1] += ["--query", str(tmp_path / "frames.npy")]
+    for i, given in enumerate(inputs):
+        for flags, named in ((["--window-ms", "5"], "--window-ms applies"),
+                             (["--event-mode", "signed", "--hot-pixel", "3"],
+                              "--event-mode, --hot-pixel apply")):
+            out = tmp_path / f"o{i}"
+            code, err = run_inprocess(script, capsys, *given, *flags, "--out", str(out))
+            assert code == 2 and named in err and "no input is one" in err, err
+            assert len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_event_flags_count_for_event_files_only():
+    from torchseq.cli_eval import parse_args
+    from torchseq.frontend import UsageError, check_event_flags_apply
+
+    s = parse_args(["--window-ms", "5", "--frame-size", "16"])[0]
+    with pytest.raises(UsageError, match="--window-ms, --frame-size apply"):
+        check_event_flags_apply(s.run, {"--reference": None, "--query": None})
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    check_event_flags_apply(s.run, {"--reference": str(aedat), "--query": None})  # one is
+    check_event_flags_apply(parse_args([])[0].run, {"--reference": None})  # defaults: fine
+
+
+def test_events_preset_sizes_two_channel_images_to_the_frames():
+    from torchseq.cli_eval import parse_args
+
+    def size(*argv):
+        return tuple(parse_args(list(argv))[0].seqslam.image_size)
+
+    assert size("--preset", "events") == (16, 16)
+    assert size("--preset", "events", "--event-mode", "two-channel") == (16, 32)  # OFF | ON
+    assert size("--preset", "events", "--event-mode", "two_channel") == (16, 32)
+    assert size("--preset", "events", "--event-mode", "two-channel",
+                "--image-size", "16x16") == (16, 16)  # an explicit size is kept (and warned)
+    assert size("--preset", "openseqslam", "--event-mode", "two-channel") == (32, 64)
+
+
+def test_two_channel_frames_squeezed_by_the_image_size_warn(tmp_path, capsys):
+    from torchseq.events import EventStream, make_events, write_npz
+
+    rng = np.random.default_rng(4)
+    n = 4000
+    t = np.sort(rng.integers(0, 200_000, n))
+    write_npz(tmp_path / "e.npz", EventStream(make_events(
+        t, rng.integers(0, 16, n), rng.integers(0, 16, n), rng.integers(0, 2, n)), (16, 16)))
+    common = ["--engine", "seqslam", "--reference", str(tmp_path / "e.npz"), "--query",
+              str(tmp_path / "e.npz"), "--tolerance", "1", "--event-mode", "two-channel",
+              "--patch-size", "4", "--no-tensorboard"]
+    code, err = run_inprocess("eval", capsys, *common, "--image-size", "16x16",
+                              "--out", str(tmp_path / "sq"))
+    assert code == 0, err
+    assert "two-channel event frames are 16x32" in err and "halves change shape" in err
+    m = json.loads((tmp_path / "sq" / "metrics.json").read_text())
+    assert any("halves change shape" in w for w in m["warnings"])
+    code, err = run_inprocess("eval", capsys, *common, "--image-size", "8x16",
+                              "--out", str(tmp_path / "ok"))
+    assert code == 0 and "halves change shape" not in err, err  # same shape: no warning

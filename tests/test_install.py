@@ -6,6 +6,7 @@ line instead of downloading them again; torchseq itself comes only from the whee
 
 import json
 import os
+import shutil
 import site
 import subprocess
 import sys
@@ -23,12 +24,31 @@ def sh(*cmd, **kw):
     return proc
 
 
+def tree_state(root: Path) -> dict:
+    """``{path: mtime_ns}`` of everything under the build outputs setuptools makes in ``root``."""
+    state = {}
+    for top in [root / "build", *root.glob("*.egg-info")]:
+        for p in [top, *top.rglob("*")] if top.exists() else []:
+            state[str(p)] = p.stat().st_mtime_ns
+    return state
+
+
 @pytest.mark.slow
 def test_wheel_in_a_fresh_venv_runs_torchseq_eval(tmp_path):
     pytest.importorskip("setuptools", reason="building the wheel needs setuptools")
+    # build from a copy of what the wheel is made of: setuptools writes build/ and
+    # *.egg-info beside pyproject.toml, which must not be the source tree
+    src = tmp_path / "src"
+    shutil.copytree(ROOT / "torchseq", src / "torchseq",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(ROOT / name, src / name)
+    before = tree_state(ROOT)
     wheels = tmp_path / "wheels"
     sh(sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
-       "-w", wheels, ROOT)
+       "-w", wheels, src)
+    assert tree_state(ROOT) == before, "the build wrote into the source tree"
+    assert (src / "build").is_dir()  # where it did write
     wheel, = wheels.glob("torchseq-*.whl")
     venv = tmp_path / "venv"
     sh(sys.executable, "-m", "venv", venv)

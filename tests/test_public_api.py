@@ -46,7 +46,9 @@ PUBLIC = {
     "torchseq.events.traverse": ["TRAVERSE_MODES", "accumulate_pool", "crop_events",
                                  "load_event_frames"],
     "torchseq.events.frames": ["MODES", "accumulate", "sensor_wh", "window_origin"],
-    "torchseq.events.times": ["FLOAT_SECONDS_BELOW", "float_times_to_us", "with_us_times"],
+    "torchseq.area": ["Partial", "area_mean", "finish", "reduce_rows"],
+    "torchseq.events.times": ["FLOAT_SECONDS_BELOW", "float_times_to_us", "with_us_times",
+                              "float_time_unit", "FloatTimeRule", "UNITS_PER_US"],
     "torchseq.seqslam.config": ["PRESETS", "SeqSLAMConfig"],
     "torchseq.neural.fixed_point": [
         "factor_power_of_two", "factor_rows", "integer_weights", "quantise_input", "round_rows",

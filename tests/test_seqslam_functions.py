@@ -118,3 +118,36 @@ def test_config_speed_ratio_and_rounding():
     assert c.velocity_range == pytest.approx((1.8, 2.2))
     from dataclasses import asdict
     assert asdict(c)["speed_ratio"] == 2.0 and asdict(c)["metric"] == "l1"
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("n,k", [(8, 3), (40, 10), (300, 10), (3000, 5)])
+def test_rank_scores_ties_go_to_the_lower_start(n, k, device):
+    # integer scores: many ties, also across the K-th place, where topk keeps any of them
+    from torchseq.seqslam.search import rank_scores
+
+    rng = np.random.default_rng(n)
+    s = rng.integers(0, 4, (64, n)).astype(np.float64)
+    s[::7, : n // 2] = np.inf  # unscored starts
+    s[3] = 1.0  # a row of one value
+    start, best, _, ranked = rank_scores(torch.tensor(s, device=device), 4, n - 1, 4, k)
+    for r in range(64):
+        order = sorted(range(n), key=lambda i: (s[r, i], i))[:k]  # stable: lower start first
+        want = [min(i + 2, n - 2) if np.isfinite(s[r, i]) else -1 for i in order]
+        assert ranked[r].tolist() == want + [-1] * (k - len(want)), r
+        assert int(start[r]) == order[0] and float(best[r]) == s[r, order[0]]
+
+
+def test_search_with_tied_scores_matches_oracle():
+    from seqslam_oracle import oracle_seqslam
+
+    from torchseq.seqslam import search
+
+    rng = np.random.default_rng(5)
+    e = rng.integers(0, 2, (400, 16)).astype(np.float64)  # an enhanced matrix full of ties
+    speeds = velocities(4, 0.8, 1.2)
+    match, best, _, ranked = search(torch.tensor(e), 4, speeds, rwindow=4, top_k=10)
+    w_match, w_best, _, w_ranked = oracle_seqslam(e, 4, 0.8, 1.2, 4, 10)
+    np.testing.assert_array_equal(ranked.numpy(), w_ranked)
+    np.testing.assert_array_equal(match.numpy(), w_match)
+    np.testing.assert_allclose(best.numpy(), w_best, rtol=1e-12)

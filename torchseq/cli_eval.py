@@ -30,6 +30,7 @@ from torchseq.frontend import (
     Parser,
     UsageError,
     add_config_flags,
+    check_event_flags_apply,
     check_neural,
     check_ranges,
     config_file_defaults,
@@ -174,7 +175,8 @@ def settings_from(args: argparse.Namespace) -> Settings:
     check_ranges(scfg, {k: v for k, v in SEQSLAM_LIMITS.items() if hasattr(scfg, k)})
     scfg.validate()
     if cfg.preset is not None:
-        scfg = seqslam_preset(cfg.preset, scfg)
+        two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
+        scfg = seqslam_preset(cfg.preset, scfg, two_channel)
     if args.neural_seed is None:
         args.neural_seed = cfg.seed
     ncfg = config_from_args(NeuralConfig, args, prefix="neural_")
@@ -186,11 +188,20 @@ def settings_from(args: argparse.Namespace) -> Settings:
     return Settings(cfg, scfg, ncfg)
 
 
-def seqslam_preset(name: str, flags: SeqSLAMConfig) -> SeqSLAMConfig:
-    """``--preset NAME``, with the SeqSLAM flags whose value differs from the default on top."""
+def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False
+                   ) -> SeqSLAMConfig:
+    """``--preset NAME``, with the SeqSLAM flags whose value differs from the default on top.
+
+    ``--preset events`` sizes images as its event frames: with ``--event-mode two-channel``
+    (OFF | ON side by side, twice as wide) its 16x16 becomes 16x32 unless ``--image-size``
+    is given, so the halves are not squeezed into one square.
+    """
     default = SeqSLAMConfig()
     changed = {f.name: getattr(flags, f.name) for f in dataclasses.fields(SeqSLAMConfig)
                if getattr(flags, f.name) != getattr(default, f.name)}
+    if name == "events" and two_channel and "image_size" not in changed:
+        h, w = SeqSLAMConfig.events().image_size
+        changed["image_size"] = (h, 2 * w)
     try:
         return SeqSLAMConfig.preset(name, **changed)
     except ValueError as err:
@@ -299,6 +310,7 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: list):
     if selected:
         source["selection"] = {"start": cfg.start, "stop": cfg.stop,
                                "frame_step": cfg.frame_step, "max_frames": cfg.max_frames}
+    two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
     for what, t in (("reference", ref), ("query", query)):
         fh, fw = t.info["frame_size"]
         for key, (h, w) in sizes.items():
@@ -306,6 +318,10 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: list):
                 warn(PROG, f"{what} frames are {fh}x{fw}, smaller than the {key} an engine "
                      f"reads: they are upsampled (set --image-size or --neural-input-size "
                      f"to the frame size)", notes)
+            elif two_channel and t.info.get("events") and h * fw != w * fh:
+                warn(PROG, f"{what} two-channel event frames are {fh}x{fw} (OFF | ON side by "
+                     f"side), resized to {key}: the halves change shape (set --image-size or "
+                     f"--neural-input-size to {fh}x{fw}, or a size of that shape)", notes)
     return ref, query, gt, source
 
 
@@ -553,6 +569,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     cfg = s.run
     device = resolve_device(cfg.device)
     event_frame_options(cfg)  # checked before any work
+    for point in (s, *points):  # event flags with no event file would be silently ignored
+        check_event_flags_apply(point.run, {"--reference": cfg.reference, "--query": cfg.query})
     frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "eval", cfg.overwrite)
     torch.manual_seed(cfg.seed)

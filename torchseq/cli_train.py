@@ -26,6 +26,7 @@ from torchseq.frontend import (
     Parser,
     UsageError,
     add_config_flags,
+    check_event_flags_apply,
     check_neural,
     check_ranges,
     config_file_defaults,
@@ -159,6 +160,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     cfg, ncfg = parse_args(argv)
     device = resolve_device(cfg.device)
     events = event_frame_options(cfg)
+    check_event_flags_apply(cfg, {"--reference": cfg.reference})
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "train", cfg.overwrite)
     if cfg.reference is None:

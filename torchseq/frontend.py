@@ -18,7 +18,13 @@ from typing import Callable
 import numpy as np
 import torch
 
-from torchseq.sources import EventFrameOptions, FrameSelection, load_traverse
+from torchseq.sources import (
+    EventFrameOptions,
+    FrameSelection,
+    TraverseError,
+    is_event_file,
+    load_traverse,
+)
 
 
 class UsageError(ValueError):
@@ -293,6 +299,51 @@ def event_frame_options(cfg: EventFlags) -> EventFrameOptions:
                          cfg.window_anchor, cfg.sensor_size, cfg.event_mode, cfg.evt3_time,
                          cfg.truncated, cfg.t_start, cfg.duration, cfg.hot_pixel,
                          cfg.refractory_us)
+
+
+def event_flags_set(cfg: EventFlags) -> list[str]:
+    """The event flags given values other than their defaults, as ``--flag`` names."""
+    default = EventFlags()
+    return [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(EventFlags)
+            if getattr(cfg, f.name) != getattr(default, f.name)]
+
+
+def _may_hold_events(source: str | None) -> bool:
+    """False only for inputs surely not event files: the demo, folders, videos, frame arrays.
+
+    A file that cannot be sniffed (missing, damaged) counts as possible: its own error comes
+    when it is read.
+    """
+    if source is None:
+        return False
+    path = Path(source)
+    if path.is_dir():
+        return False
+    if not path.is_file():
+        return True
+    try:
+        return is_event_file(path)
+    except (TraverseError, OSError):
+        return True
+
+
+def check_event_flags_apply(cfg: EventFlags, sources: dict[str, str | None]) -> None:
+    """Refuse event flags when no input is an event file (they would be silently ignored).
+
+    Args:
+        cfg: the run's event flags.
+        sources: ``{"--reference": path or None (demo), ...}``, every input they could
+            apply to.
+
+    Raises:
+        UsageError: an event flag was set and no input is an event file.
+    """
+    given = event_flags_set(cfg)
+    if given and not any(_may_hold_events(s) for s in sources.values()):
+        what = ", ".join(f"{k} {'demo' if v is None else v}" for k, v in sources.items())
+        raise UsageError(f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to "
+                         f"event files only, and no input is one ({what}); drop "
+                         f"{'it' if len(given) == 1 else 'them'}")
 
 
 def load_frames(path: str, what: str, events: EventFrameOptions, progress: bool,

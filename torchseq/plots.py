@@ -16,6 +16,7 @@ import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from torchseq.area import area_mean
 from torchseq.atomic import atomic_path
 from torchseq.ground_truth import GroundTruthRanges, admits
 from torchseq.matches import Matches
@@ -41,7 +42,8 @@ def reduce_matrix(matrix, side: int = PLOT_SIDE) -> np.ndarray:
     """Area-average a ``(R, Q)`` matrix to at most ``side`` on a side (non-finite cells skipped).
 
     Each output cell is the mean of the finite entries of its block (adaptive pooling, the
-    blocks of :func:`torch.nn.functional.adaptive_avg_pool2d`); NaN where a block has none.
+    blocks of :func:`torch.nn.functional.adaptive_avg_pool2d`); NaN where a block has none:
+    :func:`torchseq.area.area_mean`, the definition the SeqSLAM engine's preview uses too.
     A sparse COO tensor (candidate mode's evaluated entries) is read as NaN where it holds no
     entry, without building the dense matrix (:func:`_reduce_sparse`, tested equal).
 
@@ -58,12 +60,7 @@ def reduce_matrix(matrix, side: int = PLOT_SIDE) -> np.ndarray:
     out_size = (min(m.shape[0], side), min(m.shape[1], side))
     if tuple(out_size) == tuple(m.shape):
         return m.to(torch.float64).numpy()
-    m = m.to(torch.float32)  # a display copy: float32 sums are ample
-    finite = torch.isfinite(m)
-    pool = torch.nn.functional.adaptive_avg_pool2d
-    total = pool(torch.where(finite, m, 0.0)[None], out_size)[0]
-    count = pool(finite.to(torch.float32)[None], out_size)[0]
-    return torch.where(count > 0, total / count.clamp_min(1e-30), np.nan).to(torch.float64).numpy()
+    return area_mean(m, out_size).to(torch.float64).numpy()  # float32 sums: a display copy
 
 
 def _bins(idx: torch.Tensor, n: int, out: int) -> tuple[torch.Tensor, torch.Tensor]:

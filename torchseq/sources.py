@@ -372,6 +372,15 @@ def _is_event_file(path: Path) -> bool:
     return path.suffix.lower() in EVENT_SUFFIXES
 
 
+def is_event_file(path: str | Path) -> bool:
+    """Whether :func:`load_traverse` reads the existing file ``path`` as an event recording.
+
+    Raises:
+        TraverseError: a ``.npy``/``.npz`` whose header cannot be read.
+    """
+    return _is_event_file(Path(path))
+
+
 def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
     from torchseq.events import load_event_frames
 

@@ -2,9 +2,11 @@
 
 Field datasets spell ``t, x, y, p`` in many ways; :data:`ALIASES` lists the spellings the
 readers recognise (first match wins). Times become int64 microseconds exactly: integer
-columns are taken as microseconds unless a unit says otherwise, floating-point columns as
-seconds (the convention of the ``events/ts`` HDF5 layout), both overridable with
-``time_unit``. Coordinates must fit the int16 fields; polarity must be 0/1 (bool, or -1/+1).
+columns are taken as microseconds unless a unit says otherwise (``time_unit`` overrides);
+floating-point columns follow the one float-time rule of :mod:`torchseq.events.times`
+(a declared unit, else fractions under 1e5 are seconds, whole numbers microseconds, with a
+warning; decided once per file by a :class:`~torchseq.events.times.FloatTimeRule`).
+Coordinates must fit the int16 fields; polarity must be 0/1 (bool, or -1/+1).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from torchseq.events.stream import EVENT_DTYPE, EventFormatError
+from torchseq.events.times import UNITS_PER_US, FloatTimeRule, float_times_to_us
 
 ALIASES = {
     "t": ("t", "ts", "timestamp", "timestamps", "time", "times"),
@@ -19,7 +22,6 @@ ALIASES = {
     "y": ("y", "ys", "y_coordinates", "y_coordinate"),
     "p": ("p", "ps", "polarity", "polarities", "pol"),
 }
-UNITS_PER_US = {"s": 1e-6, "ms": 1e-3, "us": 1.0, "ns": 1e3}
 MAX_EXPANSION = 1100  # deflate's best ratio is about 1032:1; a declared size beyond is a lie
 
 
@@ -65,18 +67,24 @@ def check_unit(unit: str | None) -> None:
         raise ValueError(f"time_unit must be one of {sorted(UNITS_PER_US)}, got {unit!r}")
 
 
-def to_microseconds(t: np.ndarray, unit: str | None, where: str) -> np.ndarray:
-    """``(N,)`` int64 microseconds from times in ``unit`` (None: int -> us, float -> s)."""
+def to_microseconds(t: np.ndarray, unit: str | FloatTimeRule | None, where: str
+                    ) -> np.ndarray:
+    """``(N,)`` int64 microseconds from times in ``unit``.
+
+    ``unit`` None: integers are microseconds, floats follow
+    :func:`~torchseq.events.times.float_times_to_us`; a file's ``FloatTimeRule`` carries
+    its declared unit and its float decision across chunks.
+    """
     t = np.asarray(t)
     if t.dtype.kind not in "iuf":
         raise EventFormatError(f"{where}: timestamps must be numbers, got dtype {t.dtype}")
-    if unit is None:
-        unit = "s" if t.dtype.kind == "f" else "us"
+    rule = unit if isinstance(unit, FloatTimeRule) else None
+    if rule is not None:
+        unit = None if rule.guessed else rule.unit
     if t.dtype.kind == "f":
-        us = t.astype(np.float64) / UNITS_PER_US[unit]
-        if len(us) and not (np.isfinite(us).all() and np.abs(us).max() < 2.0**62):
-            raise EventFormatError(f"{where}: timestamps not finite or beyond int64 microseconds")
-        return np.round(us).astype(np.int64)
+        return rule(t) if rule is not None else float_times_to_us(t, where, unit)
+    if unit is None:
+        unit = "us"
     if len(t) and t.dtype.kind == "u" and int(t.max()) >= 2**63:
         raise EventFormatError(f"{where}: timestamp {int(t.max())} beyond int64")
     t = t.astype(np.int64)
@@ -90,7 +98,8 @@ def to_microseconds(t: np.ndarray, unit: str | None, where: str) -> np.ndarray:
     return t * scale
 
 
-def pack(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray, unit: str | None,
+def pack(t: np.ndarray, x: np.ndarray, y: np.ndarray, p: np.ndarray,
+         unit: str | FloatTimeRule | None,
          where: str) -> np.ndarray:
     """Checked ``(N,)`` :data:`EVENT_DTYPE` array from one chunk of columns."""
     n = len(t)

@@ -28,6 +28,9 @@ from torchseq.events.stream import EventStream, as_event_array, infer_sensor_siz
 
 MODES = ("signed", "two_channel", "binary", "count")
 MAX_FRAME_ELEMENTS = 2**32  # bound on T * C * H * W of one accumulation (16 GiB float32)
+# bound on C * H * W of one frame as built (64 MiB float32): 16x the largest event sensors
+# made (1280x960, two channels); a header declaring a 32768x32768 sensor is refused
+MAX_FRAME_PIXELS = 2**24
 
 
 def window_origin(t: np.ndarray, anchor: str | int = "first") -> int:
@@ -131,8 +134,11 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
 
     Raises:
         EventFormatError: no events (or none at or after the anchor).
-        ValueError: bad mode, window, anchor or size, polarity not 0/1, or frames of more
-            than ``MAX_FRAME_ELEMENTS`` elements (a far anchor, tiny windows).
+        ValueError: bad mode, window, anchor or size, polarity not 0/1, frames of more
+            than ``MAX_FRAME_ELEMENTS`` elements in all (a far anchor, tiny windows), or a
+            frame buffer of more than ``MAX_FRAME_PIXELS`` elements (``C * H * W`` as built:
+            the pooled size when ``downsample`` divides the sensor, else the sensor's), as
+            from a header declaring a far larger sensor than its events use.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -178,6 +184,7 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
             raise ValueError(f"downsample size {downsample} must be within the {h}x{w} frame")
         if mode != "binary" and h % dh == 0 and w % dw == 0:
             out_h, out_w, fh, fw = dh, dw, h // dh, w // dw
+    _check_frame_pixels(channels, out_h, out_w, w, h, len(events))
     dev = torch.device(device) if device is not None else torch.device("cpu")
     acc = torch.float64 if dtype == torch.float64 else torch.float32
     geometry = _Geometry(out_w, out_h, fw, fh, channels)
@@ -219,6 +226,17 @@ def _check_fields(events: np.ndarray, w: int, h: int) -> None:
         raise ValueError(f"events outside the {w}x{h} sensor: wrong sensor_size?")
     if int(events["p"].max()) > 1:
         raise ValueError(f"polarity must be 0 or 1, found {int(events['p'].max())}")
+
+
+def _check_frame_pixels(channels: int, out_h: int, out_w: int, w: int, h: int, n: int) -> None:
+    pixels = channels * out_h * out_w
+    if pixels > MAX_FRAME_PIXELS:
+        raise ValueError(
+            f"frames of {channels}x{out_h}x{out_w} = {pixels:,} elements each for a {w}x{h} "
+            f"sensor (> MAX_FRAME_PIXELS = {MAX_FRAME_PIXELS:,}) from {n:,} events: check "
+            f"sensor_size (a file header may declare a larger sensor than the events use) or "
+            f"pass downsample=(H', W') dividing {h}x{w}, which bins events straight into the "
+            f"pooled pixels")
 
 
 def _count_windows(n: int, t_last: int, origin: int, window_us, event_count) -> int:

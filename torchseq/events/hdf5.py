@@ -13,7 +13,7 @@ of ``t, x, y, p`` under one of the names in :data:`torchseq.events.columns.ALIAS
   columns ``t, x, y, p``.
 
 Units come from a ``units``/``unit`` attribute of the time dataset, else int = us and
-float = s; ``time_unit=`` overrides. A root dataset or attribute ``t_offset`` (DSEC, in us)
+float by times.py; ``time_unit=`` overrides. A root dataset or attribute ``t_offset`` (DSEC, in us)
 is added. The sensor size comes from ``sensor_size=``, else ``width``/``height`` attributes
 of the group or the root, else the largest coordinates (with a warning). DDD20's original
 recordings (raw libcaer packets inside HDF5) are not this layout and are not read.
@@ -42,6 +42,7 @@ from torchseq.events.columns import (
     unit_from_text,
 )
 from torchseq.events.stream import EventFormatError, EventStream
+from torchseq.events.times import FloatTimeRule
 
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 
@@ -213,6 +214,7 @@ def _iter_open(f, path, chunk_events, sensor_size, group, columns, time_unit, h5
             else None
         read = _reader(found["kind"], d, names)
     unit = time_unit or unit_from_text(t_attrs.get("units", t_attrs.get("unit")))
+    unit = FloatTimeRule(where, unit)  # float times: one decision per file
     offset = _t_offset(f)
     if sensor_size is None:
         sensor_size = _size_from_attrs(g, f)

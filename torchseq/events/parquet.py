@@ -4,7 +4,7 @@ The layout of Brisbane-Event-VPR's published Parquet conversion and of event tab
 with pandas/polars/pyarrow. Columns are found by the names in
 :data:`torchseq.events.columns.ALIASES` (``columns=`` overrides). Times: an Arrow
 ``timestamp``/``duration`` column carries its unit; otherwise integers are microseconds and
-floats seconds (``time_unit=`` overrides). The sensor size comes from ``sensor_size=``, else
+floats by times.py (``time_unit=`` overrides). The sensor size comes from ``sensor_size=``, else
 the file's key-value metadata (``sensor_size`` as ``"W,H"`` or ``width``/``height``), else
 the largest coordinates (with a warning). Rows are read in batches of ``chunk_events``;
 a declared row count needing more than ``MAX_EXPANSION`` times the file's bytes is
@@ -22,6 +22,7 @@ import numpy as np
 from torchseq.atomic import atomic_open
 from torchseq.events.columns import MAX_EXPANSION, check_unit, find_columns, pack
 from torchseq.events.stream import EVENT_DTYPE, EventFormatError, EventStream, as_event_array
+from torchseq.events.times import FloatTimeRule
 
 PARQUET_MAGIC = b"PAR1"
 
@@ -105,6 +106,7 @@ def iter_parquet(path: str | Path, chunk_events: int = 1 << 20,
             raise EventFormatError(f"{path}: declares {n} rows in a {path.stat().st_size}-byte "
                                    f"file (more than {MAX_EXPANSION}x)")
         unit = time_unit or _arrow_unit(schema.field(names["t"]).type, pa)
+        unit = FloatTimeRule(str(path), unit)  # float times: one decision per file
         if sensor_size is None:
             sensor_size = _size_from_metadata(schema.metadata)
         order = [names[k] for k in "txyp"]

@@ -38,6 +38,7 @@ from torchseq.events.stream import (
     file_error,
     make_events,
 )
+from torchseq.events.times import FloatTimeRule, float_times_to_us, with_us_times
 from torchseq.npyfile import ZIP_ERRORS, NpyHeader, check_size, read_header, read_member
 
 _ZIP_ERRORS = ZIP_ERRORS + (lzma.LZMAError,)
@@ -67,11 +68,15 @@ def _with_size(events: np.ndarray, sensor_size, path: Path) -> EventStream:
     return EventStream(events, sensor_size)
 
 
-def _convert(arr: np.ndarray, path, offset: int | None) -> np.ndarray:
+def _convert(arr: np.ndarray, path, offset: int | None,
+             rule: FloatTimeRule | None = None) -> np.ndarray:
     try:
+        if arr.dtype.names and "t" in arr.dtype.names:  # float times: warnings name the file
+            arr = with_us_times(arr, str(path), rule)
         return as_event_array(arr, "the array")
     except EventFormatError as err:
-        raise file_error(path, offset, str(err)) from None
+        msg = str(err).removeprefix(f"{path}: ")
+        raise file_error(path, offset, msg) from None
 
 
 def iter_npy(path: str | Path, chunk_events: int = 1 << 20,
@@ -93,10 +98,12 @@ def iter_npy(path: str | Path, chunk_events: int = 1 << 20,
     arr = (np.memmap(path, dtype, "r", offset=data, shape=(n,)) if n
            else np.empty(0, dtype))
 
+    rule = FloatTimeRule(str(path))  # float times: one decision per file
+
     def pieces():
         for i in range(0, max(n, 1), chunk_events):
-            yield data + i * dtype.itemsize, _convert(np.array(arr[i : i + chunk_events]),
-                                                      path, data + i * dtype.itemsize)
+            at = data + i * dtype.itemsize
+            yield at, _convert(np.array(arr[i : i + chunk_events]), path, at, rule)
 
     if sensor_size is None:
         if n == 0:
@@ -144,6 +151,13 @@ def read_npz(path: str | Path, sensor_size: tuple[int, int] | None = None) -> Ev
                 events = _convert(member(zf, "events.npy"), path, where[0])
             elif {"t", "x", "y", "p"} <= files:
                 cols = [member(zf, f"{k}.npy") for k in "txyp"]
+                if cols[0].dtype.kind == "f":  # the float-time rule; messages name the file
+                    try:
+                        cols[0] = float_times_to_us(cols[0], str(path))
+                    except EventFormatError as err:
+                        raise file_error(path, zf.getinfo("t.npy").header_offset,
+                                         "t.npy: " + str(err).removeprefix(f"{path}: ")
+                                         ) from None
                 try:
                     events = make_events(*cols)
                 except EventFormatError as err:  # point at the member the message names

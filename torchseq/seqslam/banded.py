@@ -17,8 +17,8 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 
+from torchseq.area import Partial, area_mean, finish, reduce_rows
 from torchseq.seqslam._parallel import resolve_threads
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.difference import (
@@ -33,16 +33,12 @@ from torchseq.seqslam.search import search_scores, uniqueness_ratio
 PREVIEW_SIDE = 1024  # the reduced copy of the enhanced matrix is at most this on a side
 
 
-def preview_rows(e_t: torch.Tensor) -> torch.Tensor:
-    """``(n, R)`` query-major rows -> ``(n, min(R, PREVIEW_SIDE))`` by area averaging."""
-    side = min(e_t.shape[1], PREVIEW_SIDE)
-    return F.adaptive_avg_pool1d(e_t.float()[:, None, :], side)[:, 0]
+def preview(enhanced: torch.Tensor) -> torch.Tensor:
+    """``(R, Q)`` -> ``(min(R, PREVIEW_SIDE), min(Q, PREVIEW_SIDE))`` float32 reduced copy.
 
-
-def preview_columns(rows: torch.Tensor) -> torch.Tensor:
-    """``(Q, R')`` row-reduced columns -> ``(R', min(Q, PREVIEW_SIDE))`` preview."""
-    side = min(rows.shape[0], PREVIEW_SIDE)
-    return F.adaptive_avg_pool1d(rows.T.contiguous()[:, None, :], side)[:, 0]
+    The block means of :func:`torchseq.area.area_mean` (non-finite entries skipped).
+    """
+    return area_mean(enhanced, (PREVIEW_SIDE, PREVIEW_SIDE))
 
 
 def band_centres(n_ref: int, config: SeqSLAMConfig) -> int:
@@ -108,7 +104,10 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
     best = torch.full((n_query,), math.nan, dtype=torch.float64, device=dev)
     second = torch.full((n_query,), math.nan, dtype=torch.float64, device=dev)
     ranked = torch.full((n_query, c.top_k), -1, dtype=torch.int64, device=dev)
+    # the preview reduced along R band by band (torchseq.area); the finite counts are kept
+    # only once a band holds a non-finite entry (until then every weight is 1)
     rows = torch.empty(n_query, min(n_ref, PREVIEW_SIDE), dtype=torch.float32, device=dev)
+    weights = None
     low = math.inf
     step = band_centres(n_ref, c)
     args = (ds, speeds, c.rwindow, c.top_k, budget, False, c.match_rule, workers)
@@ -116,7 +115,12 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
         c1 = min(c0 + step, n_query - half)
         e = enhanced_columns(c0 - half, c1 + half)
         low = min(low, float(e.min()))
-        rows[c0 - half:c1 + half] = preview_rows(e.T)
+        part = reduce_rows(e.T, PREVIEW_SIDE)
+        rows[c0 - half:c1 + half] = part.values
+        if weights is None and part.weights is not None:
+            weights = torch.ones_like(rows)
+        if weights is not None:
+            weights[c0 - half:c1 + half] = 1.0 if part.weights is None else part.weights
         t = time.perf_counter()
         m, b, s, r = search_scores(e.double(), *args)
         own = slice(half, half + c1 - c0)
@@ -134,5 +138,5 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
             best[q], second[q] = b[take] - shift, s[take] - shift  # undone below
             seconds["search"] += time.perf_counter() - t
     return {"match": match, "best": best + shift, "ratio": uniqueness_ratio(best, second, shift),
-            "ranked": ranked, "preview": preview_columns(rows) - low, "kernel": kernel,
-            "threads": workers, "seconds": seconds}
+            "ranked": ranked, "preview": finish(Partial(rows, weights), PREVIEW_SIDE) - low,
+            "kernel": kernel, "threads": workers, "seconds": seconds}

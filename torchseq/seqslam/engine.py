@@ -12,7 +12,7 @@ from torchseq._checks import check_not_empty
 from torchseq.matches import Matches
 from torchseq.preprocess import preprocess, preprocess_openseqslam
 from torchseq.seqslam._parallel import resolve_threads, single_threaded_ops
-from torchseq.seqslam.banded import match_banded, preview_columns, preview_rows
+from torchseq.seqslam.banded import match_banded, preview
 from torchseq.seqslam.candidates import CandidateSeqSLAM, resolve_candidates
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.difference import check_descriptors, difference_with_kernel
@@ -188,7 +188,7 @@ class SeqSLAM(nn.Module):
             difference=diff.cpu(), enhanced=enhanced.cpu(), ranked=ranked.cpu(),
             best_score=best.cpu(), seconds=seconds,
             kernels={"difference": kernel, "threads": threads, "matrices": "full"},
-            preview=preview_columns(preview_rows(enhanced.T)).cpu())
+            preview=preview(enhanced).cpu())
 
     def forward(self, reference: torch.Tensor, query: torch.Tensor) -> SeqSLAMResult:
         """Same as :meth:`match`."""

@@ -103,6 +103,29 @@ def uniqueness_ratio(best: torch.Tensor, second: torch.Tensor,
     return torch.where(torch.isfinite(best), ratio, torch.full_like(ratio, math.nan))
 
 
+def _lowest_tied(scores: torch.Tensor, cand: torch.Tensor, vals: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Top-K ``(C, K)`` starts whose ties with the K-th score are the lowest starts.
+
+    ``topk`` keeps *some* of the starts tied with the K-th smallest score; where it left out
+    a lower one, the row is redone: every start below the K-th score, then the lowest tied
+    starts until K (the rule of a stable sort, as the loop oracle ranks). Only rows with a
+    finite K-th score tied beyond the kept ones are touched (inf starts report -1 anyway).
+    """
+    kth = vals[:, -1:]
+    fix = (((scores == kth).sum(1) > (vals == kth).sum(1)) & torch.isfinite(kth[:, 0]))
+    rows = fix.nonzero()[:, 0]
+    if len(rows) == 0:
+        return cand, vals
+    s, t, k = scores[rows], kth[rows], cand.shape[1]
+    below, tied = s < t, s == t
+    take = below | (tied & (tied.cumsum(1) <= k - below.sum(1, keepdim=True)))
+    cand, vals = cand.clone(), vals.clone()
+    cand[rows] = take.nonzero()[:, 1].view(-1, k)  # exactly K per row, in start order
+    vals[rows] = s.gather(1, cand[rows])
+    return cand, vals
+
+
 def _rank(
     scores: torch.Tensor, ds: int, n_ref: int, rwindow: int, top_k: int,
     centre: torch.Tensor | None = None,
@@ -117,6 +140,7 @@ def _rank(
     second = scores.masked_fill(inside, math.inf).min(dim=1).values
     k = min(top_k, n_starts)
     vals, cand = torch.topk(scores, k, dim=1, largest=False, sorted=True)
+    cand, vals = _lowest_tied(scores, cand, vals)
     order = cand.argsort(dim=1)  # make ties come out lowest start first
     cand, vals = cand.gather(1, order), vals.gather(1, order)
     order = vals.argsort(dim=1, stable=True)
@@ -147,7 +171,8 @@ def rank_scores(
         ``(C,)`` best start, ``(C,)`` best score, ``(C,)`` uniqueness
         (:func:`uniqueness_ratio` of the best and the best outside ``start +- rwindow // 2``)
         and ``(C, top_k)`` ranked references (``start + ds / 2`` clamped to ``R - 1``, ``-1``
-        for inf scores).
+        for inf scores). Ties go to the lower start: the best start is the first minimum,
+        and the ranking is a stable sort's, also where ties straddle the K-th place.
     """
     start, best, second, ranked = _rank(scores, ds, n_ref, rwindow, top_k, centre)
     return start, best, uniqueness_ratio(best, second), ranked
