@@ -38,7 +38,7 @@ DEFAULT_CHUNK = 1 << 20
 # the format options each format takes (a format not listed takes none); a new format
 # registers its options here beside its detect_format and _chunks lines
 FORMAT_OPTIONS = {"aedat2": {"layout", "flip_y", "truncated"}, "aedat4": {"truncated"},
-                  "raw": {"truncated", "evt3_time"},
+                  "raw": {"truncated", "evt3_time", "evt3_kernel"},
                   "hdf5": {"group", "columns", "time_unit"}, "parquet": {"columns", "time_unit"}}
 
 
@@ -162,7 +162,8 @@ def iter_events(path: str | Path, chunk_events: int = DEFAULT_CHUNK,
         chunk_events: about how many events (or raw records/words) per chunk.
         sensor_size: ``(W, H)`` override of the size the file states or implies.
         **options: format options: ``layout``, ``flip_y`` (AEDAT 2.0), ``truncated``
-            (``"error"``/``"drop"``; AEDAT 2.0/4.0, ``.raw``), ``evt3_time`` (``.raw``).
+            (``"error"``/``"drop"``; AEDAT 2.0/4.0, ``.raw``), ``evt3_time`` and
+            ``evt3_kernel`` (``.raw``; the kernel changes speed, never the events).
 
     Yields:
         :class:`EventStream` chunks with the same ``sensor_size``.
