@@ -82,3 +82,22 @@ def test_read_events_grows_when_the_first_chunk_underestimates(tmp_path, monkeyp
     assert np.array_equal(got, s.events[keep])
     buffers = dict(targets)  # id -> length of each output buffer written to
     assert len(buffers) == 2 and min(buffers.values()) < len(got)  # it grew, once
+
+
+def test_read_events_falls_back_when_the_estimate_cannot_be_allocated(tmp_path, monkeypatch):
+    s = stream(50_000, seed=4)
+    path = tmp_path / "e.aedat"
+    write_aedat2(path, s)
+    refused = []
+    real_empty = np.empty
+
+    def empty(n, *args, **kw):  # the system refuses the first estimate (56,250 + 10,000 rows)
+        if n > 60_000 and not refused:
+            refused.append(n)
+            raise MemoryError(f"cannot allocate {n} rows")
+        return real_empty(n, *args, **kw)
+
+    monkeypatch.setattr(io.np, "empty", empty)
+    got = read_events(path, chunk_events=10_000).events
+    monkeypatch.undo()
+    assert refused and np.array_equal(got, s.events)

@@ -207,9 +207,10 @@ def _gather(chunks: Iterator[EventStream], file_bytes: int) -> tuple[np.ndarray,
 
     From the second chunk on, chunks are copied (as raw 16-byte rows, see
     :func:`concat_events`) into one output sized from the events per file byte of the
-    first chunk (plus 1/8 and a chunk), allocated anew with twice the room when that runs out
-    and cut to size at the end. Each chunk is released before the next is read, so the peak
-    is about the output plus one chunk.
+    first chunk (plus 1/8 and a chunk; two chunks' room if the system refuses that much),
+    allocated anew with twice the room when that runs out and cut to size at the end. Each
+    chunk is released before the next is read, so the peak is about the output plus one
+    chunk.
     """
     first = next(chunks)
     events, size, start = first.events, first.sensor_size, getattr(first, "offset", None)
@@ -223,7 +224,10 @@ def _gather(chunks: Iterator[EventStream], file_bytes: int) -> tuple[np.ndarray,
             guess = m + len(ev)
             if start is not None and offset is not None and offset > start:
                 guess = max(guess, int(m * (file_bytes - start) / (offset - start) * 1.125))
-            out = np.empty(guess + len(ev), EVENT_DTYPE)
+            try:
+                out = np.empty(guess + len(ev), EVENT_DTYPE)
+            except MemoryError:  # a first chunk far denser than the rest: grow as needed
+                out = np.empty(m + 2 * len(ev), EVENT_DTYPE)
             _put(out, 0, events)
             n, events = m, None
         if n + len(ev) > len(out):

@@ -230,8 +230,8 @@ def _decode_evt3_numpy(words: np.ndarray, state: dict, time_mode: str) -> np.nda
                      high_full=int(high_full[-1]) if len(high) else state.get("high_full", -1),
                      carry=carry_last)
         if len(ws):
-            state.update(pol=int(bpol[nb[-1]]),
-                             base=int(bval[nb[-1]] + done[-1] + step[-1]) & 0xFFFF)
+            base = int(bval[nb[-1]] + done[-1] + step[-1]) & 0xFFFF
+            state.update(pol=int(bpol[nb[-1]]), base=base)
         if len(high):
             state.update(high=int(high[-1]), loops=int(loops[-1]))
     if not ok.all():
