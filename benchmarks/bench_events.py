@@ -2,14 +2,17 @@
 
     .venv/bin/python benchmarks/bench_events.py            # prints Markdown tables
     .venv/bin/python benchmarks/bench_events.py --write-docs   # also updates docs/events.md
+    .venv/bin/python benchmarks/bench_events.py --only readers # one section
 
 Accumulation: torchseq's bincount ``accumulate`` against a straightforward NumPy version
 (``np.add.at`` per window in a Python loop over windows), a plain Python per-event loop (on
 a slice, extrapolated per event) and tonic's ``to_frame_numpy`` when tonic is installed
 (benchmark only; loaded without its dataset dependencies). Readers: events per second on
 the real files (best of 5 whole-file reads) and on large files written by torchseq's writers
-(AEDAT 2.0, AEDAT 4.0, EVT 3.0; streamed in bounded memory), with the field's readers
-(`aedat`, `dv-processing`, `evlib`) side by side when TORCHSEQ_BENCH_LIBS points at them.
+(AEDAT 2.0, AEDAT 4.0, EVT 3.0; 20 M events, streamed and read whole, with the peak
+resident memory a fresh process adds), with the field's readers (`aedat`, `dv-processing`,
+`evlib`) side by side when TORCHSEQ_BENCH_LIBS points at them, and in the same run the
+NumPy EVT 3 kernel, the previous AEDAT 4 packet join and the previous whole read.
 
 Accumulation rows also time the previous implementation (int64 flat index, one weighted
 bincount; kept here as ``previous_accumulate``) in the same run, a 20M-event stream, CUDA
@@ -21,7 +24,8 @@ windows, pooled to 16x16 and matched with SeqSLAM (ds = 100).
 Accumulation and experiment rates are events per second of *process CPU time* (one
 thread): the cost on one core, which the time slices a busy shared host takes away do not
 inflate (wall-clock rates on the 2-core host shared by several jobs moved 2-4x between runs;
-CPU-time rates moved a few percent). Reader rows are wall time.
+CPU-time rates moved a few percent). Reader rows are CPU time too (all threads of a field
+reader count), with the wall-time rate in their notes.
 """
 
 from __future__ import annotations
