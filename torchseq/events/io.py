@@ -212,7 +212,9 @@ def _gather(chunks: Iterator[EventStream], file_bytes: int) -> tuple[np.ndarray,
     chunk is released before the next is read, so the peak is about the output plus one
     chunk.
     """
-    first = next(chunks)
+    first = next(chunks, None)
+    if first is None:  # every reader yields at least one (perhaps empty) chunk
+        raise EventFormatError("the reader yielded no chunk")
     events, size, start = first.events, first.sensor_size, getattr(first, "offset", None)
     del first
     out, n = None, 0
