@@ -2,14 +2,17 @@
 
     .venv/bin/python benchmarks/bench_events.py            # prints Markdown tables
     .venv/bin/python benchmarks/bench_events.py --write-docs   # also updates docs/events.md
+    .venv/bin/python benchmarks/bench_events.py --only readers # one section
 
 Accumulation: torchseq's bincount ``accumulate`` against a straightforward NumPy version
 (``np.add.at`` per window in a Python loop over windows), a plain Python per-event loop (on
 a slice, extrapolated per event) and tonic's ``to_frame_numpy`` when tonic is installed
 (benchmark only; loaded without its dataset dependencies). Readers: events per second on
 the real files (best of 5 whole-file reads) and on large files written by torchseq's writers
-(AEDAT 2.0, AEDAT 4.0, EVT 3.0; streamed in bounded memory), with the field's readers
-(`aedat`, `dv-processing`, `evlib`) side by side when TORCHSEQ_BENCH_LIBS points at them.
+(AEDAT 2.0, AEDAT 4.0, EVT 3.0; 20 M events, streamed and read whole, with the peak
+resident memory a fresh process adds), with the field's readers (`aedat`, `dv-processing`,
+`evlib`) side by side when TORCHSEQ_BENCH_LIBS points at them, and in the same run the
+NumPy EVT 3 kernel, the previous AEDAT 4 packet join and the previous whole read.
 
 Accumulation rows also time the previous implementation (int64 flat index, one weighted
 bincount; kept here as ``previous_accumulate``) in the same run, a 20M-event stream, CUDA
@@ -21,7 +24,8 @@ windows, pooled to 16x16 and matched with SeqSLAM (ds = 100).
 Accumulation and experiment rates are events per second of *process CPU time* (one
 thread): the cost on one core, which the time slices a busy shared host takes away do not
 inflate (wall-clock rates on the 2-core host shared by several jobs moved 2-4x between runs;
-CPU-time rates moved a few percent). Reader rows are wall time.
+CPU-time rates moved a few percent). Reader rows are CPU time too (all threads of a field
+reader count), with the wall-time rate in their notes.
 """
 
 from __future__ import annotations
@@ -30,10 +34,10 @@ import argparse
 import importlib
 import importlib.util
 import os
+import subprocess
 import sys
 import tempfile
 import time
-import tracemalloc
 import types
 from pathlib import Path
 
@@ -313,10 +317,20 @@ FIELD = {"aedat": ("aedat 2.3 (Rust)", _aedat_pkg, {".aedat4"},
                    lambda e: make_events(e["t"], e["x"], e["y"], e["p"]))}
 
 
+def both_timed(fn, repeat=1):
+    """Best CPU time and best wall time of ``repeat`` calls (reader rows give both)."""
+    cpu = wall = float("inf")
+    for _ in range(repeat):
+        c, w = time.process_time(), time.perf_counter()
+        out = fn()
+        cpu, wall = min(cpu, time.process_time() - c), min(wall, time.perf_counter() - w)
+    return cpu, wall, out
+
+
 def _compare_row(label, fn, convert, path, ours, repeat):
     """A row for a field reader: its rate (native output) and whether it gives our events."""
     try:
-        t, native = timed(lambda: fn(path), repeat)
+        cpu, wall, native = both_timed(lambda: fn(path), repeat)
         ev = convert(native)
     except Exception as err:  # noqa: BLE001 - report any failure in the table
         return (label, float("nan"), f"fails: {type(err).__name__}: {str(err)[:60]}")
@@ -325,23 +339,49 @@ def _compare_row(label, fn, convert, path, ours, repeat):
     elif len(ev) == len(ours) and all(np.array_equal(ev[f], ours[f]) for f in "xyp"):
         verdict = "same x, y, p; t differs"
     else:
-        verdict = f"different events ({len(ev):,} vs {len(ours):,})"
-    return (label, len(ev) / t, verdict)
+        bad = (len(ev) - len(ours)) if len(ev) != len(ours) else int((ev != ours).sum())
+        verdict = (f"different events ({len(ev):,} vs {len(ours):,}"
+                   + (f"; {bad:,} differ)" if len(ev) == len(ours) else ")"))
+    return (label, len(ev) / cpu, f"{len(ev) / wall / 1e6:.0f} M/s wall; {verdict}")
 
 
-def _stream(path, chunk=1 << 20):
+def _stream(path, chunk=1 << 20, **options):
     n = 0
-    for c in iter_events(path, chunk):
+    for c in iter_events(path, chunk, **options):
         n += len(c)
     return n
 
 
-def _stream_peak(path) -> float:
-    tracemalloc.start()
-    _stream(path)
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    return peak / 2**20
+_RSS_CHILD = """
+import re, sys
+import numpy as np
+from torchseq.events import iter_events, read_events
+from torchseq.events.prophesee import EVT3_KERNEL, decode_evt3
+decode_evt3(np.zeros(0, np.uint16), {}, kernel=EVT3_KERNEL)  # load the compiled kernel first
+def rss(key):
+    status = open("/proc/self/status").read()
+    return int(re.search(key + r":\\s+(\\d+) kB", status).group(1))
+base = rss("VmRSS")
+with open("/proc/self/clear_refs", "w") as f:  # resets the peak (VmHWM) to the current RSS
+    f.write("5")
+if sys.argv[2] == "stream":
+    n = sum(len(c) for c in iter_events(sys.argv[1], 1 << 20))
+else:
+    n = len(read_events(sys.argv[1]))
+print(n, rss("VmHWM") - base)
+"""
+
+
+def _rss_growth(path, how) -> float:
+    """Peak resident memory (MiB) a fresh process adds while it reads ``path`` (``how``:
+    ``"stream"`` or ``"whole"``) over its resident memory after the imports (Linux: the
+    peak is reset through /proc/self/clear_refs before reading; NaN where that fails)."""
+    out = subprocess.run([sys.executable, "-c", _RSS_CHILD, str(path), how],
+                         capture_output=True, text=True)
+    if out.returncode:
+        print(f"RSS measurement failed: {out.stderr[-300:]}", file=sys.stderr)
+        return float("nan")
+    return int(out.stdout.split()[1]) / 1024
 
 
 def _bursts(n, w, h, seed=0, span_us=1_000_000):
@@ -358,8 +398,12 @@ def _bursts(n, w, h, seed=0, span_us=1_000_000):
     return EventStream(ev, (w, h))
 
 
-def bench_readers(n_large: int = 10_000_000) -> list[tuple[str, float, str]]:
-    """Reader rows: the real files whole, then large written files streamed, + field readers."""
+def bench_readers(n_large: int = 20_000_000) -> list[tuple[str, float, str]]:
+    """Reader rows: the real files whole, then large written files streamed, + field readers.
+
+    Rates are events per second of process CPU time (all threads of a field reader count),
+    the wall-time rate in the note; best of 5 (real files) or 3 (large files).
+    """
     libs = _field_readers()
     rows = []
     files = [("IMU_translBoxes.aedat", "AEDAT 2.0 DAVIS", {}),
@@ -370,9 +414,10 @@ def bench_readers(n_large: int = 10_000_000) -> list[tuple[str, float, str]]:
         path = DATA / name
         if not path.exists():
             continue
-        t, s = timed(lambda: read_events(path, **kw), 5)
-        rows.append((f"torchseq, {label}: {name}", len(s) / t,
-                     f"{path.stat().st_size / t / 1e6:.0f} MB/s"))
+        cpu, wall, s = both_timed(lambda: read_events(path, **kw), 5)
+        rows.append((f"torchseq, {label}: {name}", len(s) / cpu,
+                     f"{len(s) / wall / 1e6:.0f} M/s wall, {path.stat().st_size / cpu / 1e6:.0f}"
+                     f" MB/s"))
         for lib, mod in libs.items():
             label2, fn, sfx, convert = FIELD[lib]
             if path.suffix in sfx:
@@ -389,19 +434,51 @@ def bench_readers(n_large: int = 10_000_000) -> list[tuple[str, float, str]]:
                 lambda p: write_aedat4(p, s))]
         for label, path, write in big:
             write(path)
-            t, n = timed(lambda: _stream(path), 3)
-            peak = _stream_peak(path)
-            rows.append((f"torchseq, {label}, {n:,} events written by torchseq, streamed "
-                         f"(iter_events, 2^20 per chunk)", n / t,
-                         f"{path.stat().st_size / t / 1e6:.0f} MB/s, peak {peak:.0f} MiB"))
-            t, whole = timed(lambda: read_events(path), 3)
+            mb = path.stat().st_size / 1e6
+            cpu, wall, n = both_timed(lambda: _stream(path), 3)
+            rss = _rss_growth(path, "stream")
+            rows.append((f"torchseq, {label}, {n:,} events ({mb:.0f} MB) written by torchseq, "
+                         f"streamed (iter_events, 2^20 per chunk)", n / cpu,
+                         f"{n / wall / 1e6:.0f} M/s wall, {mb / cpu:.0f} MB/s; peak RSS "
+                         f"+{rss:.0f} MiB"))
+            if path.suffix == ".raw":
+                c2, w2, _ = both_timed(lambda: _stream(path, evt3_kernel="numpy"), 3)
+                rows.append((f"torchseq, {label}, same file streamed, NumPy kernel "
+                             "(evt3_kernel='numpy')", n / c2,
+                             f"{n / w2 / 1e6:.0f} M/s wall; the numba kernel is "
+                             f"{c2 / cpu:.1f}x faster"))
+            if path.suffix == ".aedat4":
+                import torchseq.events.aedat4 as a4
+
+                saved, a4.concat_events = a4.concat_events, np.concatenate
+                try:  # the previous packet join: NumPy copies the padded rows field by field
+                    c2, w2, _ = both_timed(lambda: _stream(path), 3)
+                finally:
+                    a4.concat_events = saved
+                rows.append((f"torchseq, {label}, same file streamed, packets joined by "
+                             "np.concatenate (the previous reader)", n / c2,
+                             f"{n / w2 / 1e6:.0f} M/s wall; concat_events is "
+                             f"{c2 / cpu:.1f}x faster"))
+            cpu, wall, whole = both_timed(lambda: read_events(path), 3)
             ours = whole.events
-            rows.append((f"torchseq, {label}, same file (whole read)", len(ours) / t, ""))
+            rss = _rss_growth(path, "whole")
+            rows.append((f"torchseq, {label}, same file (read_events, whole)", len(ours) / cpu,
+                         f"{len(ours) / wall / 1e6:.0f} M/s wall; peak RSS +{rss:.0f} MiB (the "
+                         f"events take {ours.nbytes / 2**20:.0f} MiB)"))
+            c3, w3, prev = both_timed(
+                lambda: np.concatenate([c.events for c in iter_events(path)]), 3)
+            assert np.array_equal(prev, ours)
+            del prev
+            rows.append((f"torchseq, {label}, same file, the previous whole read (all chunks "
+                         "kept, then np.concatenate)", len(ours) / c3,
+                         f"{len(ours) / w3 / 1e6:.0f} M/s wall; read_events now "
+                         f"{c3 / cpu:.1f}x faster"))
             for lib, mod in libs.items():
                 label2, fn, sfx, convert = FIELD[lib]
                 if path.suffix in sfx:
                     rows.append(_compare_row(f"{label2}, same file (whole read)",
                                              lambda p: fn(mod, p), convert, path, ours, 3))
+            del whole, ours
             path.unlink()
     return rows
 
@@ -414,25 +491,51 @@ def table(title, rows, unit="events/s"):
     return "\n".join(lines)
 
 
+def _load() -> str:
+    try:
+        return Path("/proc/loadavg").read_text().split()[0]
+    except OSError:
+        return "?"
+
+
+SECTIONS = ("accumulate", "readers", "experiment")
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--events", type=int, default=2_000_000)
-    p.add_argument("--write-docs", action="store_true")
-    p.add_argument("--reader-events", type=int, default=10_000_000)
+    p.add_argument("--write-docs", action="store_true",
+                   help="replace the table block of docs/events.md (all sections only)")
+    p.add_argument("--reader-events", type=int, default=20_000_000)
+    p.add_argument("--only", choices=SECTIONS, action="append",
+                   help="run only these sections (repeatable)")
     args = p.parse_args()
     torch.set_num_threads(1)
-    text = (f"Accumulation of {args.events:,} random events (128x128, 10 ms windows over 2 s, "
+    only = set(args.only or SECTIONS)
+    parts = []
+    if "accumulate" in only:
+        parts.append(
+            f"Accumulation of {args.events:,} random events (128x128, 10 ms windows over 2 s, "
             f"signed frames), one thread, events per second of process CPU time:\n\n"
             + table("accumulation", bench_accumulate(args.events)) + "\n\nAccumulation "
             "against the previous implementation (same frames, one run, events per second of "
             "process CPU time, best of 7):\n\n"
-            + table("accumulation", bench_accumulate_kernels()) + "\n\nReaders, one thread "
-            "(real files read whole, best of 5; large files streamed, best of 3; wall time):\n\n"
-            + table("reader", bench_readers(args.reader_events))
-            + "\n\nThe seed's speed experiment end to end (read, accumulate, match; one "
-            "run, CPU time):\n\n" + table("pipeline", bench_experiment()))
+            + table("accumulation", bench_accumulate_kernels()))
+    if "readers" in only:
+        load = _load()
+        rows = bench_readers(args.reader_events)
+        parts.append(
+            "Readers, one thread: events per second of process CPU time (a field reader's "
+            "threads all count), the wall-time rate in the note; real files read whole, best "
+            "of 5; large files best of 3; peak RSS is what a fresh process adds over its "
+            f"imports (load average {load} at the start, {_load()} at the end):\n\n"
+            + table("reader", rows))
+    if "experiment" in only:
+        parts.append("The seed's speed experiment end to end (read, accumulate, match; one "
+                     "run, CPU time):\n\n" + table("pipeline", bench_experiment()))
+    text = "\n\n".join(parts)
     print(text)
-    if args.write_docs and DOC.exists():
+    if args.write_docs and only == set(SECTIONS) and DOC.exists():
         doc = DOC.read_text()
         if BEGIN in doc and END in doc:
             head, rest = doc.split(BEGIN, 1)

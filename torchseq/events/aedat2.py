@@ -42,41 +42,51 @@ CHIPS = {  # AEChip/HardwareInterface name fragment -> (layout, (W, H))
     "DAVIS128": ("davis", (128, 128)),
     "DAVIS640": ("davis", (640, 480)),
 }
-_TEXT = set(range(0x20, 0x7F)) | {0x09, 0x0D}
+
+
+# one header line: '#', printable ASCII (tab, CR allowed), newline; at most 65536 bytes. A
+# binary record that happens to start with '#' (0x23) fails this, so it is not swallowed.
+_HEADER_LINES = re.compile(rb"(?:#[\t\r\x20-\x7e]{0,65534}\n)*")
+_BLOCK = 1 << 20
 
 
 def read_header(f) -> tuple[int, list[str]]:
-    """Read the ``#`` header lines of an open binary file; returns (byte length, lines)."""
-    lines, size = [], 0
+    """Read the ``#`` header lines of an open binary file; returns (byte length, lines).
+
+    The lines are matched in blocks of 1 MiB by one regular expression (jAER files carry
+    headers of thousands of lines); the file is left at the first byte after the header.
+    """
+    start = f.tell()
+    buf, end = b"", 0
     while True:
-        pos = f.tell()
-        line = f.readline(65536)
-        # a header line is '#' + printable ASCII + newline; a binary record that happens to
-        # start with '#' (0x23) fails this test, so it is not swallowed as a header line
-        if not line.startswith(b"#") or not line.endswith(b"\n") or not set(line[:-1]) <= _TEXT:
-            f.seek(pos)
-            return size, lines
-        lines.append(line.decode("ascii").rstrip("\r\n"))
-        size += len(line)
+        block = f.read(_BLOCK)
+        buf += block
+        end = _HEADER_LINES.match(buf, end).end()
+        # done when the match stopped at a whole non-header line or at the end of the file
+        # (a header line is at most 65536 bytes, so one cut by the block is within that)
+        if not block or len(buf) - end > 65536:
+            break
+    f.seek(start + end)
+    lines = buf[:end].decode("ascii").split("\n")[:-1]
+    return end, [line.rstrip("\r") for line in lines]
 
 
 def detect_chip(lines: list[str], path=None) -> tuple[str, tuple[int, int]] | None:
     """``(layout, (W, H))`` from the header's torchseq/AEChip/HardwareInterface lines."""
-    for line in lines:
-        m = re.match(r"#\s*torchseq layout: (\w+) sensor_size: (\d+)x(\d+)", line)
-        if m:
-            try:
-                size = check_sensor_size((int(m.group(2)), int(m.group(3))),
-                                         "the header's sensor_size")
-            except EventFormatError as err:
-                raise file_error(path, 0, str(err)) from None
-            return m.group(1), size
+    text = "\n".join(lines)
+    m = re.search(r"^#\s*torchseq layout: (\w+) sensor_size: (\d+)x(\d+)", text, re.M)
+    if m:
+        try:
+            size = check_sensor_size((int(m.group(2)), int(m.group(3))),
+                                     "the header's sensor_size")
+        except EventFormatError as err:
+            raise file_error(path, 0, str(err)) from None
+        return m.group(1), size
     for key in ("AEChip", "HardwareInterface"):
-        for line in lines:
-            if re.match(rf"#\s*{key}\s*:", line):
-                for frag, chip in CHIPS.items():
-                    if frag.lower() in line.lower():
-                        return chip
+        for m in re.finditer(rf"^#\s*{key}\s*:.*$", text, re.M):
+            for frag, chip in CHIPS.items():
+                if frag.lower() in m.group(0).lower():
+                    return chip
     return None
 
 

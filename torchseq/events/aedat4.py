@@ -33,6 +33,7 @@ from torchseq.events.stream import (
     EventStream,
     check_sensor_size,
     check_truncated,
+    concat_events,
     file_error,
 )
 
@@ -303,7 +304,7 @@ def iter_aedat4(path: str | Path, chunk_events: int = 1 << 20,
             pos += 8 + size
             count += len(pending[-1])
             if count >= chunk_events:
-                yield Chunk(np.concatenate(pending), sensor_size, chunk_start)
+                yield Chunk(concat_events(pending), sensor_size, chunk_start)
                 pending, count, chunk_start = [], 0, pos
         if cut:
             msg = f"truncated: the data table position {table_pos} lies past the end"
@@ -311,8 +312,7 @@ def iter_aedat4(path: str | Path, chunk_events: int = 1 << 20,
                 raise file_error(path, file_size, msg + "; pass truncated='drop' to ignore it")
             warnings.warn(f"{path}: {msg}, ignored", stacklevel=2)
         if pending or count == 0:
-            yield Chunk(np.concatenate(pending) if pending else np.empty(0, EVENT_DTYPE),
-                        sensor_size, chunk_start)
+            yield Chunk(concat_events(pending), sensor_size, chunk_start)
 
 
 # ---------------------------------------------------------------- writer

@@ -26,9 +26,11 @@ from torchseq.events.aedat4 import iter_aedat4
 from torchseq.events.plain import iter_npy, read_csv, read_npz
 from torchseq.events.prophesee import iter_raw
 from torchseq.events.stream import (
+    EVENT_DTYPE,
     EventFormatError,
     EventStream,
     check_contents,
+    concat_events,
     file_error,
     first_backward,
     order_events,
@@ -38,7 +40,7 @@ DEFAULT_CHUNK = 1 << 20
 # the format options each format takes (a format not listed takes none); a new format
 # registers its options here beside its detect_format and _chunks lines
 FORMAT_OPTIONS = {"aedat2": {"layout", "flip_y", "truncated"}, "aedat4": {"truncated"},
-                  "raw": {"truncated", "evt3_time"},
+                  "raw": {"truncated", "evt3_time", "evt3_kernel"},
                   "hdf5": {"group", "columns", "time_unit"}, "parquet": {"columns", "time_unit"}}
 
 
@@ -162,7 +164,8 @@ def iter_events(path: str | Path, chunk_events: int = DEFAULT_CHUNK,
         chunk_events: about how many events (or raw records/words) per chunk.
         sensor_size: ``(W, H)`` override of the size the file states or implies.
         **options: format options: ``layout``, ``flip_y`` (AEDAT 2.0), ``truncated``
-            (``"error"``/``"drop"``; AEDAT 2.0/4.0, ``.raw``), ``evt3_time`` (``.raw``).
+            (``"error"``/``"drop"``; AEDAT 2.0/4.0, ``.raw``), ``evt3_time`` and
+            ``evt3_kernel`` (``.raw``; the kernel changes speed, never the events).
 
     Yields:
         :class:`EventStream` chunks with the same ``sensor_size``.
@@ -192,11 +195,56 @@ def read_events(path: str | Path, sensor_size: tuple[int, int] | None = None,
         The events, time-ordered and checked against the sensor size.
     """
     path = Path(path)
-    chunks = list(_checked(path, detect_format(path), chunk_events, sensor_size, options,
-                           not sort))
-    events = chunks[0].events if len(chunks) == 1 else np.concatenate([c.events for c in chunks])
+    events, size = _gather(_checked(path, detect_format(path), chunk_events, sensor_size,
+                                    options, not sort), path.stat().st_size)
     if sort:
         events = order_events(events, True, str(path))
-    if not events.flags.writeable:
-        events = events.copy()
-    return EventStream(events, chunks[0].sensor_size)
+    return EventStream(events, size)
+
+
+def _gather(chunks: Iterator[EventStream], file_bytes: int) -> tuple[np.ndarray, tuple[int, int]]:
+    """All events of ``chunks`` in one writeable array, and their sensor size.
+
+    From the second chunk on, chunks are copied (as raw 16-byte rows, see
+    :func:`concat_events`) into one output sized from the events per file byte of the
+    first chunk (plus 1/8 and a chunk; two chunks' room if the system refuses that much),
+    allocated anew with twice the room when that runs out and cut to size at the end. Each
+    chunk is released before the next is read, so the peak is about the output plus one
+    chunk.
+    """
+    first = next(chunks, None)
+    if first is None:  # every reader yields at least one (perhaps empty) chunk
+        raise EventFormatError("the reader yielded no chunk")
+    events, size, start = first.events, first.sensor_size, getattr(first, "offset", None)
+    del first
+    out, n = None, 0
+    for chunk in chunks:
+        ev, offset = chunk.events, getattr(chunk, "offset", None)
+        del chunk
+        if out is None:  # a second chunk: from here on, one buffer of our own
+            m = len(events)
+            guess = m + len(ev)
+            if start is not None and offset is not None and offset > start:
+                guess = max(guess, int(m * (file_bytes - start) / (offset - start) * 1.125))
+            try:
+                out = np.empty(guess + len(ev), EVENT_DTYPE)
+            except MemoryError:  # a first chunk far denser than the rest: grow as needed
+                out = np.empty(m + 2 * len(ev), EVENT_DTYPE)
+            _put(out, 0, events)
+            n, events = m, None
+        if n + len(ev) > len(out):
+            grown = np.empty(2 * (n + len(ev)), EVENT_DTYPE)
+            _put(grown, 0, out[:n])
+            out = grown
+        _put(out, n, ev)
+        n += len(ev)
+    if out is None:
+        return (events if events.flags.writeable else concat_events([events])), size
+    out.resize(n, refcheck=False)
+    return out, size
+
+
+def _put(out: np.ndarray, at: int, events: np.ndarray) -> None:
+    """Copy ``events`` into ``out[at:]`` as raw 16-byte rows (see :func:`concat_events`)."""
+    rows = np.ascontiguousarray(events).view(np.uint64)
+    out.view(np.uint64)[2 * at : 2 * at + len(rows)] = rows

@@ -8,9 +8,16 @@ polarity bit 11), ``0x3`` VECT_BASE_X (sets the column base and polarity for vec
 ``0xA`` EXT_TRIGGER, ``0xE`` OTHERS, ``0xF`` CONTINUED (skipped). The 24-bit time wraps every
 16.8 s; a decreasing TIME_HIGH is taken as a wrap and adds 2**24 us.
 
-The decoder is vectorised: each word's state (row, time, vector base) is the value of the
-latest word of the matching type, found with ``np.maximum.accumulate`` over word indices;
-state carries across chunks, so files stream in bounded memory.
+:func:`decode_evt3` has two kernels, chosen by its ``kernel`` argument (``iter_raw`` /
+``read_events``: ``evt3_kernel=``), both exact and interchangeable mid-stream (they carry the
+same state across chunks, so files stream in bounded memory):
+
+- ``"numba"`` (default when numba is installed, ``pip install torchseq[fast]``): one
+  compiled pass over the words, a state machine as the format is meant to be read.
+- ``"numpy"``: vectorised; each event word's state (row, time, vector base) is the value
+  of the latest word of the matching type, found from cumulative counts of each type.
+
+:data:`EVT3_KERNEL` names the default, fixed when this module is imported.
 
 EVT 2.0 packs each event in a little-endian 32-bit word: type ``w >> 28`` (0 CD_OFF, 1 CD_ON,
 8 EV_TIME_HIGH with ``t >> 6`` in bits 0..27), CD events hold ``t & 63`` in bits 22..27,
@@ -19,6 +26,7 @@ EVT 2.0 packs each event in a little-endian 32-bit word: type ``w >> 28`` (0 CD_
 
 from __future__ import annotations
 
+import importlib.util
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -114,19 +122,58 @@ def _rising(values: np.ndarray, before) -> np.ndarray:
     return back
 
 
-def decode_evt3(words: np.ndarray, state: dict, time_mode: str = "spec") -> np.ndarray:
+EVT3_KERNELS = ("numba", "numpy")
+# the default EVT 3.0 kernel, chosen once here (numba is imported only when it first runs)
+EVT3_KERNEL = "numba" if importlib.util.find_spec("numba") is not None else "numpy"
+
+
+def check_evt3_kernel(kernel: str | None) -> str:
+    """The EVT 3.0 kernel to run: ``kernel``, or :data:`EVT3_KERNEL` for None."""
+    kernel = EVT3_KERNEL if kernel is None else kernel
+    if kernel not in EVT3_KERNELS:
+        raise ValueError(f"unknown EVT 3.0 kernel {kernel!r} (use 'numba' or 'numpy')")
+    if kernel == "numba" and importlib.util.find_spec("numba") is None:
+        raise ValueError("the numba EVT 3.0 kernel needs numba: pip install torchseq[fast] "
+                         "(or pass evt3_kernel='numpy')")
+    return kernel
+
+
+def decode_evt3(words: np.ndarray, state: dict, time_mode: str = "spec",
+                kernel: str | None = None) -> np.ndarray:
     """Decode ``(N,)`` uint16 EVT 3.0 words; ``state`` (row, time, base, wraps) carries over.
+
+    ``time_mode="carry"`` also adds 4096 us at every decrease of TIME_LOW, as some third-party
+    decoders do (it reproduces ``evt3_sample.npy``); ``"spec"`` follows the format.
+
+    Args:
+        words: ``(N,)`` uint16 words.
+        state: the decoder state, ``{}`` at the start of the file; updated in place.
+        time_mode: ``"spec"`` or ``"carry"``.
+        kernel: ``"numba"``, ``"numpy"`` (see the module docstring) or None for
+            :data:`EVT3_KERNEL`.
+
+    Returns:
+        ``(E,)`` :data:`EVENT_DTYPE` events in word order (a vector's bits in increasing x).
+    """
+    if time_mode not in ("spec", "carry"):
+        raise EventFormatError(f"unknown EVT 3.0 time mode {time_mode!r} ('spec' or 'carry')")
+    if check_evt3_kernel(kernel) == "numba":
+        from torchseq.events import _evt3_numba
+
+        return _evt3_numba.decode(words, state, time_mode == "carry")
+    return _decode_evt3_numpy(words, state, time_mode)
+
+
+def _decode_evt3_numpy(words: np.ndarray, state: dict, time_mode: str) -> np.ndarray:
+    """The NumPy kernel of :func:`decode_evt3`.
 
     Only the event words (ADDR_X, VECT_12, VECT_8) are decoded in full: each takes its row,
     time and vector base from the latest word of that kind before it (a cumulative count of
     that kind indexes its values), events are built once per word as records and repeated
     for the bits of a vector (bit positions from ``np.unpackbits``), so there is no sort.
-
-    ``time_mode="carry"`` also adds 4096 us at every decrease of TIME_LOW, as some third-party
-    decoders do (it reproduces ``evt3_sample.npy``); ``"spec"`` follows the format.
+    The vector base is carried modulo 2**16 (x is 16-bit arithmetic), as the numba kernel
+    carries it.
     """
-    if time_mode not in ("spec", "carry"):
-        raise EventFormatError(f"unknown EVT 3.0 time mode {time_mode!r} ('spec' or 'carry')")
     w = np.asarray(words, np.uint16)
     typ = w >> 12
     e = np.flatnonzero(_EVENT_WORD[typ])  # event words, in order
@@ -183,7 +230,8 @@ def decode_evt3(words: np.ndarray, state: dict, time_mode: str = "spec") -> np.n
                      high_full=int(high_full[-1]) if len(high) else state.get("high_full", -1),
                      carry=carry_last)
         if len(ws):
-            state.update(pol=int(bpol[nb[-1]]), base=int(bval[nb[-1]] + done[-1] + step[-1]))
+            base = int(bval[nb[-1]] + done[-1] + step[-1]) & 0xFFFF
+            state.update(pol=int(bpol[nb[-1]]), base=base)
         if len(high):
             state.update(high=int(high[-1]), loops=int(loops[-1]))
     if not ok.all():
@@ -240,7 +288,7 @@ def decode_evt2(words: np.ndarray, state: dict) -> np.ndarray:
 
 def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
              sensor_size: tuple[int, int] | None = None, truncated: str = "error",
-             evt3_time: str = "spec") -> Iterator[EventStream]:
+             evt3_time: str = "spec", evt3_kernel: str | None = None) -> Iterator[EventStream]:
     """Stream a Prophesee EVT 3.0 / 2.0 ``.raw`` file in chunks of ``chunk_events`` words.
 
     Args:
@@ -250,6 +298,8 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
             plugin name), else an error.
         truncated: a partial last word: ``"error"`` (default) or ``"drop"`` with a warning.
         evt3_time: ``"spec"`` (default) or ``"carry"`` (see :func:`decode_evt3`).
+        evt3_kernel: ``"numba"`` or ``"numpy"``; None for :data:`EVT3_KERNEL` (see
+            :func:`decode_evt3`; same events either way).
 
     Yields:
         :class:`EventStream` chunks, time order not yet checked.
@@ -258,6 +308,7 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
     check_truncated(truncated)
     if evt3_time not in ("spec", "carry"):
         raise EventFormatError(f"unknown EVT 3.0 time mode {evt3_time!r} ('spec' or 'carry')")
+    evt3_kernel = check_evt3_kernel(evt3_kernel)
     if sensor_size is not None:
         sensor_size = check_sensor_size(sensor_size)
     with open(path, "rb") as f:
@@ -272,7 +323,7 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
         if fmt == "evt3":
             dtype = np.dtype("<u2")
             def decode(words, state):
-                return decode_evt3(words, state, evt3_time)
+                return decode_evt3(words, state, evt3_time, evt3_kernel)
         else:
             dtype, decode = np.dtype("<u4"), decode_evt2
         body = path.stat().st_size - f.tell()

@@ -181,6 +181,26 @@ class Chunk(EventStream):
     offset: int | None = None
 
 
+def concat_events(parts: list[np.ndarray]) -> np.ndarray:
+    """Concatenate :data:`EVENT_DTYPE` arrays into one new array, as raw 16-byte rows.
+
+    Same result as ``np.concatenate(parts)``, about 5x faster: NumPy copies a structured
+    dtype with padding field by field, so the rows are copied as pairs of uint64 instead.
+
+    Args:
+        parts: ``(N_i,)`` :data:`EVENT_DTYPE` arrays.
+
+    Returns:
+        ``(sum N_i,)`` :data:`EVENT_DTYPE` array (a fresh, writeable array).
+    """
+    if any(part.dtype != EVENT_DTYPE for part in parts):
+        raise EventFormatError("concat_events takes EVENT_DTYPE arrays only")
+    words = [np.ascontiguousarray(part).view(np.uint64) for part in parts]
+    if not words:
+        return np.empty(0, EVENT_DTYPE)
+    return np.concatenate(words).view(EVENT_DTYPE)
+
+
 def check_contents(events: np.ndarray, sensor_size: tuple[int, int]) -> None:
     """Raise :class:`EventFormatError` unless dtype, coordinates and polarity are valid."""
     if events.dtype != EVENT_DTYPE:
