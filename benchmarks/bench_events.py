@@ -54,7 +54,7 @@ from torchseq.events import (
     write_aedat4,
 )
 from torchseq.events.ensemble import accumulate_ensemble
-from torchseq.events.prophesee import write_evt3
+from torchseq.events.prophesee import EVT3_KERNEL, write_evt3
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "events"
@@ -364,10 +364,11 @@ def rss(key):
 base = rss("VmRSS")
 with open("/proc/self/clear_refs", "w") as f:  # resets the peak (VmHWM) to the current RSS
     f.write("5")
+kw = {"evt3_kernel": EVT3_KERNEL} if sys.argv[1].endswith(".raw") else {}
 if sys.argv[2] == "stream":
-    n = sum(len(c) for c in iter_events(sys.argv[1], 1 << 20))
+    n = sum(len(c) for c in iter_events(sys.argv[1], 1 << 20, **kw))
 else:
-    n = len(read_events(sys.argv[1]))
+    n = len(read_events(sys.argv[1], **kw))
 print(n, rss("VmHWM") - base)
 """
 
@@ -435,7 +436,9 @@ def bench_readers(n_large: int = 20_000_000) -> list[tuple[str, float, str]]:
         for label, path, write in big:
             write(path)
             mb = path.stat().st_size / 1e6
-            cpu, wall, n = both_timed(lambda: _stream(path), 3)
+            # the numba kernel named: by default files under 128 MiB decode with NumPy
+            fast = {"evt3_kernel": EVT3_KERNEL} if path.suffix == ".raw" else {}
+            cpu, wall, n = both_timed(lambda: _stream(path, **fast), 3)
             rss = _rss_growth(path, "stream")
             rows.append((f"torchseq, {label}, {n:,} events ({mb:.0f} MB) written by torchseq, "
                          f"streamed (iter_events, 2^20 per chunk)", n / cpu,

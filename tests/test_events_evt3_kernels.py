@@ -117,7 +117,7 @@ def test_real_file_equals_the_decoded_reference_with_each_kernel(kernel):
     assert np.array_equal(got.events, np.load(npy))
 
 
-def test_numba_is_the_default_kernel_and_the_one_that_runs(monkeypatch, tmp_path):
+def test_default_kernel_is_numba_for_large_files_numpy_for_small(monkeypatch, tmp_path):
     # numba is in the test extra: a fast kernel that silently disappears is a failure
     assert EVT3_KERNEL == "numba"
     from torchseq.events import _evt3_numba
@@ -131,9 +131,18 @@ def test_numba_is_the_default_kernel_and_the_one_that_runs(monkeypatch, tmp_path
     path = tmp_path / "e.raw"
     words = np.array([0x8001, 0x6002, 0x0005, 0x2007], "<u2")
     path.write_bytes(b"% evt 3.0\n% geometry 16x16\n% end\n" + words.tobytes())
-    assert len(read_events(path)) == 1 and calls == ["numba"]
-    assert len(read_events(path, evt3_kernel="numpy")) == 1 and calls == ["numba", "numpy"]
-    assert len(read_events(path, evt3_kernel="numba")) == 1 and calls[-1] == "numba"
+    # a small file: numba's start-up would cost more than it saves
+    assert len(read_events(path)) == 1 and calls == ["numpy"]
+    assert len(read_events(path, evt3_kernel="numba")) == 1 and calls == ["numpy", "numba"]
+    assert len(read_events(path, evt3_kernel="numpy")) == 1 and calls[-1] == "numpy"
+    # a file of EVT3_NUMBA_MIN_BYTES words or more: numba, decided once for every chunk
+    monkeypatch.setattr(prophesee, "EVT3_NUMBA_MIN_BYTES", words.nbytes)
+    calls.clear()
+    assert len(read_events(path, chunk_events=1)) == 1 and calls == ["numba"] * 4
+    monkeypatch.setattr(prophesee, "EVT3_NUMBA_MIN_BYTES", words.nbytes + 1)
+    calls.clear()
+    assert len(read_events(path)) == 1 and calls == ["numpy"]
+    assert prophesee.default_evt3_kernel(words.nbytes + 1) == "numba"
 
 
 def test_kernel_choice_errors(monkeypatch, tmp_path):

@@ -12,12 +12,15 @@ polarity bit 11), ``0x3`` VECT_BASE_X (sets the column base and polarity for vec
 ``read_events``: ``evt3_kernel=``), both exact and interchangeable mid-stream (they carry the
 same state across chunks, so files stream in bounded memory):
 
-- ``"numba"`` (default when numba is installed, ``pip install torchseq[fast]``): one
-  compiled pass over the words, a state machine as the format is meant to be read.
+- ``"numba"`` (``pip install torchseq[fast]``): one compiled pass over the words, a state
+  machine as the format is meant to be read; about 2.8x the NumPy kernel's rate, but loading
+  numba costs about a second once per process.
 - ``"numpy"``: vectorised; each event word's state (row, time, vector base) is the value
   of the latest word of the matching type, found from cumulative counts of each type.
 
-:data:`EVT3_KERNEL` names the default, fixed when this module is imported.
+:func:`default_evt3_kernel` picks the kernel when none is given: numba for inputs of at
+least :data:`EVT3_NUMBA_MIN_BYTES` (where its rate repays its start-up) when numba is
+installed, else NumPy. ``iter_raw`` decides once per file from the file's size.
 
 EVT 2.0 packs each event in a little-endian 32-bit word: type ``w >> 28`` (0 CD_OFF, 1 CD_ON,
 8 EV_TIME_HIGH with ``t >> 6`` in bits 0..27), CD events hold ``t & 63`` in bits 22..27,
@@ -123,13 +126,22 @@ def _rising(values: np.ndarray, before) -> np.ndarray:
 
 
 EVT3_KERNELS = ("numba", "numpy")
-# the default EVT 3.0 kernel, chosen once here (numba is imported only when it first runs)
+# the fast kernel when installed (numba is imported only when it first runs)
 EVT3_KERNEL = "numba" if importlib.util.find_spec("numba") is not None else "numpy"
+# numba's ~1 s start-up per process is repaid from about 10**8 events (~200 MB of words):
+# NumPy decodes ~50 M events/s per core, numba ~140 M (docs/events.md); below this size the
+# NumPy kernel finishes first
+EVT3_NUMBA_MIN_BYTES = 1 << 27
 
 
-def check_evt3_kernel(kernel: str | None) -> str:
-    """The EVT 3.0 kernel to run: ``kernel``, or :data:`EVT3_KERNEL` for None."""
-    kernel = EVT3_KERNEL if kernel is None else kernel
+def default_evt3_kernel(nbytes: int) -> str:
+    """The kernel for ``nbytes`` of EVT 3.0 words when none is given (see the module doc)."""
+    return EVT3_KERNEL if nbytes >= EVT3_NUMBA_MIN_BYTES else "numpy"
+
+
+def check_evt3_kernel(kernel: str | None, nbytes: int = 0) -> str:
+    """The EVT 3.0 kernel to run: ``kernel``, or :func:`default_evt3_kernel` for None."""
+    kernel = default_evt3_kernel(nbytes) if kernel is None else kernel
     if kernel not in EVT3_KERNELS:
         raise ValueError(f"unknown EVT 3.0 kernel {kernel!r} (use 'numba' or 'numpy')")
     if kernel == "numba" and importlib.util.find_spec("numba") is None:
@@ -150,14 +162,14 @@ def decode_evt3(words: np.ndarray, state: dict, time_mode: str = "spec",
         state: the decoder state, ``{}`` at the start of the file; updated in place.
         time_mode: ``"spec"`` or ``"carry"``.
         kernel: ``"numba"``, ``"numpy"`` (see the module docstring) or None for
-            :data:`EVT3_KERNEL`.
+            :func:`default_evt3_kernel` of these words' bytes.
 
     Returns:
         ``(E,)`` :data:`EVENT_DTYPE` events in word order (a vector's bits in increasing x).
     """
     if time_mode not in ("spec", "carry"):
         raise EventFormatError(f"unknown EVT 3.0 time mode {time_mode!r} ('spec' or 'carry')")
-    if check_evt3_kernel(kernel) == "numba":
+    if check_evt3_kernel(kernel, words.nbytes) == "numba":
         from torchseq.events import _evt3_numba
 
         return _evt3_numba.decode(words, state, time_mode == "carry")
@@ -298,8 +310,8 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
             plugin name), else an error.
         truncated: a partial last word: ``"error"`` (default) or ``"drop"`` with a warning.
         evt3_time: ``"spec"`` (default) or ``"carry"`` (see :func:`decode_evt3`).
-        evt3_kernel: ``"numba"`` or ``"numpy"``; None for :data:`EVT3_KERNEL` (see
-            :func:`decode_evt3`; same events either way).
+        evt3_kernel: ``"numba"`` or ``"numpy"``; None for :func:`default_evt3_kernel` of the
+            file's size (same events either way).
 
     Yields:
         :class:`EventStream` chunks, time order not yet checked.
@@ -308,7 +320,8 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
     check_truncated(truncated)
     if evt3_time not in ("spec", "carry"):
         raise EventFormatError(f"unknown EVT 3.0 time mode {evt3_time!r} ('spec' or 'carry')")
-    evt3_kernel = check_evt3_kernel(evt3_kernel)
+    if evt3_kernel is not None:
+        evt3_kernel = check_evt3_kernel(evt3_kernel)
     if sensor_size is not None:
         sensor_size = check_sensor_size(sensor_size)
     with open(path, "rb") as f:
@@ -327,6 +340,7 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
         else:
             dtype, decode = np.dtype("<u4"), decode_evt2
         body = path.stat().st_size - f.tell()
+        evt3_kernel = check_evt3_kernel(evt3_kernel, body)  # once per file
         state: dict = {}
         for offset, words in iter_records(f, path, dtype, body, chunk_events, truncated, "word"):
             yield Chunk(decode(words, state), size, offset)
