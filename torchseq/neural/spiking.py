@@ -1,0 +1,294 @@
+"""Spiking Neural SeqSLAM: the fitted rate model as leaky integrate-and-fire units (NIR semantics).
+
+One more definition of the step beside the float (``docs/neural.md`` "Step maths") and the
+integer one (``docs/integer_format.md``). It reads the fitted model's weights, masks, cohorts
+and learnt ring shift (nothing is relearnt: whatever ``fit`` learns flows through) plus three
+scales calibrated on the reference traverse, and runs **one time step per frame**:
+
+1. ``x`` ``(B, D)``: the model's own ``encode`` of the frame (an analog input current).
+2. L1 -> L2: ``z2 = lif(x @ w1.T)``, ``w1 = l1.folded_weight() / theta2``: binary spikes of
+   the L2 units whose L1 sum exceeds the calibrated threshold ``theta2`` (the rate model keeps
+   exactly the ``k`` largest: this is the approximation of k-WTA, see ``docs/nir.md``).
+3. L3 evidence, cohort-centred and scaled, one linear map: ``e = z2 @ w3.T`` with
+   ``w3 = gain * (I - G diag(1/n_c) G^T) (l3.weight * l3.mask) / sigma_c``, i.e.
+   ``gain * (l3 - cohort mean) / sigma_c`` with ``sigma_c`` calibrated (the rate model
+   divides by each frame's own cohort std). The centring makes ``w3`` dense.
+4. Ring, a thermometer population of ``K = levels`` neurons per output unit:
+   ``u = e + shift @ count_prev`` (the learnt shift times ``decay * delta``: the graph's
+   cycle), neuron ``(j, k)`` gets ``u_j / theta_k`` with ``theta_k = (k - 1/2) * delta``, so
+   ``count_j = #{k : u_j > theta_k}`` is ``round(u_j / delta)`` clipped to ``0..K``: the rate
+   model's ``a = decay * S a + gain * z`` with ``a`` quantised to ``delta`` steps and clamped
+   at 0 and ``K * delta``.
+5. Decision: the unit with the most ring spikes (first index on ties),
+   :func:`~torchseq.neural.readout.decide` on the counts.
+
+Every neuron is NIR's ``LIF`` with ``tau = dt`` (``r = 1``, ``v_leak = 0``, threshold 1,
+reset to 0), stepped with Euler as snnTorch and Norse step it:
+``v <- v + dt / tau * (I - v)``, ``z = v > 1``, ``v <- v * (1 - z)`` (:func:`lif_step`).
+With ``tau = dt`` the units are memoryless; the network's memory is the ring's cycle.
+Why one step per frame and levels in space: see ``docs/nir.md`` ("Why one time step").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import torch
+from torch import nn
+
+from torchseq.neural.readout import decide
+
+DT = 1e-4  # seconds per time step written into the NIR graph (snnTorch's importer assumes it)
+
+
+class SpikingError(ValueError):
+    """Bad input to the spiking model (unfitted model, bad calibration data, wrong shapes)."""
+
+
+@dataclass(frozen=True)
+class SpikingConfig:
+    """Settings of the rate -> spiking conversion.
+
+    Attributes:
+        levels: ring neurons per output unit (the thermometer code's ``K``).
+        chunk: reference frames encoded at once during calibration.
+    """
+
+    levels: int = 32
+    chunk: int = 256
+
+    def validate(self) -> None:
+        """Raise :class:`SpikingError` on an impossible setting."""
+        if not isinstance(self.levels, int) or not 1 <= self.levels <= 1024:
+            raise SpikingError(f"levels must be an int in 1..1024, got {self.levels!r}")
+        if not isinstance(self.chunk, int) or self.chunk < 1:
+            raise SpikingError(f"chunk must be a positive int, got {self.chunk!r}")
+
+
+class SpikingState(NamedTuple):
+    """State between time steps (one step per frame).
+
+    Attributes:
+        v2: ``(B, M)`` L2 membranes after the step.
+        v_ring: ``(B, N * K)`` ring membranes after the step.
+        ring: ``(B, N * K)`` ring spikes of the step (the cycle's input to the next step).
+    """
+
+    v2: torch.Tensor
+    v_ring: torch.Tensor
+    ring: torch.Tensor
+
+
+class SpikingStep(NamedTuple):
+    """One step's output: ``reference (B,)``, ``confidence (B,)``, ``counts (B, N)``, spikes."""
+
+    reference: torch.Tensor
+    confidence: torch.Tensor
+    counts: torch.Tensor
+    l2_spikes: torch.Tensor
+    ring_spikes: torch.Tensor
+
+
+def lif_step(current: torch.Tensor, v: torch.Tensor, leak: float = 1.0,
+             threshold: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """One Euler step of NIR's LIF (``v_leak = 0``, ``r = 1``, reset to 0), any shape.
+
+    ``v <- v + leak * (current - v)`` with ``leak = dt / tau``; ``z = v > threshold``;
+    ``v <- v * (1 - z)``.
+
+    Args:
+        current: ``(..., n)`` input current.
+        v: ``(..., n)`` membrane before the step.
+        leak: ``dt / tau`` (1: memoryless).
+        threshold: firing threshold.
+
+    Returns:
+        ``(spikes (..., n) float 0/1, v after the step (..., n))``.
+    """
+    v = v + leak * (current - v)
+    z = (v > threshold).to(current.dtype)
+    return z, v * (1.0 - z)
+
+
+class SpikingSeqSLAM(nn.Module):
+    """A fitted :class:`~torchseq.neural.NeuralSeqSLAM` as a spiking network (one step per frame).
+
+    Build it with :meth:`convert`. Buffers (all float32): ``w1 (M, D)``, ``w3 (N, M)``,
+    ``inv_theta (K,)``, ``shift (N, N)`` (the learnt shift times ``decay * delta``),
+    ``unit_centre (N,)`` int64. :attr:`calibration` records ``theta2``, ``sigma (C,)``,
+    ``delta`` and what they came from.
+
+    Args: see :meth:`convert`.
+    """
+
+    def __init__(self, w1, w3, inv_theta, shift, unit_centre, window: int,
+                 calibration: dict, encode: Callable | None = None) -> None:
+        super().__init__()
+        for name, t in (("w1", w1), ("w3", w3), ("inv_theta", inv_theta), ("shift", shift)):
+            self.register_buffer(name, t.detach().to(torch.float32).contiguous())
+        self.register_buffer("unit_centre", unit_centre.detach().clone())
+        self.window = int(window)
+        self.calibration = dict(calibration)
+        self._encode = encode
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def n_units(self) -> int:
+        """Output units ``N``."""
+        return self.w3.shape[0]
+
+    @property
+    def levels(self) -> int:
+        """Ring neurons per unit ``K``."""
+        return self.inv_theta.shape[0]
+
+    @property
+    def sizes(self) -> dict[str, int]:
+        """``input D``, ``l2 M``, ``units N``, ``levels K``, ``ring N * K``."""
+        m, d = self.w1.shape
+        return {"input": d, "l2": m, "units": self.n_units, "levels": self.levels,
+                "ring": self.n_units * self.levels}
+
+    # ------------------------------------------------------------------ conversion
+    @classmethod
+    @torch.no_grad()
+    def convert(cls, model, reference: torch.Tensor,
+                config: SpikingConfig | None = None) -> SpikingSeqSLAM:
+        """Convert a fitted rate model, calibrating three scales on its reference traverse.
+
+        Calibration (no learning): ``theta2`` = median over reference frames of the midpoint
+        between the ``k``-th and ``k+1``-th largest L1 sums (so about ``k`` L2 units fire);
+        ``sigma_c`` = median over reference frames of cohort ``c``'s std of the L3 evidence
+        of those spikes; ``delta = a_max / K`` with ``a_max`` the largest activity of the
+        unquantised ring ``a = max(e + decay * S a, 0)`` over the reference.
+
+        Args:
+            model: a fitted :class:`~torchseq.neural.NeuralSeqSLAM`.
+            reference: ``(R, H, W)`` (or RGB) frames: the traverse it learnt, ``R >= 2``.
+            config: :class:`SpikingConfig` (None: defaults).
+
+        Raises:
+            SpikingError: an unfitted model, a bad reference, or a degenerate calibration.
+        """
+        cfg = config or SpikingConfig()
+        cfg.validate()
+        if not getattr(model, "fitted", False):
+            raise SpikingError("the model has not learnt a route yet: call fit(reference) first")
+        if not isinstance(reference, torch.Tensor) or reference.dim() not in (3, 4) \
+                or reference.shape[0] < 2:
+            raise SpikingError("reference must be a (R, H, W) tensor of R >= 2 frames, got "
+                               f"{getattr(reference, 'shape', type(reference).__name__)}")
+        mc = model.config
+        w1 = model.l1.folded_weight().detach().float().cpu()  # (M, D)
+        w3f = model.l3.folded_weight().detach().float().cpu()  # (N, M)
+        g = model.cohorts.detach().float().cpu()  # (N, C)
+        decay, gain = (float(v) for v in model.ring.params)
+        s = model.ring.shift.detach().float().cpu()  # (N, N)
+        k = mc.k
+        try:
+            x = torch.cat([model.encode(reference[i:i + cfg.chunk]).float().cpu()
+                           for i in range(0, reference.shape[0], cfg.chunk)])
+        except ValueError as err:
+            raise SpikingError(f"reference cannot be encoded: {err}") from None
+        h = x @ w1.T  # (R, M)
+        top = h.topk(min(k + 1, h.shape[1]), dim=1).values
+        theta2 = float(((top[:, k - 1] + top[:, -1]) / 2).median())
+        if not theta2 > 0:
+            raise SpikingError(f"degenerate L2 threshold {theta2} (a blank reference?)")
+        z2 = (h > theta2).float()
+        n_c = g.sum(0).clamp_min(1.0)  # (C,)
+        e = z2 @ w3f.T  # (R, N)
+        mu = (e @ g) / n_c  # (R, C)
+        var = (((e - mu @ g.T) ** 2) @ g) / n_c
+        sigma = var.sqrt().median(0).values.clamp_min(mc.eps)  # (C,)
+        centred = w3f - g @ ((g / n_c).T @ w3f)  # (N, M): minus the cohort's mean row
+        w3 = centred * (g @ (gain / sigma))[:, None]
+        ev = z2 @ w3.T  # (R, N)
+        a, a_max = torch.zeros(ev.shape[1]), 0.0
+        for t in range(ev.shape[0]):  # unquantised ring on the reference
+            a = (ev[t] + decay * (s @ a)).clamp_min(0.0)
+            a_max = max(a_max, float(a.max()))
+        if not a_max > 0:
+            raise SpikingError("the ring never becomes active on the reference: nothing to scale")
+        levels = cfg.levels
+        delta = a_max / levels
+        inv_theta = 1.0 / ((torch.arange(levels, dtype=torch.float64) + 0.5) * delta)
+        calibration = {"theta2": theta2, "sigma": [float(v) for v in sigma], "delta": delta,
+                       "a_max": a_max, "decay": decay, "gain": gain, "k": k,
+                       "reference_frames": int(reference.shape[0]), "levels": levels}
+        return cls(w1 / theta2, w3, inv_theta.float(), s * (decay * delta),
+                   model.unit_centre.detach().cpu(), mc.uniqueness_window, calibration,
+                   model.encode)
+
+    # ------------------------------------------------------------------ the step
+    def zero_state(self, batch: int) -> SpikingState:
+        """The state at the start of ``batch`` streams (all membranes and spikes 0)."""
+        n = self.n_units * self.levels
+        z = self.w1.new_zeros
+        return SpikingState(z(batch, self.w1.shape[0]), z(batch, n), z(batch, n))
+
+    def forward(self, x: torch.Tensor,
+                state: SpikingState | None = None) -> tuple[SpikingStep, SpikingState]:
+        """One time step (one frame) for ``B`` streams.
+
+        Args:
+            x: ``(B, D)`` encoded frames (the rate model's ``encode``).
+            state: from the previous step (None: zeros).
+
+        Returns:
+            ``(SpikingStep, new state)``.
+        """
+        if x.dim() != 2 or x.shape[1] != self.w1.shape[1]:
+            raise SpikingError(f"x must be (B, {self.w1.shape[1]}), got {tuple(x.shape)}")
+        if state is None:
+            state = self.zero_state(x.shape[0])
+        b, n, k = x.shape[0], self.n_units, self.levels
+        z2, v2 = lif_step(x.to(self.w1.dtype) @ self.w1.T, state.v2)
+        prev = state.ring.view(b, n, k).sum(-1)  # (B, N) counts of the last step
+        u = z2 @ self.w3.T + prev @ self.shift.T
+        drive = (u[:, :, None] * self.inv_theta).reshape(b, n * k)  # (B, N * K)
+        zr, vr = lif_step(drive, state.v_ring)
+        counts = zr.view(b, n, k).sum(-1)
+        reference, confidence = self.decide(counts)
+        return SpikingStep(reference, confidence, counts, z2, zr), SpikingState(v2, vr, zr)
+
+    step = forward
+
+    def decide(self, counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(reference (B,), confidence (B,))`` from ring spike counts ``(B, N)``."""
+        return decide(counts, self.unit_centre, self.window)
+
+    def counts(self, ring_spikes: torch.Tensor) -> torch.Tensor:
+        """Spike counts per unit ``(..., N)`` of ring spikes ``(..., N * K)``."""
+        return ring_spikes.reshape(*ring_spikes.shape[:-1], self.n_units, self.levels).sum(-1)
+
+    @torch.no_grad()
+    def encode(self, frames: torch.Tensor) -> torch.Tensor:
+        """The rate model's input stage: frames ``(T, H, W)`` -> ``(T, D)``."""
+        if self._encode is None:
+            raise SpikingError("this spiking model was built without the rate model's encode")
+        return self._encode(frames).float().cpu()
+
+    @torch.no_grad()
+    def run(self, query: torch.Tensor, encoded: bool = False) -> dict:
+        """Run one stream over a traverse from a zero state.
+
+        Args:
+            query: ``(T, H, W)`` frames, or ``(T, D)`` encoded inputs with ``encoded=True``.
+            encoded: whether ``query`` is already encoded.
+
+        Returns:
+            ``{"reference" (T,), "confidence" (T,), "l2_spikes" (T,), "ring_spikes" (T,),
+            "counts" (T, N)}`` (spike totals per frame).
+        """
+        x = query.float() if encoded else self.encode(query)
+        state, out = None, []
+        for t in range(x.shape[0]):
+            step, state = self.forward(x[t:t + 1], state)
+            out.append(step)
+        return {"reference": torch.cat([o.reference for o in out]),
+                "confidence": torch.cat([o.confidence for o in out]),
+                "l2_spikes": torch.stack([o.l2_spikes.sum() for o in out]),
+                "ring_spikes": torch.stack([o.ring_spikes.sum() for o in out]),
+                "counts": torch.cat([o.counts for o in out])}
