@@ -271,18 +271,21 @@ class SpikingSeqSLAM(nn.Module):
         return self._encode(frames).float().cpu()
 
     @torch.no_grad()
-    def run(self, query: torch.Tensor, encoded: bool = False) -> dict:
+    def run(self, query: torch.Tensor, encoded: bool = False, raster: bool = False) -> dict:
         """Run one stream over a traverse from a zero state.
 
         Args:
             query: ``(T, H, W)`` frames, or ``(T, D)`` encoded inputs with ``encoded=True``.
             encoded: whether ``query`` is already encoded.
+            raster: also return the ring spikes ``"raster"`` ``(T, N * K)``.
 
         Returns:
             ``{"reference" (T,), "confidence" (T,), "l2_spikes" (T,), "ring_spikes" (T,),
-            "counts" (T, N)}`` (spike totals per frame).
+            "counts" (T, N)}`` (spike totals per frame), and ``"raster"`` if asked.
         """
         x = query.float() if encoded else self.encode(query)
+        if x.dim() != 2 or x.shape[0] < 1:
+            raise SpikingError(f"query must hold at least one frame, got {tuple(x.shape)}")
         state, out = None, []
         for t in range(x.shape[0]):
             step, state = self.forward(x[t:t + 1], state)
@@ -291,4 +294,5 @@ class SpikingSeqSLAM(nn.Module):
                 "confidence": torch.cat([o.confidence for o in out]),
                 "l2_spikes": torch.stack([o.l2_spikes.sum() for o in out]),
                 "ring_spikes": torch.stack([o.ring_spikes.sum() for o in out]),
-                "counts": torch.cat([o.counts for o in out])}
+                "counts": torch.cat([o.counts for o in out]),
+                **({"raster": torch.cat([o.ring_spikes for o in out])} if raster else {})}
