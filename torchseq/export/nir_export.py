@@ -11,7 +11,7 @@
 ``l3``           Linear ``(N, M)`` masked L2 -> L3 weights, cohort-centred, ``* gain/sigma_c``
 ``levels``       Linear ``(N*K, N)`` ``1 / theta_k`` to the ``K`` neurons of each unit
 ``ring``         LIF ``(N*K,)``   the thermometer-coded ring (``tau = dt``)
-``shift``        Linear ``(N, N*K)`` the learnt shift times ``decay * delta``: the cycle
+``shift``        Linear ``(N, N*K)`` the learnt shift times ``decay * (g_l - g_{l-1})``
 ``output``       Output ``(N*K,)`` ring spikes; the unit's count is the sum of its ``K``
 ================ ================ =================================================
 
@@ -84,7 +84,8 @@ def to_nir(spiking, dt: float = DT):
     levels = np.zeros((n * k, n), dtype=np.float32)
     rows = np.arange(n * k)
     levels[rows, rows // k] = np.tile(inv_theta, n)
-    shift = np.repeat(_f32(spiking.shift), k, axis=1)  # (N, N*K): column j*K+l = shift[:, j]
+    # (N, N*K): column j*K+l = shift[:, j] * step[l] (level l's share of unit j's value)
+    shift = np.kron(_f32(spiking.shift), _f32(spiking.rung_step)[None, :]).astype(np.float32)
     nodes = {
         "input": nir.Input(input_type={"input": np.array([s["input"]])}),
         "l1": nir.Linear(weight=_f32(spiking.w1)),

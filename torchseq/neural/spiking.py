@@ -13,12 +13,15 @@ scales calibrated on the reference traverse, and runs **one time step per frame*
    ``w3 = gain * (I - G diag(1/n_c) G^T) (l3.weight * l3.mask) / sigma_c``, i.e.
    ``gain * (l3 - cohort mean) / sigma_c`` with ``sigma_c`` calibrated (the rate model
    divides by each frame's own cohort std). The centring makes ``w3`` dense.
-4. Ring, a thermometer population of ``K = levels`` neurons per output unit:
-   ``u = e + shift @ count_prev`` (the learnt shift times ``decay * delta``: the graph's
-   cycle), neuron ``(j, k)`` gets ``u_j / theta_k`` with ``theta_k = (k - 1/2) * delta``, so
-   ``count_j = #{k : u_j > theta_k}`` is ``round(u_j / delta)`` clipped to ``0..K``: the rate
-   model's ``a = decay * S a + gain * z`` with ``a`` quantised to ``delta`` steps and clamped
-   at 0 and ``K * delta``.
+4. Ring, a thermometer population of ``K = levels`` neurons per output unit, on a ladder of
+   values ``0 = g_0 < g_1 < ... < g_K`` with thresholds ``theta_1 < ... < theta_K`` between
+   them: ``u = e + (decay * S) @ q_prev`` (the learnt shift: the graph's cycle), neuron
+   ``(j, k)`` gets ``u_j / theta_k``, so ``count_j = #{k : u_j > theta_k}`` and the unit's
+   value is ``q_j = g_{count_j} = sum_k (g_k - g_{k-1}) * spike_jk``: the rate model's
+   ``a = decay * S a + gain * z`` with ``a`` rounded onto the ladder (clamped at 0 and
+   ``g_K``). Ladders: ``"geometric"`` (default) ``g_k = a_max * low^((K - k) / (K - 1))``,
+   thresholds at the geometric midpoints (``g_1 / 2`` below the first); ``"uniform"``
+   ``g_k = k * a_max / K``, thresholds at ``(k - 1/2) * a_max / K``.
 5. Decision: the unit with the most ring spikes (first index on ties),
    :func:`~torchseq.neural.readout.decide` on the counts.
 
@@ -52,16 +55,24 @@ class SpikingConfig:
 
     Attributes:
         levels: ring neurons per output unit (the thermometer code's ``K``).
+        spacing: the ring's ladder of values, ``"geometric"`` or ``"uniform"``.
+        low: the geometric ladder's lowest rung as a fraction of the highest.
         chunk: reference frames encoded at once during calibration.
     """
 
-    levels: int = 32
+    levels: int = 64
+    spacing: str = "geometric"
+    low: float = 0.03
     chunk: int = 256
 
     def validate(self) -> None:
         """Raise :class:`SpikingError` on an impossible setting."""
         if not isinstance(self.levels, int) or not 1 <= self.levels <= 1024:
             raise SpikingError(f"levels must be an int in 1..1024, got {self.levels!r}")
+        if self.spacing not in ("geometric", "uniform"):
+            raise SpikingError(f"spacing must be 'geometric' or 'uniform', got {self.spacing!r}")
+        if not isinstance(self.low, float) or not 0.0 < self.low < 1.0:
+            raise SpikingError(f"low must be a float in (0, 1), got {self.low!r}")
         if not isinstance(self.chunk, int) or self.chunk < 1:
             raise SpikingError(f"chunk must be a positive int, got {self.chunk!r}")
 
@@ -111,21 +122,39 @@ def lif_step(current: torch.Tensor, v: torch.Tensor, leak: float = 1.0,
     return z, v * (1.0 - z)
 
 
+def ladder(config: SpikingConfig, a_max: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ring's values ``g_1..g_K`` and thresholds ``theta_1..theta_K`` (float64, ``(K,)``).
+
+    Args:
+        config: its ``levels``, ``spacing`` and ``low``.
+        a_max: the top value ``g_K``.
+    """
+    k = config.levels
+    c = torch.arange(1, k + 1, dtype=torch.float64)
+    if config.spacing == "uniform":
+        return c * (a_max / k), (c - 0.5) * (a_max / k)
+    g = a_max * config.low ** ((k - c) / max(k - 1, 1))
+    below = torch.cat([g[:1] / 2, g[:-1]])
+    theta = torch.cat([g[:1] / 2, (below[1:] * g[1:]).sqrt()])
+    return g, theta
+
+
 class SpikingSeqSLAM(nn.Module):
     """A fitted :class:`~torchseq.neural.NeuralSeqSLAM` as a spiking network (one step per frame).
 
     Build it with :meth:`convert`. Buffers (all float32): ``w1 (M, D)``, ``w3 (N, M)``,
-    ``inv_theta (K,)``, ``shift (N, N)`` (the learnt shift times ``decay * delta``),
-    ``unit_centre (N,)`` int64. :attr:`calibration` records ``theta2``, ``sigma (C,)``,
-    ``delta`` and what they came from.
+    ``inv_theta (K,)`` (``1 / theta_k``), ``rung_step (K,)`` (``g_k - g_{k-1}``), ``shift (N, N)``
+    (the learnt shift times ``decay``), ``unit_centre (N,)`` int64. :attr:`calibration`
+    records ``theta2``, ``sigma (C,)``, ``a_max``, the ladder and what they came from.
 
     Args: see :meth:`convert`.
     """
 
-    def __init__(self, w1, w3, inv_theta, shift, unit_centre, window: int,
+    def __init__(self, w1, w3, inv_theta, step, shift, unit_centre, window: int,
                  calibration: dict, encode: Callable | None = None) -> None:
         super().__init__()
-        for name, t in (("w1", w1), ("w3", w3), ("inv_theta", inv_theta), ("shift", shift)):
+        for name, t in (("w1", w1), ("w3", w3), ("inv_theta", inv_theta), ("rung_step", step),
+                        ("shift", shift)):
             self.register_buffer(name, t.detach().to(torch.float32).contiguous())
         self.register_buffer("unit_centre", unit_centre.detach().clone())
         self.window = int(window)
@@ -160,7 +189,7 @@ class SpikingSeqSLAM(nn.Module):
         Calibration (no learning): ``theta2`` = median over reference frames of the midpoint
         between the ``k``-th and ``k+1``-th largest L1 sums (so about ``k`` L2 units fire);
         ``sigma_c`` = median over reference frames of cohort ``c``'s std of the L3 evidence
-        of those spikes; ``delta = a_max / K`` with ``a_max`` the largest activity of the
+        of those spikes; the ladder's top ``g_K = a_max``, the largest activity of the
         unquantised ring ``a = max(e + decay * S a, 0)`` over the reference.
 
         Args:
@@ -193,7 +222,7 @@ class SpikingSeqSLAM(nn.Module):
             raise SpikingError(f"reference cannot be encoded: {err}") from None
         h = x @ w1.T  # (R, M)
         top = h.topk(min(k + 1, h.shape[1]), dim=1).values
-        theta2 = float(((top[:, k - 1] + top[:, -1]) / 2).median())
+        theta2 = float(torch.quantile((top[:, k - 1] + top[:, -1]) / 2, 0.5))
         if not theta2 > 0:
             raise SpikingError(f"degenerate L2 threshold {theta2} (a blank reference?)")
         z2 = (h > theta2).float()
@@ -201,7 +230,7 @@ class SpikingSeqSLAM(nn.Module):
         e = z2 @ w3f.T  # (R, N)
         mu = (e @ g) / n_c  # (R, C)
         var = (((e - mu @ g.T) ** 2) @ g) / n_c
-        sigma = var.sqrt().median(0).values.clamp_min(mc.eps)  # (C,)
+        sigma = torch.quantile(var.sqrt(), 0.5, dim=0).clamp_min(mc.eps)  # (C,)
         centred = w3f - g @ ((g / n_c).T @ w3f)  # (N, M): minus the cohort's mean row
         w3 = centred * (g @ (gain / sigma))[:, None]
         ev = z2 @ w3.T  # (R, N)
@@ -211,13 +240,14 @@ class SpikingSeqSLAM(nn.Module):
             a_max = max(a_max, float(a.max()))
         if not a_max > 0:
             raise SpikingError("the ring never becomes active on the reference: nothing to scale")
-        levels = cfg.levels
-        delta = a_max / levels
-        inv_theta = 1.0 / ((torch.arange(levels, dtype=torch.float64) + 0.5) * delta)
-        calibration = {"theta2": theta2, "sigma": [float(v) for v in sigma], "delta": delta,
-                       "a_max": a_max, "decay": decay, "gain": gain, "k": k,
-                       "reference_frames": int(reference.shape[0]), "levels": levels}
-        return cls(w1 / theta2, w3, inv_theta.float(), s * (decay * delta),
+        g, theta = ladder(cfg, a_max)
+        calibration = {"theta2": theta2, "sigma": [float(v) for v in sigma], "a_max": a_max,
+                       "decay": decay, "gain": gain, "k": k, "levels": cfg.levels,
+                       "spacing": cfg.spacing, "low": cfg.low,
+                       "ladder": [float(v) for v in g], "thresholds": [float(v) for v in theta],
+                       "reference_frames": int(reference.shape[0])}
+        step = g - torch.cat([g.new_zeros(1), g[:-1]])
+        return cls(w1 / theta2, w3, (1.0 / theta).float(), step.float(), s * decay,
                    model.unit_centre.detach().cpu(), mc.uniqueness_window, calibration,
                    model.encode)
 
@@ -245,7 +275,7 @@ class SpikingSeqSLAM(nn.Module):
             state = self.zero_state(x.shape[0])
         b, n, k = x.shape[0], self.n_units, self.levels
         z2, v2 = lif_step(x.to(self.w1.dtype) @ self.w1.T, state.v2)
-        prev = state.ring.view(b, n, k).sum(-1)  # (B, N) counts of the last step
+        prev = state.ring.view(b, n, k) @ self.rung_step  # (B, N) the ring's values of the last step
         u = z2 @ self.w3.T + prev @ self.shift.T
         drive = (u[:, :, None] * self.inv_theta).reshape(b, n * k)  # (B, N * K)
         zr, vr = lif_step(drive, state.v_ring)
