@@ -289,6 +289,23 @@ class SpikingSeqSLAM(nn.Module):
         """``(reference (B,), confidence (B,))`` from ring spike counts ``(B, N)``."""
         return decide(counts, self.unit_centre, self.window)
 
+    def synaptic_ops(self, l2_spikes: torch.Tensor, ring_spikes: torch.Tensor) -> torch.Tensor:
+        """Synaptic operations of one step per stream ``(B,)``, on the exported graph.
+
+        ``nnz(w1)`` (the analog input drives every L1 synapse) + the non-zero ``w3`` entries
+        of the L2 units that fired + ``N * K`` (each unit's current to its ``K`` levels) +
+        the non-zero shift entries of the units whose ring neurons fired (per spike).
+
+        Args:
+            l2_spikes: ``(B, M)``.
+            ring_spikes: ``(B, N * K)``.
+        """
+        fan3 = (self.w3 != 0).sum(0).to(l2_spikes.dtype)  # (M,)
+        fan_ring = (self.shift != 0).sum(0).to(ring_spikes.dtype).repeat_interleave(
+            self.levels)  # (N * K,)
+        n1 = float((self.w1 != 0).sum())
+        return n1 + l2_spikes @ fan3 + self.n_units * self.levels + ring_spikes @ fan_ring
+
     def counts(self, ring_spikes: torch.Tensor) -> torch.Tensor:
         """Spike counts per unit ``(..., N)`` of ring spikes ``(..., N * K)``."""
         return ring_spikes.reshape(*ring_spikes.shape[:-1], self.n_units, self.levels).sum(-1)
@@ -311,7 +328,8 @@ class SpikingSeqSLAM(nn.Module):
 
         Returns:
             ``{"reference" (T,), "confidence" (T,), "l2_spikes" (T,), "ring_spikes" (T,),
-            "counts" (T, N)}`` (spike totals per frame), and ``"raster"`` if asked.
+            "synaptic_ops" (T,), "counts" (T, N)}`` (totals per frame), and ``"raster"``
+            if asked.
         """
         x = query.float() if encoded else self.encode(query)
         if x.dim() != 2 or x.shape[0] < 1:
@@ -324,5 +342,7 @@ class SpikingSeqSLAM(nn.Module):
                 "confidence": torch.cat([o.confidence for o in out]),
                 "l2_spikes": torch.stack([o.l2_spikes.sum() for o in out]),
                 "ring_spikes": torch.stack([o.ring_spikes.sum() for o in out]),
+                "synaptic_ops": torch.cat([self.synaptic_ops(o.l2_spikes, o.ring_spikes)
+                                           for o in out]),
                 "counts": torch.cat([o.counts for o in out]),
                 **({"raster": torch.cat([o.ring_spikes for o in out])} if raster else {})}
