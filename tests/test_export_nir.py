@@ -245,3 +245,57 @@ class TestBudget:
         assert "input channels" in xylo and not res["xylo_audio2"]["fits"]
         big = dict(b, neurons=2_000_000)
         assert any("neurons" in r for r in check(big)["loihi2"]["exceeds"])
+
+
+@pytest.mark.slow
+def test_export_command_writes_model_nir_and_its_validation(tmp_path):
+    import json
+
+    from tests.export_helpers import small_setup
+    from torchseq.export.cli import main
+
+    model, demo, *_ = small_setup()
+    model.save(tmp_path / "small.pt")
+    np.save(tmp_path / "query.npy", demo.query.numpy()[:40])
+    np.save(tmp_path / "gt.npy", demo.ground_truth[:, :40].astype(np.int64))
+    out = tmp_path / "export"
+    code = main([str(tmp_path / "small.pt"), "--out", str(out), "--query",
+                 str(tmp_path / "query.npy"), "--ground-truth", str(tmp_path / "gt.npy")])
+    assert code == 0
+    report = json.loads((out / "validation.json").read_text())
+    rep = report["nir"]
+    assert read_nir(out / "model.nir").metadata["format"] == FORMAT
+    assert rep["round_trip_equal"] and rep["bytes"] == (out / "model.nir").stat().st_size
+    assert report["checks"]["nir_round_trip"] and report["checks"]["nir_consumers_agree"]
+    assert rep["calibration_source"].startswith("the validation query")
+    for name in ("snntorch", "norse"):
+        c = rep["consumers"][name]
+        if "skipped" in c:
+            continue
+        assert c["agreement"] >= 0.99 and c["time_steps"] == 40 and c["steps_per_frame"] == 1
+        assert 0.0 <= c["recall_at_1"] <= 1.0
+    assert 0.0 <= rep["spiking"]["agreement_with_rate_model"] <= 1.0
+    assert rep["budget"]["neurons"] == 1024 + rep["levels"] * 40
+    assert set(rep["chips"]) == set(LIMITS)
+
+
+def test_export_without_nir_is_reported_not_failed(monkeypatch, tmp_path):
+    from torchseq.export.nir_validate import export_nir
+
+    monkeypatch.setitem(sys.modules, "nir", None)
+    model, demo, sp = tiny()
+    rep = export_nir(model, tmp_path, demo.query[:3], None, demo.reference, "test")
+    assert "torchseq[nir]" in rep["skipped"] and not (tmp_path / "model.nir").exists()
+
+
+def test_calibration_frames_follow_the_recorded_reference():
+    from torchseq.export.nir_validate import calibration_frames
+
+    model, demo, sp = tiny()
+    frames, src = calibration_frames(model, {"source": "demo", "demo_frames": 30,
+                                             "demo_seed": 2}, False, demo.query)
+    assert frames.shape[0] == 30 and "demo reference" in src
+    frames, src = calibration_frames(model, {"source": "ref.mp4"}, False, demo.query)
+    assert frames is demo.query and "ref.mp4" in src
+    frames, src = calibration_frames(model, None, True, demo.query)
+    assert frames is demo.query and "validation query" in src

@@ -1,6 +1,7 @@
 """``torchseq export CHECKPOINT --out DIR``: export and validate a Neural SeqSLAM model.
 
-Writes ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``, ``model_int.onnx`` and
+Writes ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``, ``model_int.onnx``,
+``model.nir`` (the spiking model, with the ``nir`` extra; ``docs/nir.md``) and
 ``validation.json``; exits 0 when every check passes, 1 when a check fails, 2 on bad input.
 By default the export is validated on the checkpoint's own reference (recorded by
 ``train.py``), replayed as the query; the integer device's camera frame size is
@@ -194,6 +195,14 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     for name, kind in ((FLOAT_ONNX, "float"), (QUANT_ONNX, "float"), (INT_ONNX, "integer")):
         write_contract(out / name, contract(kind, model, report, threshold))
         report["files_bytes"][name] = (out / name).stat().st_size
+    from torchseq.export.nir_validate import calibration_frames, export_nir
+
+    calib, calib_source = calibration_frames(model, rec, query is not None, frames)
+    report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source)
+    if "checks" in report["nir"]:
+        report["checks"].update(report["nir"]["checks"])
+        report["passed"] = all(report["checks"].values())
+        report["files_bytes"]["model.nir"] = report["nir"]["bytes"]
     report["seconds"] = round(time.perf_counter() - t0, 3)
     write_json(out / "validation.json", report)
     return bool(report["passed"])
