@@ -4,7 +4,6 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 
 from tests.test_spiking import demo_setup, tiny
 from torchseq.export.hardware_budget import LIMITS, budget, check
@@ -166,38 +165,34 @@ class TestGraph:
         np.testing.assert_array_equal(ref, ours)
 
 
-def _consumer_agreement(name, sp, path, query, gt):
-    pytest.importorskip({"snntorch": "snntorch", "norse": "norse.torch"}[name],
-                        reason=f"{name} is absent: pip install 'torchseq[nir]'")
+def _consumer_report(name, rep):
+    if name not in rep or "skipped" in rep[name]:
+        pytest.skip(rep.get(name, {}).get("skipped", f"{name} was not run"))
+    return rep[name]
+
+
+@pytest.fixture(scope="module")
+def tiny_report(tiny_file):
     from torchseq.export.nir_consumers import compare
 
-    return compare(sp, path, sp.encode(query), gt, consumers=(name,))
-
-
-@pytest.mark.parametrize("name", ["snntorch", "norse"])
-def test_consumer_runs_the_tiny_graph_spike_for_spike(name, tiny_file):
     sp, demo, graph, path = tiny_file
-    rep = _consumer_agreement(name, sp, path, demo.query, demo.ground_truth)[name]
-    assert rep["spike_agreement"] == 1.0 and rep["agreement"] == 1.0
-    assert rep["time_steps"] == demo.query.shape[0]
+    return compare(sp, path, sp.encode(demo.query), demo.ground_truth)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ["snntorch", "norse"])
-def test_consumer_agrees_on_the_demo(name, tmp_path):
+@pytest.fixture(scope="module")
+def demo_report(tmp_path_factory):
+    from torchseq.export.nir_consumers import compare
+
     model, demo, sp = demo_setup()
-    path = tmp_path / "demo.nir"
+    path = tmp_path_factory.mktemp("demo") / "demo.nir"
     write_nir(sp, path)
-    rep = _consumer_agreement(name, sp, path, demo.query, demo.ground_truth)
-    # measured: every frame and every ring spike equal (docs/nir.md)
-    assert rep[name]["agreement"] >= 0.99, rep[name]["differing_frames"]
-    assert rep[name]["recall_at_1"] == pytest.approx(rep["torchseq"]["recall_at_1"], abs=0.01)
+    return compare(sp, path, sp.encode(demo.query), demo.ground_truth)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ["snntorch", "norse"])
-def test_consumer_agrees_on_the_corridor(name, tmp_path):
+@pytest.fixture(scope="module")
+def corridor_report(tmp_path_factory):
     from tests.conftest import shared_data
+    from torchseq.export.nir_consumers import compare
     from torchseq.ground_truth import load_ground_truth
     from torchseq.neural import NeuralConfig, NeuralSeqSLAM
     from torchseq.neural.spiking import SpikingSeqSLAM
@@ -210,10 +205,47 @@ def test_consumer_agrees_on_the_corridor(name, tmp_path):
     model = NeuralSeqSLAM(NeuralConfig())
     model.fit(ref, log=False)
     sp = SpikingSeqSLAM.convert(model, ref)
-    path = tmp_path / "corridor.nir"
+    path = tmp_path_factory.mktemp("corridor") / "corridor.nir"
     write_nir(sp, path)
-    rep = _consumer_agreement(name, sp, path, qry, gt)
-    assert rep[name]["agreement"] >= 0.99, rep[name]["differing_frames"]
+    return compare(sp, path, sp.encode(qry), gt)
+
+
+@pytest.mark.parametrize("name", ["snntorch", "norse"])
+def test_consumer_runs_the_tiny_graph_spike_for_spike(name, tiny_report):
+    rep = _consumer_report(name, tiny_report)
+    assert rep["spike_agreement"] == 1.0 and rep["agreement"] == 1.0
+    assert rep["time_steps"] == tiny_report["torchseq"]["time_steps"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["snntorch", "norse"])
+def test_consumer_agrees_on_the_demo(name, demo_report):
+    rep = _consumer_report(name, demo_report)
+    # measured: every frame and every ring spike equal (docs/nir.md)
+    assert rep["agreement"] >= 0.99, rep["differing_frames"]
+    assert rep["recall_at_1"] == pytest.approx(demo_report["torchseq"]["recall_at_1"], abs=0.01)
+    assert rep["time_steps"] == 249
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["snntorch", "norse"])
+def test_consumer_agrees_on_the_corridor(name, corridor_report):
+    rep = _consumer_report(name, corridor_report)
+    assert rep["agreement"] >= 0.99, rep["differing_frames"]
+    assert rep["time_steps"] == 111
+
+
+def test_an_absent_consumer_is_reported_with_its_reason(tiny_file, monkeypatch):
+    from torchseq.export import nir_consumers
+
+    monkeypatch.setattr(nir_consumers, "available",
+                        lambda: {"snntorch": "snntorch is not importable (test)", "norse": None})
+    sp, demo, graph, path = tiny_file
+    rep = nir_consumers.compare(sp, path, sp.encode(demo.query[:3]), None,
+                                consumers=("snntorch",))
+    assert rep["snntorch"] == {"skipped": "snntorch is not importable (test)"}
+    with pytest.raises(NIRExportError, match="consumer must be"):
+        nir_consumers.run_consumer("sinabs", path, sp.encode(demo.query[:3]))
 
 
 class TestBudget:

@@ -1,4 +1,4 @@
-"""Spiking Neural SeqSLAM: loop oracle of the dynamics, calibration, agreement with the rate model."""
+"""Spiking Neural SeqSLAM: loop oracle of the dynamics, calibration, agreement with the rate."""
 
 import math
 from functools import lru_cache
@@ -107,8 +107,8 @@ class TestDynamics:
         x = sp.encode(demo.query)[:25]
         l2, counts, margins = loop_oracle(sp.w1.double().tolist(), sp.w3.double().tolist(),
                                           sp.inv_theta.double().tolist(),
-                                          sp.rung_step.double().tolist(), sp.shift.double().tolist(),
-                                          x.double().tolist())
+                                          sp.rung_step.double().tolist(),
+                                          sp.shift.double().tolist(), x.double().tolist())
         out = sp.run(x, encoded=True, raster=True)
         state, ours_l2 = None, []
         for t in range(x.shape[0]):

@@ -143,9 +143,10 @@ class SpikingSeqSLAM(nn.Module):
     """A fitted :class:`~torchseq.neural.NeuralSeqSLAM` as a spiking network (one step per frame).
 
     Build it with :meth:`convert`. Buffers (all float32): ``w1 (M, D)``, ``w3 (N, M)``,
-    ``inv_theta (K,)`` (``1 / theta_k``), ``rung_step (K,)`` (``g_k - g_{k-1}``), ``shift (N, N)``
-    (the learnt shift times ``decay``), ``unit_centre (N,)`` int64. :attr:`calibration`
-    records ``theta2``, ``sigma (C,)``, ``a_max``, the ladder and what they came from.
+    ``inv_theta (K,)`` (``1 / theta_k``), ``rung_step (K,)`` (``g_k - g_{k-1}``),
+    ``shift (N, N)`` (the learnt shift times ``decay``), ``unit_centre (N,)`` int64.
+    :attr:`calibration` records ``theta2``, ``sigma (C,)``, ``a_max``, the ladder and what
+    they came from.
 
     Args: see :meth:`convert`.
     """
@@ -153,8 +154,8 @@ class SpikingSeqSLAM(nn.Module):
     def __init__(self, w1, w3, inv_theta, step, shift, unit_centre, window: int,
                  calibration: dict, encode: Callable | None = None) -> None:
         super().__init__()
-        for name, t in (("w1", w1), ("w3", w3), ("inv_theta", inv_theta), ("rung_step", step),
-                        ("shift", shift)):
+        for name, t in (("w1", w1), ("w3", w3), ("inv_theta", inv_theta),
+                        ("rung_step", step), ("shift", shift)):
             self.register_buffer(name, t.detach().to(torch.float32).contiguous())
         self.register_buffer("unit_centre", unit_centre.detach().clone())
         self.window = int(window)
@@ -275,7 +276,7 @@ class SpikingSeqSLAM(nn.Module):
             state = self.zero_state(x.shape[0])
         b, n, k = x.shape[0], self.n_units, self.levels
         z2, v2 = lif_step(x.to(self.w1.dtype) @ self.w1.T, state.v2)
-        prev = state.ring.view(b, n, k) @ self.rung_step  # (B, N) the ring's values of the last step
+        prev = state.ring.view(b, n, k) @ self.rung_step  # (B, N): last step's ring values
         u = z2 @ self.w3.T + prev @ self.shift.T
         drive = (u[:, :, None] * self.inv_theta).reshape(b, n * k)  # (B, N * K)
         zr, vr = lif_step(drive, state.v_ring)
