@@ -86,6 +86,8 @@ def main(argv=None) -> dict:
                 "neurons": sp.sizes["l2"] + sp.sizes["ring"],
                 "steps_per_frame": 1, "seconds": round(time.perf_counter() - t0, 3),
             }
+            if label.endswith("(default)"):
+                row["unquantised ring (ablation)"] = unquantised(sp, qry, rate, gt)
             if label.endswith("(default)") and not args.no_consumers \
                     and not name.endswith("+-2"):
                 row["consumers"] = consumers(sp, qry, gt)
@@ -97,6 +99,24 @@ def main(argv=None) -> dict:
     write_text(out_dir / "spiking_quality.md", table(results))
     print(table(results))
     return results
+
+
+def unquantised(sp, qry, rate, gt) -> dict:
+    """The spiking model's L2 threshold code and fixed normalisation, ring not quantised.
+
+    ``a = max(e + decay * S a, 0)`` (the calibration's ring): separates the cost of the
+    k-WTA and normalisation approximations from the cost of the ladder.
+    """
+    x = sp.encode(qry)
+    e = (x @ sp.w1.T > 1).float() @ sp.w3.T
+    a = torch.zeros(sp.n_units)
+    refs = []
+    for t in range(e.shape[0]):
+        a = (e[t] + sp.shift @ a).clamp_min(0.0)
+        refs.append(int(sp.decide(a[None])[0]))
+    refs = np.array(refs)
+    return {"agreement": float(np.mean(refs == rate)),
+            "recall_at_1": recall_at_k(torch.as_tensor(refs), gt, 1)}
 
 
 def consumers(sp, qry, gt) -> dict:
@@ -120,6 +140,9 @@ def table(results: dict) -> str:
         r = row["rate"]
         lines.append(f"| {name} | rate model | 1 | {r['recall_at_1']:.3f} | "
                      f"{r['first_correct']} | | | | |")
+        u = row["unquantised ring (ablation)"]
+        lines.append(f"| {name} | threshold code + fixed sigma, unquantised ring (ablation) | "
+                     f"{u['agreement']:.3f} | {u['recall_at_1']:.3f} | | | | | |")
         for label in LADDERS:
             s = row[label]
             lines.append(f"| {name} | spiking, {label} | {s['agreement']:.3f} | "
