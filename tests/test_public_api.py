@@ -65,7 +65,6 @@ PUBLIC = {
     # the spiking model and its NIR export (docs/nir.md)
     "torchseq.neural.spiking": ["DT", "SpikingConfig", "SpikingError", "SpikingSeqSLAM",
                                 "SpikingState", "SpikingStep", "ladder", "lif_step"],
-    "torchseq.export": ["NIRExportError", "read_nir", "to_nir", "write_nir"],
     "torchseq.export.nir_export": ["FORMAT", "NIRExportError", "read_nir", "require_nir",
                                    "to_nir", "write_nir"],
     "torchseq.export.nir_consumers": ["CONSUMERS", "available", "compare", "run_consumer"],

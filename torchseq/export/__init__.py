@@ -2,7 +2,7 @@
 
 See ``docs/export.md`` (how to use it, measured agreement and speed),
 ``docs/integer_format.md`` (the integer file and its arithmetic) and ``docs/nir.md`` (the
-spiking model as a NIR graph, run by snnTorch and Norse).
+spiking model as a NIR graph: ``torchseq.export.nir_export``).
 """
 
 from torchseq.export.cli import ExportError, export_checkpoint
@@ -17,7 +17,6 @@ from torchseq.export.int_model import choose_pool, device_frames, integer_model
 from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime, IntegerStep
 from torchseq.export.int_stream import StreamRuntime
-from torchseq.export.nir_export import NIRExportError, read_nir, to_nir, write_nir
 from torchseq.export.onnx_float import StreamingStep, build_float_onnx, export_float_onnx
 from torchseq.export.quantise import Quantised, dequantise, fixed_point, quantise
 
@@ -26,5 +25,5 @@ __all__ = [
     "IntegerStep", "Quantised", "StreamRuntime", "StreamingStep", "build_float_onnx",
     "build_integer_onnx", "choose_pool", "dequantise", "device_frames", "export_checkpoint",
     "export_float_onnx", "fixed_point", "integer_model", "quantise", "read_integer_model",
-    "write_integer_model", "NIRExportError", "read_nir", "to_nir", "write_nir",
+    "write_integer_model",
 ]
