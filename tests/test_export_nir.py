@@ -244,6 +244,13 @@ def test_an_absent_consumer_is_reported_with_its_reason(tiny_file, monkeypatch):
     rep = nir_consumers.compare(sp, path, sp.encode(demo.query[:3]), None,
                                 consumers=("snntorch",))
     assert rep["snntorch"] == {"skipped": "snntorch is not importable (test)"}
+    def broken(name, path, x):
+        raise RuntimeError("importer changed")
+
+    monkeypatch.setattr(nir_consumers, "run_consumer", broken)
+    rep = nir_consumers.compare(sp, path, sp.encode(demo.query[:3]), None, consumers=("norse",))
+    assert rep["norse"] == {"failed": "RuntimeError: importer changed"}
+    monkeypatch.undo()
     with pytest.raises(NIRExportError, match="consumer must be"):
         nir_consumers.run_consumer("sinabs", path, sp.encode(demo.query[:3]))
 
@@ -331,3 +338,17 @@ def test_calibration_frames_follow_the_recorded_reference():
     assert frames is demo.query and "ref.mp4" in src
     frames, src = calibration_frames(model, None, True, demo.query)
     assert frames is demo.query and "validation query" in src
+
+
+def test_a_consumer_that_fails_fails_the_export_check(monkeypatch, tmp_path):
+    from torchseq.export import nir_consumers
+    from torchseq.export.nir_validate import export_nir
+
+    monkeypatch.setattr(nir_consumers, "compare", lambda *a, **k: {
+        "torchseq": {"recall_at_1": None}, "norse": {"failed": "RuntimeError: x"},
+        "snntorch": {"skipped": "absent"}})
+    model, demo, sp = tiny()
+    rep = export_nir(model, tmp_path, demo.query[:5], None, demo.reference, "test")
+    assert rep["checks"] == {"nir_round_trip": True, "nir_consumers_agree": False}
+    assert rep["consumers"]["snntorch"] == {"skipped": "absent"}
+    assert (tmp_path / "model.nir").exists() and rep["budget"]["neurons"] > 0

@@ -223,6 +223,14 @@ class TestCalibration:
             sp(torch.zeros(1, 5))
         with pytest.raises(SpikingError, match="blank|never"):
             SpikingSeqSLAM.convert(model, torch.zeros(5, 48, 64))
+        bad = demo.reference[:4].clone()
+        bad[1, 3, 3] = float("nan")
+        with pytest.raises(SpikingError, match="encoded"):
+            SpikingSeqSLAM.convert(model, bad)
+        with pytest.raises(SpikingError, match="encoded"):
+            sp.run(torch.zeros(3, 5))
+        with pytest.raises(SpikingError, match="state"):
+            sp(sp.encode(demo.query[:2]), sp.zero_state(3))
 
 
 def _agreement(model, sp, query, gt):

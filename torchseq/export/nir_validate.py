@@ -60,8 +60,9 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str) -
     Returns:
         ``{"file", "bytes", "round_trip_equal", "steps_per_frame", "time_steps", "levels",
         "calibration_source", "spiking": {agreement with the rate model, recall},
-        "consumers": {name: agreement, recall, time steps ... or skipped}, "budget",
-        "chips", "checks"}``, or ``{"skipped": reason}`` without the ``nir`` package.
+        "consumers": {name: agreement, recall, time steps ..., skipped (not installed) or
+        failed (it raised: the check fails)}, "budget", "chips", "checks"}``, or
+        ``{"skipped": reason}`` without the ``nir`` package.
     """
     from torchseq.export.nir_export import NIRExportError, read_nir, require_nir, write_nir
 
@@ -106,6 +107,6 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str) -
         "budget": {k: v for k, v in b.items() if k != "effective_synapses_by_pair"},
         "chips": check(b),
         "checks": {"nir_round_trip": same,
-                   "nir_consumers_agree": all(v["agreement"] >= MIN_CONSUMER_AGREEMENT
+                   "nir_consumers_agree": all(v.get("agreement", 0.0) >= MIN_CONSUMER_AGREEMENT
                                               for v in ran.values())},
     }

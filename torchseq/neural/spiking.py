@@ -275,6 +275,9 @@ class SpikingSeqSLAM(nn.Module):
         if state is None:
             state = self.zero_state(x.shape[0])
         b, n, k = x.shape[0], self.n_units, self.levels
+        if tuple(state.ring.shape) != (b, n * k) or tuple(state.v2.shape) != (b, self.w1.shape[0]):
+            raise SpikingError(f"state is for {tuple(state.ring.shape)} ring neurons, the step "
+                               f"needs ({b}, {n * k})")
         z2, v2 = lif_step(x.to(self.w1.dtype) @ self.w1.T, state.v2)
         prev = state.ring.view(b, n, k) @ self.rung_step  # (B, N): last step's ring values
         u = z2 @ self.w3.T + prev @ self.shift.T
@@ -316,7 +319,10 @@ class SpikingSeqSLAM(nn.Module):
         """The rate model's input stage: frames ``(T, H, W)`` -> ``(T, D)``."""
         if self._encode is None:
             raise SpikingError("this spiking model was built without the rate model's encode")
-        return self._encode(frames).float().cpu()
+        try:
+            return self._encode(frames).float().cpu()
+        except ValueError as err:  # the rate model's NeuralError: shapes, NaN, ...
+            raise SpikingError(f"frames cannot be encoded: {err}") from None
 
     @torch.no_grad()
     def run(self, query: torch.Tensor, encoded: bool = False, raster: bool = False) -> dict:
