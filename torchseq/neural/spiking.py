@@ -158,6 +158,11 @@ class SpikingSeqSLAM(nn.Module):
                         ("rung_step", step), ("shift", shift)):
             self.register_buffer(name, t.detach().to(torch.float32).contiguous())
         self.register_buffer("unit_centre", unit_centre.detach().clone())
+        # synapse counts for synaptic_ops (derived, not state)
+        self.register_buffer("_fan_l2", (self.w3 != 0).sum(0).float(), persistent=False)
+        self.register_buffer("_fan_ring", (self.shift != 0).sum(0).float().repeat_interleave(
+            self.inv_theta.shape[0]), persistent=False)
+        self._synapses_l1 = float((self.w1 != 0).sum())
         self.window = int(window)
         self.calibration = dict(calibration)
         self._encode = encode
@@ -304,11 +309,8 @@ class SpikingSeqSLAM(nn.Module):
             l2_spikes: ``(B, M)``.
             ring_spikes: ``(B, N * K)``.
         """
-        fan3 = (self.w3 != 0).sum(0).to(l2_spikes.dtype)  # (M,)
-        fan_ring = (self.shift != 0).sum(0).to(ring_spikes.dtype).repeat_interleave(
-            self.levels)  # (N * K,)
-        n1 = float((self.w1 != 0).sum())
-        return n1 + l2_spikes @ fan3 + self.n_units * self.levels + ring_spikes @ fan_ring
+        return (self._synapses_l1 + l2_spikes @ self._fan_l2 + self.n_units * self.levels
+                + ring_spikes @ self._fan_ring)
 
     def counts(self, ring_spikes: torch.Tensor) -> torch.Tensor:
         """Spike counts per unit ``(..., N)`` of ring spikes ``(..., N * K)``."""
