@@ -4,6 +4,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 
 from tests.test_spiking import demo_setup, tiny
 from torchseq.export.hardware_budget import LIMITS, budget, check
@@ -352,3 +353,31 @@ def test_a_consumer_that_fails_fails_the_export_check(monkeypatch, tmp_path):
     assert rep["checks"] == {"nir_round_trip": True, "nir_consumers_agree": False}
     assert rep["consumers"]["snntorch"] == {"skipped": "absent"}
     assert (tmp_path / "model.nir").exists() and rep["budget"]["neurons"] > 0
+
+
+def test_cohorts_and_a_wrapped_ring_export_and_run_alike(tmp_path):
+    # several cohorts (each centred on its own mean) and a cyclic ring: the graph still
+    # reproduces the model under NIR's equations and in every installed consumer
+    from torchseq.demo import make_demo
+    from torchseq.export.nir_consumers import compare
+    from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+    from torchseq.neural.spiking import SpikingConfig, SpikingSeqSLAM
+
+    demo = make_demo(n_reference=36, size=(48, 64), seed=5)
+    model = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=18,
+                                       n_cohorts=3, ring_wrap=True))
+    model.fit(demo.reference, log=False)
+    sp = SpikingSeqSLAM.convert(model, demo.reference, SpikingConfig(levels=8))
+    g = model.cohorts
+    assert g.shape[1] == 3 and len(sp.calibration["sigma"]) == 3
+    assert torch.allclose(g.T @ sp.w3, torch.zeros(3, sp.w3.shape[1]), atol=1e-5)
+    assert model.ring.shift[0, -1] > 0  # the wrap: the last unit feeds the first
+    path = tmp_path / "c.nir"
+    write_nir(sp, path)
+    x = sp.encode(demo.query)
+    ours = sp.run(x, encoded=True, raster=True)["raster"].numpy()
+    np.testing.assert_array_equal(nir_reference_run(read_nir(path), x.numpy(), DT), ours)
+    rep = compare(sp, path, x, demo.ground_truth)
+    for name, r in rep.items():
+        if name != "torchseq" and "skipped" not in r:
+            assert r["spike_agreement"] == 1.0, name
