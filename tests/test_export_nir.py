@@ -275,6 +275,18 @@ class TestBudget:
             ((n["levels"].weight @ n["shift"].weight) != 0).sum(1)
         assert b["max_fan_in_by_population"]["ring"] == int(ring_in.max())
         assert b["memory_bytes_8bit"] == b["effective_synapses"] + 2 * b["neurons"]
+        # L1 sits on the model's integer grid (-64..64 times a power of two, over theta2);
+        # levels has one value per row; the centred L3 is float
+        assert b["weight_grids"] == {"l1": "int8", "l3": "float", "levels": "int8_per_row",
+                                     "shift": "float"}
+
+    def test_weight_grid(self):
+        from torchseq.export.hardware_budget import weight_grid
+
+        assert weight_grid(np.array([[0.5, -1.5], [63.5, 0.0]])) == "int8"
+        assert weight_grid(np.array([[0.5, -64.5]])) == "float"  # 129 steps
+        assert weight_grid(np.array([[0.3, 0.0], [0.0, 0.7]])) == "int8_per_row"
+        assert weight_grid(np.array([[0.3, 0.7]])) == "float"
 
     def test_check_against_the_limits(self, tiny_file):
         b = budget(tiny_file[2])

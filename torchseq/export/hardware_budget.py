@@ -1,7 +1,8 @@
 """Hardware budget of an exported spiking graph against published neuromorphic chip limits.
 
 :func:`budget` counts, from the NIR graph :func:`~torchseq.export.nir_export.to_nir` makes,
-the spiking neurons, the weights stored in the graph and the *effective* neuron-to-neuron
+the spiking neurons, the weights stored in the graph (and whether each matrix already sits on
+an int8 grid), the *effective* neuron-to-neuron
 synapses (a chain of Linear nodes between two spiking populations multiplied out, as a chip
 without analog intermediate layers would have to hold it), fan-in and fan-out, and memory
 at 8-bit weights. :func:`check` compares it with :data:`LIMITS`. Sources of the limits
@@ -64,6 +65,27 @@ def _effective(graph) -> dict[tuple[str, str], np.ndarray]:
     return out
 
 
+def weight_grid(w: np.ndarray, tol: float = 1e-4) -> str:
+    """How few bits a weight matrix needs as it stands (no quantisation applied).
+
+    ``"int8"``: every non-zero is a signed integer of at most 127 times one scale (the
+    smallest magnitude); ``"int8_per_row"``: the same with one scale per row; else
+    ``"float"``.
+    """
+    def on_grid(v: np.ndarray) -> bool:
+        v = np.abs(v[v != 0]).astype(np.float64)
+        if v.size == 0:
+            return True
+        q = v / v.min()
+        return bool(q.max() <= 127.0 + tol and np.abs(q - np.rint(q)).max() <= tol)
+
+    if on_grid(w):
+        return "int8"
+    if all(on_grid(row) for row in w):
+        return "int8_per_row"
+    return "float"
+
+
 def budget(graph) -> dict:
     """Neurons, weights, effective synapses, fan-in/out and memory of a spiking NIR graph."""
     import nir
@@ -96,6 +118,8 @@ def budget(graph) -> dict:
         "max_fan_out": max(int(v.max()) for v in fan_out.values()),
         "mean_fan_out": {k: float(v.mean()) for k, v in fan_out.items()},
         "graph_weight_bits": 32,
+        "weight_grids": {k: weight_grid(n.weight) for k, n in graph.nodes.items()
+                         if isinstance(n, (nir.Linear, nir.Affine))},
         "memory_bytes_8bit": syn + 2 * neurons,  # 8-bit synapses, 16-bit neuron states
         "spiking_layers": len(pops),
     }
@@ -127,8 +151,10 @@ def check(b: dict) -> dict:
                 bad.append(f"populations {big} > {lim['features_per_layer']} features per "
                            f"layer (dense layers as 1x1 convolutions)")
         if "weight_bits" in lim:
-            bad.append(f"weights are float32 in the graph; {lim['weight_bits']}-bit needs "
-                       f"quantising (not done)")
+            off = sorted(k for k, g in b["weight_grids"].items() if g == "float")
+            if off:
+                bad.append(f"{', '.join(off)} are not on an int8 grid; {lim['weight_bits']}-bit "
+                           f"weights need quantising them (not done)")
         if not lim["analog_input"]:
             bad.append("the input is an analog current (the encoded frame); the chip takes "
                        "events only")
