@@ -329,6 +329,13 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     assert 0.0 <= rep["spiking"]["agreement_with_rate_model"] <= 1.0
     assert rep["budget"]["neurons"] == 1024 + rep["levels"] * 40
     assert set(rep["chips"]) == set(LIMITS)
+    # --no-nir: neither the file nor its checks
+    out2 = tmp_path / "export2"
+    assert main([str(tmp_path / "small.pt"), "--out", str(out2), "--query",
+                 str(tmp_path / "query.npy"), "--no-nir"]) == 0
+    report = json.loads((out2 / "validation.json").read_text())
+    assert report["nir"] == {"skipped": "--no-nir"} and not (out2 / "model.nir").exists()
+    assert "nir_round_trip" not in report["checks"]
 
 
 def test_export_without_nir_is_reported_not_failed(monkeypatch, tmp_path):

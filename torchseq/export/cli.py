@@ -123,7 +123,7 @@ def _suggested_threshold(model, frames, gt) -> float | None:
 
 
 def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
-                      frame_size: tuple[int, int] | None = None) -> bool:
+                      frame_size: tuple[int, int] | None = None, nir: bool = True) -> bool:
     """Export a Neural SeqSLAM checkpoint to every deployment format and validate them.
 
     Args:
@@ -137,6 +137,8 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         frame_size: ``(H0, W0)`` camera frames the integer device takes. None: the recorded
             reference's frame size, else the validation query's (reported in
             ``validation.json`` as ``device_frame_size_source``).
+        nir: also write ``model.nir`` (the spiking model) and validate it in snnTorch and
+            Norse (``docs/nir.md``; needs the ``nir`` extra, else reported as skipped).
 
     Returns:
         True when every check passes (see ``validation.json`` ``checks``).
@@ -197,8 +199,11 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         report["files_bytes"][name] = (out / name).stat().st_size
     from torchseq.export.nir_validate import calibration_frames, export_nir
 
-    calib, calib_source = calibration_frames(model, rec, query is not None, frames)
-    report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source)
+    if nir:
+        calib, calib_source = calibration_frames(model, rec, query is not None, frames)
+        report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source)
+    else:
+        report["nir"] = {"skipped": "--no-nir"}
     if "checks" in report["nir"]:
         report["checks"].update(report["nir"]["checks"])
         report["passed"] = all(report["checks"].values())
@@ -236,6 +241,8 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
     ap.add_argument("--ground-truth", help="ground truth for --query (.csv or .npy)")
     ap.add_argument("--frame-size", metavar="HxW", help="camera frame size the integer device "
                     "takes (default: the checkpoint's reference frame size)")
+    ap.add_argument("--no-nir", action="store_true", help="do not write model.nir (the "
+                    "spiking model as a NIR graph) nor run it in snnTorch and Norse")
     return ap
 
 
@@ -247,7 +254,7 @@ def main(argv: list[str] | None = None, prog: str = "torchseq export") -> int:
     try:
         size = parse_size(args.frame_size)
         ok = export_checkpoint(args.checkpoint, args.out, args.query, args.ground_truth,
-                               frame_size=size)
+                               frame_size=size, nir=not args.no_nir)
     except (ValueError, OSError, UsageError) as err:
         print(f"{prog}: error: {_first_line(err)}", file=sys.stderr)
         return 2
