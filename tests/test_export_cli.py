@@ -1,5 +1,6 @@
 """``python -m torchseq.export`` and ``export_checkpoint``: files, validation.json, exit codes."""
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -14,7 +15,7 @@ from torchseq.export.cli import ExportError, main
 from torchseq.export.int_format import read_integer_model
 
 FILES = ("model_float.onnx", "model_quant.onnx", "model_int.tsq", "model_int.onnx",
-         "validation.json")
+         "validation.json") + (("model.nir",) if importlib.util.find_spec("nir") else ())
 
 
 @pytest.fixture(scope="module")

@@ -64,6 +64,14 @@ PUBLIC = {
     "torchseq.cli_eval": ["EvalConfig", "Settings", "build_parser", "cli", "main",
                           "parse_args", "seqslam_preset"],
     "torchseq.cli_train": ["TrainConfig", "build_parser", "cli", "main", "parse_args"],
+    # the spiking model and its NIR export (docs/nir.md)
+    "torchseq.neural.spiking": ["DT", "SpikingConfig", "SpikingError", "SpikingSeqSLAM",
+                                "SpikingState", "SpikingStep", "ladder", "lif_step"],
+    "torchseq.export.nir_export": ["FORMAT", "NIRExportError", "read_nir", "require_nir",
+                                   "to_nir", "write_nir"],
+    "torchseq.export.nir_consumers": ["CONSUMERS", "available", "compare", "run_consumer"],
+    "torchseq.export.hardware_budget": ["LIMITS", "budget", "check"],
+    "torchseq.export.nir_validate": ["calibration_frames", "export_nir"],
     "torchseq.plots": [
         "figure_to_array", "plot_activity_raster", "plot_difference_matrix", "plot_matched_pairs",
         "plot_matrix", "plot_pr_curves", "save_figure",

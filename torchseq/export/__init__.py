@@ -1,7 +1,8 @@
 """Deployment export of Neural SeqSLAM: float ONNX, quantised ONNX, integer file and graph.
 
-See ``docs/export.md`` (how to use it, measured agreement and speed) and
-``docs/integer_format.md`` (the integer file and its arithmetic).
+See ``docs/export.md`` (how to use it, measured agreement and speed),
+``docs/integer_format.md`` (the integer file and its arithmetic) and ``docs/nir.md`` (the
+spiking model as a NIR graph: ``torchseq.export.nir_export``).
 """
 
 from torchseq.export.cli import ExportError, export_checkpoint

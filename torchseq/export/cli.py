@@ -1,6 +1,7 @@
 """``torchseq export CHECKPOINT --out DIR``: export and validate a Neural SeqSLAM model.
 
-Writes ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``, ``model_int.onnx`` and
+Writes ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``, ``model_int.onnx``,
+``model.nir`` (the spiking model, with the ``nir`` extra; ``docs/nir.md``) and
 ``validation.json``; exits 0 when every check passes, 1 when a check fails, 2 on bad input.
 By default the export is validated on the checkpoint's own reference (recorded by
 ``train.py``), replayed as the query; the integer device's camera frame size is
@@ -122,7 +123,7 @@ def _suggested_threshold(model, frames, gt) -> float | None:
 
 
 def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
-                      frame_size: tuple[int, int] | None = None) -> bool:
+                      frame_size: tuple[int, int] | None = None, nir: bool = True) -> bool:
     """Export a Neural SeqSLAM checkpoint to every deployment format and validate them.
 
     Args:
@@ -136,6 +137,8 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         frame_size: ``(H0, W0)`` camera frames the integer device takes. None: the recorded
             reference's frame size, else the validation query's (reported in
             ``validation.json`` as ``device_frame_size_source``).
+        nir: also write ``model.nir`` (the spiking model) and validate it in snnTorch and
+            Norse (``docs/nir.md``; needs the ``nir`` extra, else reported as skipped).
 
     Returns:
         True when every check passes (see ``validation.json`` ``checks``).
@@ -194,6 +197,17 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     for name, kind in ((FLOAT_ONNX, "float"), (QUANT_ONNX, "float"), (INT_ONNX, "integer")):
         write_contract(out / name, contract(kind, model, report, threshold))
         report["files_bytes"][name] = (out / name).stat().st_size
+    from torchseq.export.nir_validate import calibration_frames, export_nir
+
+    if nir:
+        calib, calib_source = calibration_frames(model, rec, query is not None, frames)
+        report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source)
+    else:
+        report["nir"] = {"skipped": "--no-nir"}
+    if "checks" in report["nir"]:
+        report["checks"].update(report["nir"]["checks"])
+        report["passed"] = all(report["checks"].values())
+        report["files_bytes"]["model.nir"] = report["nir"]["bytes"]
     report["seconds"] = round(time.perf_counter() - t0, 3)
     write_json(out / "validation.json", report)
     return bool(report["passed"])
@@ -227,6 +241,8 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
     ap.add_argument("--ground-truth", help="ground truth for --query (.csv or .npy)")
     ap.add_argument("--frame-size", metavar="HxW", help="camera frame size the integer device "
                     "takes (default: the checkpoint's reference frame size)")
+    ap.add_argument("--no-nir", action="store_true", help="do not write model.nir (the "
+                    "spiking model as a NIR graph) nor run it in snnTorch and Norse")
     return ap
 
 
@@ -238,7 +254,7 @@ def main(argv: list[str] | None = None, prog: str = "torchseq export") -> int:
     try:
         size = parse_size(args.frame_size)
         ok = export_checkpoint(args.checkpoint, args.out, args.query, args.ground_truth,
-                               frame_size=size)
+                               frame_size=size, nir=not args.no_nir)
     except (ValueError, OSError, UsageError) as err:
         print(f"{prog}: error: {_first_line(err)}", file=sys.stderr)
         return 2

@@ -1,0 +1,402 @@
+"""NIR export of the spiking model: file round trip, NIR semantics, snnTorch / Norse, budget."""
+
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from tests.test_spiking import demo_setup, tiny
+from torchseq.export.hardware_budget import LIMITS, budget, check
+from torchseq.export.nir_export import FORMAT, NIRExportError, read_nir, to_nir, write_nir
+from torchseq.neural.spiking import DT
+
+nir = pytest.importorskip("nir", reason="the 'nir' package is absent: pip install 'torchseq[nir]'")
+
+
+def nir_reference_run(graph, x: np.ndarray, dt: float) -> np.ndarray:
+    """Run a NIR graph of Input / Linear / LIF / Output nodes by NIR's own equations.
+
+    Written from the NIR specification, not from torchseq or a consumer: a depth-first walk
+    from the input along the edges marks the edges that close a cycle (they point back to a
+    node on the walk's stack); those carry the source's output of the previous step (zeros at
+    the start), every other edge the output of the same step. Every step, a node adds the
+    outputs of its sources; Linear is ``W @ in``; LIF is one Euler step of
+    ``tau dv/dt = (v_leak - v) + r I``, spike ``v > v_threshold``, then ``v = v_reset`` where
+    it spiked. Returns the output node's values ``(T, n)``.
+    """
+    nodes = graph.nodes
+    start = next(k for k, n in nodes.items() if isinstance(n, nir.Input))
+    back, done = set(), set()
+
+    def walk(k, stack):
+        for s, d in graph.edges:
+            if s != k:
+                continue
+            if d in stack:
+                back.add((s, d))
+            elif d not in done:
+                walk(d, stack | {d})
+        done.add(k)
+
+    walk(start, frozenset({start}))
+    forward = [e for e in graph.edges if e not in back]
+    order, ready = [], [start]
+    while ready:  # Kahn's topological sort on the forward edges
+        k = ready.pop()
+        order.append(k)
+        for s, d in forward:
+            if s == k and all(a in order for a, b in forward if b == d):
+                ready.append(d)
+    assert set(order) == set(nodes)
+    sources = {k: [s for s, d in graph.edges if d == k] for k in nodes}
+    prev = {k: 0.0 for k in nodes}
+    v = {k: np.zeros(n.tau.shape) for k, n in nodes.items() if isinstance(n, nir.LIF)}
+    out = []
+    for frame in x.astype(np.float64):
+        cur = {}
+        for k in order:
+            n = nodes[k]
+            if isinstance(n, nir.Input):
+                cur[k] = frame
+                continue
+            i = sum(prev[s] if (s, k) in back else cur[s] for s in sources[k])
+            if isinstance(n, nir.Linear):
+                cur[k] = n.weight.astype(np.float64) @ i
+            elif isinstance(n, nir.LIF):
+                vk = v[k] + dt / n.tau * ((n.v_leak - v[k]) + n.r * i)
+                z = (vk > n.v_threshold).astype(np.float64)
+                v[k] = np.where(z > 0, n.v_reset, vk)
+                cur[k] = z
+            elif isinstance(n, nir.Output):
+                cur[k] = i
+            else:
+                raise AssertionError(f"unexpected node {type(n).__name__}")
+        prev = cur
+        out.append(cur["output"])
+    return np.array(out)
+
+
+@pytest.fixture(scope="module")
+def tiny_file(tmp_path_factory):
+    model, demo, sp = tiny()
+    path = tmp_path_factory.mktemp("nir") / "tiny.nir"
+    graph = write_nir(sp, path)
+    return sp, demo, graph, path
+
+
+class TestFile:
+    def test_round_trip_values_equal(self, tiny_file):
+        sp, demo, graph, path = tiny_file
+        back = read_nir(path)
+        assert set(back.nodes) == set(graph.nodes)
+        assert sorted(back.edges) == sorted(graph.edges)
+        for k, node in graph.nodes.items():
+            other = back.nodes[k]
+            assert type(other) is type(node)
+            for field, value in vars(node).items():
+                if isinstance(value, np.ndarray):
+                    np.testing.assert_array_equal(getattr(other, field), value)
+        meta = back.metadata
+        assert meta["format"] == FORMAT and float(meta["dt"]) == DT
+        np.testing.assert_array_equal(meta["unit_centre"], sp.unit_centre.numpy())
+        assert int(meta["levels"]) == sp.levels and int(meta["units"]) == sp.n_units
+
+    def test_written_atomically(self, tiny_file, tmp_path, monkeypatch):
+        sp = tiny_file[0]
+        path = tmp_path / "m.nir"
+        write_nir(sp, path)
+        before = path.read_bytes()
+
+        def broken(filename, graph, **kw):
+            with open(filename, "wb") as f:
+                f.write(b"half")
+            raise OSError("disk full")
+
+        monkeypatch.setattr(nir, "write", broken)
+        with pytest.raises(OSError, match="disk full"):
+            write_nir(sp, path)
+        assert path.read_bytes() == before
+        assert [p.name for p in tmp_path.iterdir()] == ["m.nir"]
+
+    def test_bad_files_raise_export_error(self, tmp_path):
+        junk = tmp_path / "junk.nir"
+        junk.write_bytes(b"not hdf5 at all")
+        with pytest.raises(NIRExportError, match="not a readable NIR file"):
+            read_nir(junk)
+        other = tmp_path / "other.nir"
+        g = nir.NIRGraph.from_list(nir.Linear(weight=np.ones((2, 3), dtype=np.float32)))
+        nir.write(other, g)
+        with pytest.raises(NIRExportError, match="format"):
+            read_nir(other)
+
+    def test_missing_package_is_a_clear_error(self, tiny_file, monkeypatch):
+        monkeypatch.setitem(sys.modules, "nir", None)
+        with pytest.raises(NIRExportError, match=r"torchseq\[nir\]"):
+            to_nir(tiny_file[0])
+
+
+class TestGraph:
+    def test_structure_masks_folded_and_cycle(self, tiny_file):
+        sp, demo, graph, path = tiny_file
+        model = tiny()[0]
+        n = graph.nodes
+        assert isinstance(n["l2"], nir.LIF) and isinstance(n["ring"], nir.LIF)
+        assert isinstance(n["l1"], nir.Linear) and isinstance(n["shift"], nir.Linear)
+        np.testing.assert_allclose(n["l2"].tau, DT)
+        # L1's mask is folded: the folded weights over theta2, nothing outside the mask
+        w1 = n["l1"].weight
+        assert not np.any(w1[model.l1.mask.numpy() == 0])
+        np.testing.assert_array_equal(
+            w1, (model.l1.folded_weight() / sp.calibration["theta2"]).numpy())
+        assert ("ring", "shift") in graph.edges and ("shift", "levels") in graph.edges
+        k = sp.levels
+        # ring neuron j*K + l: level l of unit j; the shift reads it with step[l]
+        col = n["shift"].weight[:, 3 * k + 2]
+        np.testing.assert_allclose(col, (sp.shift[:, 3] * sp.rung_step[2]).numpy(), rtol=1e-6)
+        assert n["levels"].weight[3 * k + 2, 3] == pytest.approx(float(sp.inv_theta[2]))
+        assert np.count_nonzero(n["levels"].weight) == sp.n_units * k
+
+    def test_nir_semantics_reproduce_the_spiking_model(self, tiny_file):
+        sp, demo, graph, path = tiny_file
+        x = sp.encode(demo.query)
+        ours = sp.run(x, encoded=True, raster=True)["raster"].numpy()
+        ref = nir_reference_run(read_nir(path), x.numpy(), DT)
+        assert ours.sum() > 0
+        np.testing.assert_array_equal(ref, ours)
+
+
+def _consumer_report(name, rep):
+    if name not in rep or "skipped" in rep[name]:
+        pytest.skip(rep.get(name, {}).get("skipped", f"{name} was not run"))
+    return rep[name]
+
+
+@pytest.fixture(scope="module")
+def tiny_report(tiny_file):
+    from torchseq.export.nir_consumers import compare
+
+    sp, demo, graph, path = tiny_file
+    return compare(sp, path, sp.encode(demo.query), demo.ground_truth)
+
+
+@pytest.fixture(scope="module")
+def demo_report(tmp_path_factory):
+    from torchseq.export.nir_consumers import compare
+
+    model, demo, sp = demo_setup()
+    path = tmp_path_factory.mktemp("demo") / "demo.nir"
+    write_nir(sp, path)
+    return compare(sp, path, sp.encode(demo.query), demo.ground_truth)
+
+
+@pytest.fixture(scope="module")
+def corridor_report(tmp_path_factory):
+    from tests.conftest import shared_data
+    from torchseq.export.nir_consumers import compare
+    from torchseq.ground_truth import load_ground_truth
+    from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+    from torchseq.neural.spiking import SpikingSeqSLAM
+    from torchseq.sources import load_traverse
+
+    root = shared_data("corridor")
+    ref = load_traverse(root / "ref", progress=False)
+    qry = load_traverse(root / "query", progress=False)
+    gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(qry))
+    model = NeuralSeqSLAM(NeuralConfig())
+    model.fit(ref, log=False)
+    sp = SpikingSeqSLAM.convert(model, ref)
+    path = tmp_path_factory.mktemp("corridor") / "corridor.nir"
+    write_nir(sp, path)
+    return compare(sp, path, sp.encode(qry), gt)
+
+
+@pytest.mark.parametrize("name", ["snntorch", "norse"])
+def test_consumer_runs_the_tiny_graph_spike_for_spike(name, tiny_report):
+    rep = _consumer_report(name, tiny_report)
+    assert rep["spike_agreement"] == 1.0 and rep["agreement"] == 1.0
+    assert rep["time_steps"] == tiny_report["torchseq"]["time_steps"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["snntorch", "norse"])
+def test_consumer_agrees_on_the_demo(name, demo_report):
+    rep = _consumer_report(name, demo_report)
+    # measured: every frame and every ring spike equal (docs/nir.md)
+    assert rep["agreement"] >= 0.99, rep["differing_frames"]
+    assert rep["recall_at_1"] == pytest.approx(demo_report["torchseq"]["recall_at_1"], abs=0.01)
+    assert rep["time_steps"] == 249
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["snntorch", "norse"])
+def test_consumer_agrees_on_the_corridor(name, corridor_report):
+    rep = _consumer_report(name, corridor_report)
+    assert rep["agreement"] >= 0.99, rep["differing_frames"]
+    assert rep["time_steps"] == 111
+
+
+def test_an_absent_consumer_is_reported_with_its_reason(tiny_file, monkeypatch):
+    from torchseq.export import nir_consumers
+
+    monkeypatch.setattr(nir_consumers, "available",
+                        lambda: {"snntorch": "snntorch is not importable (test)", "norse": None})
+    sp, demo, graph, path = tiny_file
+    rep = nir_consumers.compare(sp, path, sp.encode(demo.query[:3]), None,
+                                consumers=("snntorch",))
+    assert rep["snntorch"] == {"skipped": "snntorch is not importable (test)"}
+    def broken(name, path, x):
+        raise RuntimeError("importer changed")
+
+    monkeypatch.setattr(nir_consumers, "run_consumer", broken)
+    rep = nir_consumers.compare(sp, path, sp.encode(demo.query[:3]), None, consumers=("norse",))
+    assert rep["norse"] == {"failed": "RuntimeError: importer changed"}
+    monkeypatch.undo()
+    with pytest.raises(NIRExportError, match="consumer must be"):
+        nir_consumers.run_consumer("sinabs", path, sp.encode(demo.query[:3]))
+
+
+class TestBudget:
+    def test_counts_of_the_tiny_graph(self, tiny_file):
+        sp, demo, graph, path = tiny_file
+        b = budget(graph)
+        s = sp.sizes
+        assert b["neurons"] == s["l2"] + s["ring"]
+        assert b["inputs"] == s["input"] and b["outputs"] == s["ring"]
+        n = graph.nodes
+        # effective synapses written out by hand: input->L2, L2->ring (levels @ l3),
+        # ring->ring (levels @ shift)
+        in_l2 = np.count_nonzero(n["l1"].weight)
+        l2_ring = np.count_nonzero(n["levels"].weight @ n["l3"].weight)
+        ring_ring = np.count_nonzero(n["levels"].weight @ n["shift"].weight)
+        assert b["effective_synapses"] == in_l2 + l2_ring + ring_ring
+        assert b["max_fan_in_by_population"]["l2"] == int((n["l1"].weight != 0).sum(1).max())
+        ring_in = ((n["levels"].weight @ n["l3"].weight) != 0).sum(1) + \
+            ((n["levels"].weight @ n["shift"].weight) != 0).sum(1)
+        assert b["max_fan_in_by_population"]["ring"] == int(ring_in.max())
+        assert b["memory_bytes_8bit"] == b["effective_synapses"] + 2 * b["neurons"]
+        # L1 sits on the model's integer grid (-64..64 times a power of two, over theta2);
+        # levels has one value per row; the centred L3 is float
+        assert b["weight_grids"] == {"l1": "int8", "l3": "float", "levels": "int8_per_row",
+                                     "shift": "float"}
+
+    def test_weight_grid(self):
+        from torchseq.export.hardware_budget import weight_grid
+
+        assert weight_grid(np.array([[0.5, -1.5], [63.5, 0.0]])) == "int8"
+        assert weight_grid(np.array([[0.5, -64.5]])) == "float"  # 129 steps
+        assert weight_grid(np.array([[0.3, 0.0], [0.0, 0.7]])) == "int8_per_row"
+        assert weight_grid(np.array([[0.3, 0.7]])) == "float"
+
+    def test_check_against_the_limits(self, tiny_file):
+        b = budget(tiny_file[2])
+        res = check(b)
+        assert set(res) == set(LIMITS)
+        assert res["loihi2"]["fits"]  # a few hundred neurons, analog input allowed
+        xylo = " ".join(res["xylo_audio2"]["exceeds"])
+        assert "input channels" in xylo and not res["xylo_audio2"]["fits"]
+        big = dict(b, neurons=2_000_000)
+        assert any("neurons" in r for r in check(big)["loihi2"]["exceeds"])
+
+
+@pytest.mark.slow
+def test_export_command_writes_model_nir_and_its_validation(tmp_path):
+    import json
+
+    from tests.export_helpers import small_setup
+    from torchseq.export.cli import main
+
+    model, demo, *_ = small_setup()
+    model.save(tmp_path / "small.pt")
+    np.save(tmp_path / "query.npy", demo.query.numpy()[:40])
+    np.save(tmp_path / "gt.npy", demo.ground_truth[:, :40].astype(np.int64))
+    out = tmp_path / "export"
+    code = main([str(tmp_path / "small.pt"), "--out", str(out), "--query",
+                 str(tmp_path / "query.npy"), "--ground-truth", str(tmp_path / "gt.npy")])
+    assert code == 0
+    report = json.loads((out / "validation.json").read_text())
+    rep = report["nir"]
+    assert read_nir(out / "model.nir").metadata["format"] == FORMAT
+    assert rep["round_trip_equal"] and rep["bytes"] == (out / "model.nir").stat().st_size
+    assert report["checks"]["nir_round_trip"] and report["checks"]["nir_consumers_agree"]
+    assert rep["calibration_source"].startswith("the validation query")
+    for name in ("snntorch", "norse"):
+        c = rep["consumers"][name]
+        if "skipped" in c:
+            continue
+        assert c["agreement"] >= 0.99 and c["time_steps"] == 40 and c["steps_per_frame"] == 1
+        assert 0.0 <= c["recall_at_1"] <= 1.0
+    assert 0.0 <= rep["spiking"]["agreement_with_rate_model"] <= 1.0
+    assert rep["budget"]["neurons"] == 1024 + rep["levels"] * 40
+    assert set(rep["chips"]) == set(LIMITS)
+    # --no-nir: neither the file nor its checks
+    out2 = tmp_path / "export2"
+    assert main([str(tmp_path / "small.pt"), "--out", str(out2), "--query",
+                 str(tmp_path / "query.npy"), "--no-nir"]) == 0
+    report = json.loads((out2 / "validation.json").read_text())
+    assert report["nir"] == {"skipped": "--no-nir"} and not (out2 / "model.nir").exists()
+    assert "nir_round_trip" not in report["checks"]
+
+
+def test_export_without_nir_is_reported_not_failed(monkeypatch, tmp_path):
+    from torchseq.export.nir_validate import export_nir
+
+    monkeypatch.setitem(sys.modules, "nir", None)
+    model, demo, sp = tiny()
+    rep = export_nir(model, tmp_path, demo.query[:3], None, demo.reference, "test")
+    assert "torchseq[nir]" in rep["skipped"] and not (tmp_path / "model.nir").exists()
+
+
+def test_calibration_frames_follow_the_recorded_reference():
+    from torchseq.export.nir_validate import calibration_frames
+
+    model, demo, sp = tiny()
+    frames, src = calibration_frames(model, {"source": "demo", "demo_frames": 30,
+                                             "demo_seed": 2}, False, demo.query)
+    assert frames.shape[0] == 30 and "demo reference" in src
+    frames, src = calibration_frames(model, {"source": "ref.mp4"}, False, demo.query)
+    assert frames is demo.query and "ref.mp4" in src
+    frames, src = calibration_frames(model, None, True, demo.query)
+    assert frames is demo.query and "validation query" in src
+
+
+def test_a_consumer_that_fails_fails_the_export_check(monkeypatch, tmp_path):
+    from torchseq.export import nir_consumers
+    from torchseq.export.nir_validate import export_nir
+
+    monkeypatch.setattr(nir_consumers, "compare", lambda *a, **k: {
+        "torchseq": {"recall_at_1": None}, "norse": {"failed": "RuntimeError: x"},
+        "snntorch": {"skipped": "absent"}})
+    model, demo, sp = tiny()
+    rep = export_nir(model, tmp_path, demo.query[:5], None, demo.reference, "test")
+    assert rep["checks"] == {"nir_round_trip": True, "nir_consumers_agree": False}
+    assert rep["consumers"]["snntorch"] == {"skipped": "absent"}
+    assert (tmp_path / "model.nir").exists() and rep["budget"]["neurons"] > 0
+
+
+def test_cohorts_and_a_wrapped_ring_export_and_run_alike(tmp_path):
+    # several cohorts (each centred on its own mean) and a cyclic ring: the graph still
+    # reproduces the model under NIR's equations and in every installed consumer
+    from torchseq.demo import make_demo
+    from torchseq.export.nir_consumers import compare
+    from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+    from torchseq.neural.spiking import SpikingConfig, SpikingSeqSLAM
+
+    demo = make_demo(n_reference=36, size=(48, 64), seed=5)
+    model = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=18,
+                                       n_cohorts=3, ring_wrap=True))
+    model.fit(demo.reference, log=False)
+    sp = SpikingSeqSLAM.convert(model, demo.reference, SpikingConfig(levels=8))
+    g = model.cohorts
+    assert g.shape[1] == 3 and len(sp.calibration["sigma"]) == 3
+    assert torch.allclose(g.T @ sp.w3, torch.zeros(3, sp.w3.shape[1]), atol=1e-5)
+    assert model.ring.shift[0, -1] > 0  # the wrap: the last unit feeds the first
+    path = tmp_path / "c.nir"
+    write_nir(sp, path)
+    x = sp.encode(demo.query)
+    ours = sp.run(x, encoded=True, raster=True)["raster"].numpy()
+    np.testing.assert_array_equal(nir_reference_run(read_nir(path), x.numpy(), DT), ours)
+    rep = compare(sp, path, x, demo.ground_truth)
+    for name, r in rep.items():
+        if name != "torchseq" and "skipped" not in r:
+            assert r["spike_agreement"] == 1.0, name

@@ -1,0 +1,162 @@
+"""Hardware budget of an exported spiking graph against published neuromorphic chip limits.
+
+:func:`budget` counts, from the NIR graph :func:`~torchseq.export.nir_export.to_nir` makes,
+the spiking neurons, the weights stored in the graph (and whether each matrix already sits on
+an int8 grid), the *effective* neuron-to-neuron
+synapses (a chain of Linear nodes between two spiking populations multiplied out, as a chip
+without analog intermediate layers would have to hold it), fan-in and fan-out, and memory
+at 8-bit weights. :func:`check` compares it with :data:`LIMITS`. Sources of the limits
+(figures as published; see ``docs/nir.md``):
+
+- Speck: 328K integrate-and-fire neurons, 9 layers (https://open-neuromorphic.org/
+  neuromorphic-computing/hardware/speck-synsense); a layer's fan-out is 2 destination
+  layers, 8-bit weights, at most 1024 features per layer (SynSense samna docs, Speck 2b:
+  https://synsense-sys-int.gitlab.io/samna/models/speckSeries/speck2b.html).
+- Loihi 2: 1 million neurons, 120 million synapses, 128 neuron cores
+  (https://open-neuromorphic.org/neuromorphic-computing/hardware/loihi-2-intel/), 128 KB of
+  SRAM per core (https://fbhtechinfo.com/intels-new-loihi-2-chip-uses-1-million-neurons;
+  taken as the chip's 16 MiB for synapses and states together).
+- Xylo Audio 2: 16 input channels, 1000 hidden neurons, 8 outputs, 8-bit weights, fan-in
+  at most 63, 64,000 synaptic weights (https://open-neuromorphic.org/neuromorphic-computing/
+  hardware/xylo-synsense/); fan-out at most 64 (https://rockpool.ai/devices/
+  xylo-overview.html).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+LIMITS = {
+    "speck": {"neurons": 328_000, "layers": 9, "features_per_layer": 1024, "weight_bits": 8,
+              "fanout_layers": 2, "analog_input": False},
+    "loihi2": {"neurons": 1_000_000, "synapses": 120_000_000, "memory_bytes": 128 * 128 * 1024,
+               "analog_input": True},
+    "xylo_audio2": {"neurons": 1000, "inputs": 16, "outputs": 8, "fan_in": 63, "fan_out": 64,
+                    "synapses": 64_000, "weight_bits": 8, "analog_input": False},
+}
+
+
+def _populations(graph) -> dict[str, int]:
+    import nir
+
+    return {k: int(np.prod(n.output_type["output"])) for k, n in graph.nodes.items()
+            if isinstance(n, (nir.LIF, nir.IF, nir.CubaLIF, nir.LI))}
+
+
+def _effective(graph) -> dict[tuple[str, str], np.ndarray]:
+    """``{(source, target): weight (target, source)}`` between spiking populations/input."""
+    import nir
+
+    pops = set(_populations(graph)) | {"input"}
+    out = {}
+    for src in pops:
+        stack = [(dst, None) for s, dst in graph.edges if s == src]
+        while stack:
+            node, w = stack.pop()
+            n = graph.nodes[node]
+            if node in pops:
+                eye = np.eye(int(np.prod(n.output_type["output"])), dtype=np.float32)
+                acc = out.get((src, node))
+                add = w if w is not None else eye
+                out[(src, node)] = add if acc is None else acc + add
+            elif isinstance(n, (nir.Linear, nir.Affine)):
+                ww = n.weight.astype(np.float32)
+                stack += [(d, ww if w is None else ww @ w) for s, d in graph.edges if s == node]
+    return out
+
+
+def weight_grid(w: np.ndarray, tol: float = 1e-4) -> str:
+    """How few bits a weight matrix needs as it stands (no quantisation applied).
+
+    ``"int8"``: every non-zero is a signed integer of at most 127 times one scale (the
+    smallest magnitude); ``"int8_per_row"``: the same with one scale per row; else
+    ``"float"``.
+    """
+    def on_grid(v: np.ndarray) -> bool:
+        v = np.abs(v[v != 0]).astype(np.float64)
+        if v.size == 0:
+            return True
+        q = v / v.min()
+        return bool(q.max() <= 127.0 + tol and np.abs(q - np.rint(q)).max() <= tol)
+
+    if on_grid(w):
+        return "int8"
+    if all(on_grid(row) for row in w):
+        return "int8_per_row"
+    return "float"
+
+
+def budget(graph) -> dict:
+    """Neurons, weights, effective synapses, fan-in/out and memory of a spiking NIR graph."""
+    import nir
+
+    pops = _populations(graph)
+    stored = {k: int(np.count_nonzero(n.weight)) for k, n in graph.nodes.items()
+              if isinstance(n, (nir.Linear, nir.Affine))}
+    eff = _effective(graph)
+    fan_in: dict[str, np.ndarray] = {}
+    fan_out: dict[str, np.ndarray] = {}
+    syn = 0
+    for (src, dst), w in eff.items():
+        nz = w != 0
+        syn += int(nz.sum())
+        row = nz.sum(1)
+        fan_in[dst] = row if dst not in fan_in else fan_in[dst] + row
+        col = nz.sum(0)
+        fan_out[src] = col if src not in fan_out else fan_out[src] + col
+    neurons = sum(pops.values())
+    return {
+        "neurons": neurons, "populations": pops,
+        "inputs": int(np.prod(graph.nodes["input"].output_type["output"])),
+        "outputs": int(np.prod(graph.nodes["output"].input_type["input"])),
+        "stored_weights": stored, "stored_weights_total": sum(stored.values()),
+        "effective_synapses": syn,
+        "effective_synapses_by_pair": {f"{s}->{d}": int((w != 0).sum()) for (s, d), w in
+                                       eff.items()},
+        "max_fan_in": max(int(v.max()) for v in fan_in.values()),
+        "max_fan_in_by_population": {k: int(v.max()) for k, v in fan_in.items()},
+        "max_fan_out": max(int(v.max()) for v in fan_out.values()),
+        "mean_fan_out": {k: float(v.mean()) for k, v in fan_out.items()},
+        "graph_weight_bits": 32,
+        "weight_grids": {k: weight_grid(n.weight) for k, n in graph.nodes.items()
+                         if isinstance(n, (nir.Linear, nir.Affine))},
+        "memory_bytes_8bit": syn + 2 * neurons,  # 8-bit synapses, 16-bit neuron states
+        "spiking_layers": len(pops),
+    }
+
+
+def check(b: dict) -> dict:
+    """Each chip of :data:`LIMITS`: ``{"fits": bool, "exceeds": [reasons]}``."""
+    out = {}
+    for chip, lim in LIMITS.items():
+        bad = []
+        if b["neurons"] > lim["neurons"]:
+            bad.append(f"{b['neurons']} neurons > {lim['neurons']}")
+        if "synapses" in lim and b["effective_synapses"] > lim["synapses"]:
+            bad.append(f"{b['effective_synapses']} synapses > {lim['synapses']}")
+        if "memory_bytes" in lim and b["memory_bytes_8bit"] > lim["memory_bytes"]:
+            bad.append(f"{b['memory_bytes_8bit']} bytes at 8-bit weights > "
+                       f"{lim['memory_bytes']} bytes of core memory")
+        if "fan_in" in lim and b["max_fan_in"] > lim["fan_in"]:
+            bad.append(f"fan-in {b['max_fan_in']} > {lim['fan_in']}")
+        if "fan_out" in lim and b["max_fan_out"] > lim["fan_out"]:
+            bad.append(f"fan-out {b['max_fan_out']} > {lim['fan_out']}")
+        if "inputs" in lim and b["inputs"] > lim["inputs"]:
+            bad.append(f"{b['inputs']} input channels > {lim['inputs']}")
+        if "outputs" in lim and b["outputs"] > lim["outputs"]:
+            bad.append(f"{b['outputs']} outputs > {lim['outputs']}")
+        if "features_per_layer" in lim:
+            big = {k: v for k, v in b["populations"].items() if v > lim["features_per_layer"]}
+            if big:
+                bad.append(f"populations {big} > {lim['features_per_layer']} features per "
+                           f"layer (dense layers as 1x1 convolutions)")
+        if "weight_bits" in lim:
+            off = sorted(k for k, g in b["weight_grids"].items() if g == "float")
+            if off:
+                bad.append(f"{', '.join(off)} are not on an int8 grid; {lim['weight_bits']}-bit "
+                           f"weights need quantising them (not done)")
+        if not lim["analog_input"]:
+            bad.append("the input is an analog current (the encoded frame); the chip takes "
+                       "events only")
+        out[chip] = {"fits": not bad, "exceeds": bad}
+    return out

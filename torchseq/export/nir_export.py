@@ -1,0 +1,141 @@
+"""NIR export of the spiking Neural SeqSLAM (``docs/nir.md``).
+
+:func:`to_nir` turns a :class:`~torchseq.neural.spiking.SpikingSeqSLAM` into a
+``nir.NIRGraph`` (the Neuromorphic Intermediate Representation, package ``nir``);
+:func:`write_nir` writes it atomically with ``nir.write`` (HDF5). Nodes:
+
+================ ================ =================================================
+``input``        Input ``(D,)``   the encoded frame (analog current, one step a frame)
+``l1``           Linear ``(M, D)`` L1 weights with the mask folded, over ``theta2``
+``l2``           LIF ``(M,)``     threshold units (``tau = dt``): the k-WTA stand-in
+``l3``           Linear ``(N, M)`` masked L2 -> L3 weights, cohort-centred, ``* gain/sigma_c``
+``levels``       Linear ``(N*K, N)`` ``1 / theta_k`` to the ``K`` neurons of each unit
+``ring``         LIF ``(N*K,)``   the thermometer-coded ring (``tau = dt``)
+``shift``        Linear ``(N, N*K)`` the learnt shift times ``decay * (g_l - g_{l-1})``
+``output``       Output ``(N*K,)`` ring spikes; the unit's count is the sum of its ``K``
+================ ================ =================================================
+
+Edges: ``input -> l1 -> l2 -> l3 -> levels -> ring -> {shift, output}`` and
+``shift -> levels`` (the cycle; inputs to a node add). The graph has no other branch that
+joins again: Norse's importer (nirtorch's ``GraphExecutor``) runs nodes in depth-first
+order, so a second feed-forward path into ``levels`` would reach it one step late; that is
+why the cohort centring is folded into ``l3`` (dense) and not kept as a mean unit.
+The graph's ``metadata`` carries ``dt`` (the time step the time constants are written
+for), the unit layout, each unit's reference frame, the calibration and the k-WTA
+approximation with its reason. ``nir`` is an optional dependency (``torchseq[nir]``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from torchseq.atomic import atomic_path
+from torchseq.neural.spiking import DT
+
+FORMAT = "torchseq.spiking-nir/1"
+KWTA_NOTE = ("k-WTA has no NIR primitive: L2 is a layer of threshold units (LIF, tau = dt) with "
+             "the threshold calibrated on the reference traverse so that about k units fire; "
+             "the number of winners varies from frame to frame (see docs/nir.md)")
+
+
+class NIRExportError(ValueError):
+    """The NIR export cannot be made or read back (missing package, bad graph or file)."""
+
+
+def require_nir():
+    """Import ``nir``, or raise :class:`NIRExportError` saying how to install it."""
+    try:
+        import nir
+    except ImportError:
+        raise NIRExportError("the NIR export needs the 'nir' package: "
+                             "pip install 'torchseq[nir]'") from None
+    return nir
+
+
+def _f32(t) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy().astype(np.float32))
+
+
+def _lif(nir, n: int, dt: float):
+    """NIR LIF of ``n`` memoryless units: ``tau = dt``, ``r = 1``, threshold 1, reset 0."""
+    one = np.ones(n, dtype=np.float32)
+    return nir.LIF(tau=np.full(n, dt, dtype=np.float32), r=one,
+                   v_leak=np.zeros(n, dtype=np.float32), v_threshold=one,
+                   v_reset=np.zeros(n, dtype=np.float32))
+
+
+def to_nir(spiking, dt: float = DT):
+    """The NIR graph of a spiking model (node table in the module docstring).
+
+    Args:
+        spiking: a :class:`~torchseq.neural.spiking.SpikingSeqSLAM`.
+        dt: the simulation time step the time constants are written for (s).
+
+    Returns:
+        ``nir.NIRGraph``.
+    """
+    nir = require_nir()
+    s = spiking.sizes
+    n, k = s["units"], s["levels"]
+    inv_theta = _f32(spiking.inv_theta)  # (K,)
+    levels = np.zeros((n * k, n), dtype=np.float32)
+    rows = np.arange(n * k)
+    levels[rows, rows // k] = np.tile(inv_theta, n)
+    # (N, N*K): column j*K+l = shift[:, j] * step[l] (level l's share of unit j's value)
+    shift = np.kron(_f32(spiking.shift), _f32(spiking.rung_step)[None, :]).astype(np.float32)
+    nodes = {
+        "input": nir.Input(input_type={"input": np.array([s["input"]])}),
+        "l1": nir.Linear(weight=_f32(spiking.w1)),
+        "l2": _lif(nir, s["l2"], dt),
+        "l3": nir.Linear(weight=_f32(spiking.w3)),
+        "levels": nir.Linear(weight=levels),
+        "ring": _lif(nir, n * k, dt),
+        "shift": nir.Linear(weight=shift),
+        "output": nir.Output(output_type={"output": np.array([n * k])}),
+    }
+    edges = [("input", "l1"), ("l1", "l2"), ("l2", "l3"), ("l3", "levels"),
+             ("shift", "levels"), ("levels", "ring"), ("ring", "shift"), ("ring", "output")]
+    meta = {
+        "format": FORMAT, "dt": float(dt), "units": n, "levels": k,
+        "layout": "ring neuron j*levels + l is level l of output unit j; a unit's spike count "
+                  "is the sum of its levels; the decision is the unit with the most spikes "
+                  "(first on ties)",
+        "unit_centre": spiking.unit_centre.cpu().numpy().astype(np.int64),
+        "uniqueness_window": int(spiking.window),
+        "steps_per_frame": 1,
+        "kwta": KWTA_NOTE,
+        "calibration": json.dumps(spiking.calibration),
+    }
+    return nir.NIRGraph(nodes=nodes, edges=edges, metadata=meta)
+
+
+def write_nir(spiking, path: str | Path, dt: float = DT):
+    """Write :func:`to_nir`'s graph to ``path`` atomically (``nir.write``, HDF5); return it."""
+    nir = require_nir()
+    graph = to_nir(spiking, dt)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        nir.write(tmp, graph)
+    return graph
+
+
+def read_nir(path: str | Path):
+    """``nir.read`` a file written by :func:`write_nir`, checking its format tag.
+
+    Raises:
+        NIRExportError: not a readable NIR file, or not one of ours.
+    """
+    nir = require_nir()
+    try:
+        graph = nir.read(path)
+    except Exception as err:  # noqa: BLE001 - h5py/nir raise many types on a bad file
+        raise NIRExportError(f"{path}: not a readable NIR file ({type(err).__name__})") from None
+    fmt = graph.metadata.get("format") if isinstance(graph.metadata, dict) else None
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode()
+    if fmt != FORMAT:
+        raise NIRExportError(f"{path}: format {fmt!r} is not {FORMAT!r}")
+    return graph

@@ -1,0 +1,357 @@
+"""Spiking Neural SeqSLAM: the fitted rate model as leaky integrate-and-fire units (NIR semantics).
+
+One more definition of the step beside the float (``docs/neural.md`` "Step maths") and the
+integer one (``docs/integer_format.md``). It reads the fitted model's weights, masks, cohorts
+and learnt ring shift (nothing is relearnt: whatever ``fit`` learns flows through) plus three
+scales calibrated on the reference traverse, and runs **one time step per frame**:
+
+1. ``x`` ``(B, D)``: the model's own ``encode`` of the frame (an analog input current).
+2. L1 -> L2: ``z2 = lif(x @ w1.T)``, ``w1 = l1.folded_weight() / theta2``: binary spikes of
+   the L2 units whose L1 sum exceeds the calibrated threshold ``theta2`` (the rate model keeps
+   exactly the ``k`` largest: this is the approximation of k-WTA, see ``docs/nir.md``).
+3. L3 evidence, cohort-centred and scaled, one linear map: ``e = z2 @ w3.T`` with
+   ``w3 = gain * (I - G diag(1/n_c) G^T) (l3.weight * l3.mask) / sigma_c``, i.e.
+   ``gain * (l3 - cohort mean) / sigma_c`` with ``sigma_c`` calibrated (the rate model
+   divides by each frame's own cohort std). The centring makes ``w3`` dense.
+4. Ring, a thermometer population of ``K = levels`` neurons per output unit, on a ladder of
+   values ``0 = g_0 < g_1 < ... < g_K`` with thresholds ``theta_1 < ... < theta_K`` between
+   them: ``u = e + (decay * S) @ q_prev`` (the learnt shift: the graph's cycle), neuron
+   ``(j, k)`` gets ``u_j / theta_k``, so ``count_j = #{k : u_j > theta_k}`` and the unit's
+   value is ``q_j = g_{count_j} = sum_k (g_k - g_{k-1}) * spike_jk``: the rate model's
+   ``a = decay * S a + gain * z`` with ``a`` rounded onto the ladder (clamped at 0 and
+   ``g_K``). Ladders: ``"geometric"`` (default) ``g_k = a_max * low^((K - k) / (K - 1))``,
+   thresholds at the geometric midpoints (``g_1 / 2`` below the first); ``"uniform"``
+   ``g_k = k * a_max / K``, thresholds at ``(k - 1/2) * a_max / K``.
+5. Decision: the unit with the most ring spikes (first index on ties),
+   :func:`~torchseq.neural.readout.decide` on the counts.
+
+Every neuron is NIR's ``LIF`` with ``tau = dt`` (``r = 1``, ``v_leak = 0``, threshold 1,
+reset to 0), stepped with Euler as snnTorch and Norse step it:
+``v <- v + dt / tau * (I - v)``, ``z = v > 1``, ``v <- v * (1 - z)`` (:func:`lif_step`).
+With ``tau = dt`` the units are memoryless; the network's memory is the ring's cycle.
+Why one step per frame and levels in space: see ``docs/nir.md`` ("Why one time step").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import torch
+from torch import nn
+
+from torchseq.neural.readout import decide
+
+DT = 1e-4  # seconds per time step written into the NIR graph (snnTorch's importer assumes it)
+
+
+class SpikingError(ValueError):
+    """Bad input to the spiking model (unfitted model, bad calibration data, wrong shapes)."""
+
+
+@dataclass(frozen=True)
+class SpikingConfig:
+    """Settings of the rate -> spiking conversion.
+
+    Attributes:
+        levels: ring neurons per output unit (the thermometer code's ``K``).
+        spacing: the ring's ladder of values, ``"geometric"`` or ``"uniform"``.
+        low: the geometric ladder's lowest rung as a fraction of the highest.
+        chunk: reference frames encoded at once during calibration.
+    """
+
+    levels: int = 64
+    spacing: str = "geometric"
+    low: float = 0.03
+    chunk: int = 256
+
+    def validate(self) -> None:
+        """Raise :class:`SpikingError` on an impossible setting."""
+        if not isinstance(self.levels, int) or not 1 <= self.levels <= 1024:
+            raise SpikingError(f"levels must be an int in 1..1024, got {self.levels!r}")
+        if self.spacing not in ("geometric", "uniform"):
+            raise SpikingError(f"spacing must be 'geometric' or 'uniform', got {self.spacing!r}")
+        if not isinstance(self.low, float) or not 0.0 < self.low < 1.0:
+            raise SpikingError(f"low must be a float in (0, 1), got {self.low!r}")
+        if not isinstance(self.chunk, int) or self.chunk < 1:
+            raise SpikingError(f"chunk must be a positive int, got {self.chunk!r}")
+
+
+class SpikingState(NamedTuple):
+    """State between time steps (one step per frame).
+
+    Attributes:
+        v2: ``(B, M)`` L2 membranes after the step.
+        v_ring: ``(B, N * K)`` ring membranes after the step.
+        ring: ``(B, N * K)`` ring spikes of the step (the cycle's input to the next step).
+    """
+
+    v2: torch.Tensor
+    v_ring: torch.Tensor
+    ring: torch.Tensor
+
+
+class SpikingStep(NamedTuple):
+    """One step's output: ``reference (B,)``, ``confidence (B,)``, ``counts (B, N)``, spikes."""
+
+    reference: torch.Tensor
+    confidence: torch.Tensor
+    counts: torch.Tensor
+    l2_spikes: torch.Tensor
+    ring_spikes: torch.Tensor
+
+
+def lif_step(current: torch.Tensor, v: torch.Tensor, leak: float = 1.0,
+             threshold: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """One Euler step of NIR's LIF (``v_leak = 0``, ``r = 1``, reset to 0), any shape.
+
+    ``v <- v + leak * (current - v)`` with ``leak = dt / tau``; ``z = v > threshold``;
+    ``v <- v * (1 - z)``.
+
+    Args:
+        current: ``(..., n)`` input current.
+        v: ``(..., n)`` membrane before the step.
+        leak: ``dt / tau`` (1: memoryless).
+        threshold: firing threshold.
+
+    Returns:
+        ``(spikes (..., n) float 0/1, v after the step (..., n))``.
+    """
+    v = v + leak * (current - v)
+    z = (v > threshold).to(current.dtype)
+    return z, v * (1.0 - z)
+
+
+def ladder(config: SpikingConfig, a_max: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ring's values ``g_1..g_K`` and thresholds ``theta_1..theta_K`` (float64, ``(K,)``).
+
+    Args:
+        config: its ``levels``, ``spacing`` and ``low``.
+        a_max: the top value ``g_K``.
+    """
+    k = config.levels
+    c = torch.arange(1, k + 1, dtype=torch.float64)
+    if config.spacing == "uniform":
+        return c * (a_max / k), (c - 0.5) * (a_max / k)
+    g = a_max * config.low ** ((k - c) / max(k - 1, 1))
+    below = torch.cat([g[:1] / 2, g[:-1]])
+    theta = torch.cat([g[:1] / 2, (below[1:] * g[1:]).sqrt()])
+    return g, theta
+
+
+class SpikingSeqSLAM(nn.Module):
+    """A fitted :class:`~torchseq.neural.NeuralSeqSLAM` as a spiking network (one step per frame).
+
+    Build it with :meth:`convert`. Buffers (all float32): ``w1 (M, D)``, ``w3 (N, M)``,
+    ``inv_theta (K,)`` (``1 / theta_k``), ``rung_step (K,)`` (``g_k - g_{k-1}``),
+    ``shift (N, N)`` (the learnt shift times ``decay``), ``unit_centre (N,)`` int64.
+    :attr:`calibration` records ``theta2``, ``sigma (C,)``, ``a_max``, the ladder and what
+    they came from.
+
+    Args: see :meth:`convert`.
+    """
+
+    def __init__(self, w1, w3, inv_theta, step, shift, unit_centre, window: int,
+                 calibration: dict, encode: Callable | None = None) -> None:
+        super().__init__()
+        for name, t in (("w1", w1), ("w3", w3), ("inv_theta", inv_theta),
+                        ("rung_step", step), ("shift", shift)):
+            self.register_buffer(name, t.detach().to(torch.float32).contiguous())
+        self.register_buffer("unit_centre", unit_centre.detach().clone())
+        # synapse counts for synaptic_ops (derived, not state)
+        self.register_buffer("_fan_l2", (self.w3 != 0).sum(0).float(), persistent=False)
+        self.register_buffer("_fan_ring", (self.shift != 0).sum(0).float().repeat_interleave(
+            self.inv_theta.shape[0]), persistent=False)
+        self._synapses_l1 = float((self.w1 != 0).sum())
+        self.window = int(window)
+        self.calibration = dict(calibration)
+        self._encode = encode
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def n_units(self) -> int:
+        """Output units ``N``."""
+        return self.w3.shape[0]
+
+    @property
+    def levels(self) -> int:
+        """Ring neurons per unit ``K``."""
+        return self.inv_theta.shape[0]
+
+    @property
+    def sizes(self) -> dict[str, int]:
+        """``input D``, ``l2 M``, ``units N``, ``levels K``, ``ring N * K``."""
+        m, d = self.w1.shape
+        return {"input": d, "l2": m, "units": self.n_units, "levels": self.levels,
+                "ring": self.n_units * self.levels}
+
+    # ------------------------------------------------------------------ conversion
+    @classmethod
+    @torch.no_grad()
+    def convert(cls, model, reference: torch.Tensor,
+                config: SpikingConfig | None = None) -> SpikingSeqSLAM:
+        """Convert a fitted rate model, calibrating three scales on its reference traverse.
+
+        Calibration (no learning): ``theta2`` = median over reference frames of the midpoint
+        between the ``k``-th and ``k+1``-th largest L1 sums (so about ``k`` L2 units fire);
+        ``sigma_c`` = median over reference frames of cohort ``c``'s std of the L3 evidence
+        of those spikes; the ladder's top ``g_K = a_max``, the largest activity of the
+        unquantised ring ``a = max(e + decay * S a, 0)`` over the reference.
+
+        Args:
+            model: a fitted :class:`~torchseq.neural.NeuralSeqSLAM`.
+            reference: ``(R, H, W)`` (or RGB) frames: the traverse it learnt, ``R >= 2``.
+            config: :class:`SpikingConfig` (None: defaults).
+
+        Raises:
+            SpikingError: an unfitted model, a bad reference, or a degenerate calibration.
+        """
+        cfg = config or SpikingConfig()
+        cfg.validate()
+        if not getattr(model, "fitted", False):
+            raise SpikingError("the model has not learnt a route yet: call fit(reference) first")
+        if not isinstance(reference, torch.Tensor) or reference.dim() not in (3, 4) \
+                or reference.shape[0] < 2:
+            raise SpikingError("reference must be a (R, H, W) tensor of R >= 2 frames, got "
+                               f"{getattr(reference, 'shape', type(reference).__name__)}")
+        mc = model.config
+        w1 = model.l1.folded_weight().detach().float().cpu()  # (M, D)
+        w3f = model.l3.folded_weight().detach().float().cpu()  # (N, M)
+        g = model.cohorts.detach().float().cpu()  # (N, C)
+        decay, gain = (float(v) for v in model.ring.params)
+        s = model.ring.shift.detach().float().cpu()  # (N, N)
+        k = mc.k
+        try:
+            x = torch.cat([model.encode(reference[i:i + cfg.chunk]).float().cpu()
+                           for i in range(0, reference.shape[0], cfg.chunk)])
+        except ValueError as err:
+            raise SpikingError(f"reference cannot be encoded: {err}") from None
+        h = x @ w1.T  # (R, M)
+        top = h.topk(min(k + 1, h.shape[1]), dim=1).values
+        theta2 = float(torch.quantile((top[:, k - 1] + top[:, -1]) / 2, 0.5))
+        if not theta2 > 0:
+            raise SpikingError(f"degenerate L2 threshold {theta2} (a blank reference?)")
+        z2 = (h > theta2).float()
+        n_c = g.sum(0).clamp_min(1.0)  # (C,)
+        e = z2 @ w3f.T  # (R, N)
+        mu = (e @ g) / n_c  # (R, C)
+        var = (((e - mu @ g.T) ** 2) @ g) / n_c
+        sigma = torch.quantile(var.sqrt(), 0.5, dim=0).clamp_min(mc.eps)  # (C,)
+        centred = w3f - g @ ((g / n_c).T @ w3f)  # (N, M): minus the cohort's mean row
+        w3 = centred * (g @ (gain / sigma))[:, None]
+        ev = z2 @ w3.T  # (R, N)
+        a, a_max = torch.zeros(ev.shape[1]), 0.0
+        for t in range(ev.shape[0]):  # unquantised ring on the reference
+            a = (ev[t] + decay * (s @ a)).clamp_min(0.0)
+            a_max = max(a_max, float(a.max()))
+        if not a_max > 0:
+            raise SpikingError("the ring never becomes active on the reference: nothing to scale")
+        g, theta = ladder(cfg, a_max)
+        calibration = {"theta2": theta2, "sigma": [float(v) for v in sigma], "a_max": a_max,
+                       "decay": decay, "gain": gain, "k": k, "levels": cfg.levels,
+                       "spacing": cfg.spacing, "low": cfg.low,
+                       "ladder": [float(v) for v in g], "thresholds": [float(v) for v in theta],
+                       "reference_frames": int(reference.shape[0])}
+        step = g - torch.cat([g.new_zeros(1), g[:-1]])
+        return cls(w1 / theta2, w3, (1.0 / theta).float(), step.float(), s * decay,
+                   model.unit_centre.detach().cpu(), mc.uniqueness_window, calibration,
+                   model.encode)
+
+    # ------------------------------------------------------------------ the step
+    def zero_state(self, batch: int) -> SpikingState:
+        """The state at the start of ``batch`` streams (all membranes and spikes 0)."""
+        n = self.n_units * self.levels
+        z = self.w1.new_zeros
+        return SpikingState(z(batch, self.w1.shape[0]), z(batch, n), z(batch, n))
+
+    def forward(self, x: torch.Tensor,
+                state: SpikingState | None = None) -> tuple[SpikingStep, SpikingState]:
+        """One time step (one frame) for ``B`` streams.
+
+        Args:
+            x: ``(B, D)`` encoded frames (the rate model's ``encode``).
+            state: from the previous step (None: zeros).
+
+        Returns:
+            ``(SpikingStep, new state)``.
+        """
+        if x.dim() != 2 or x.shape[1] != self.w1.shape[1]:
+            raise SpikingError(f"x must be (B, {self.w1.shape[1]}), got {tuple(x.shape)}")
+        if state is None:
+            state = self.zero_state(x.shape[0])
+        b, n, k = x.shape[0], self.n_units, self.levels
+        if tuple(state.ring.shape) != (b, n * k) or tuple(state.v2.shape) != (b, self.w1.shape[0]):
+            raise SpikingError(f"state is for {tuple(state.ring.shape)} ring neurons, the step "
+                               f"needs ({b}, {n * k})")
+        z2, v2 = lif_step(x.to(self.w1.dtype) @ self.w1.T, state.v2)
+        prev = state.ring.view(b, n, k) @ self.rung_step  # (B, N): last step's ring values
+        u = z2 @ self.w3.T + prev @ self.shift.T
+        drive = (u[:, :, None] * self.inv_theta).reshape(b, n * k)  # (B, N * K)
+        zr, vr = lif_step(drive, state.v_ring)
+        counts = zr.view(b, n, k).sum(-1)
+        reference, confidence = self.decide(counts)
+        return SpikingStep(reference, confidence, counts, z2, zr), SpikingState(v2, vr, zr)
+
+    step = forward
+
+    def decide(self, counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(reference (B,), confidence (B,))`` from ring spike counts ``(B, N)``."""
+        return decide(counts, self.unit_centre, self.window)
+
+    def synaptic_ops(self, l2_spikes: torch.Tensor, ring_spikes: torch.Tensor) -> torch.Tensor:
+        """Synaptic operations of one step per stream ``(B,)``, on the exported graph.
+
+        ``nnz(w1)`` (the analog input drives every L1 synapse) + the non-zero ``w3`` entries
+        of the L2 units that fired + ``N * K`` (each unit's current to its ``K`` levels) +
+        the non-zero shift entries of the units whose ring neurons fired (per spike).
+
+        Args:
+            l2_spikes: ``(B, M)``.
+            ring_spikes: ``(B, N * K)``.
+        """
+        return (self._synapses_l1 + l2_spikes @ self._fan_l2 + self.n_units * self.levels
+                + ring_spikes @ self._fan_ring)
+
+    def counts(self, ring_spikes: torch.Tensor) -> torch.Tensor:
+        """Spike counts per unit ``(..., N)`` of ring spikes ``(..., N * K)``."""
+        return ring_spikes.reshape(*ring_spikes.shape[:-1], self.n_units, self.levels).sum(-1)
+
+    @torch.no_grad()
+    def encode(self, frames: torch.Tensor) -> torch.Tensor:
+        """The rate model's input stage: frames ``(T, H, W)`` -> ``(T, D)``."""
+        if self._encode is None:
+            raise SpikingError("this spiking model was built without the rate model's encode")
+        try:
+            return self._encode(frames).float().cpu()
+        except ValueError as err:  # the rate model's NeuralError: shapes, NaN, ...
+            raise SpikingError(f"frames cannot be encoded: {err}") from None
+
+    @torch.no_grad()
+    def run(self, query: torch.Tensor, encoded: bool = False, raster: bool = False) -> dict:
+        """Run one stream over a traverse from a zero state.
+
+        Args:
+            query: ``(T, H, W)`` frames, or ``(T, D)`` encoded inputs with ``encoded=True``.
+            encoded: whether ``query`` is already encoded.
+            raster: also return the ring spikes ``"raster"`` ``(T, N * K)``.
+
+        Returns:
+            ``{"reference" (T,), "confidence" (T,), "l2_spikes" (T,), "ring_spikes" (T,),
+            "synaptic_ops" (T,), "counts" (T, N)}`` (totals per frame), and ``"raster"``
+            if asked.
+        """
+        x = query.float() if encoded else self.encode(query)
+        if x.dim() != 2 or x.shape[0] < 1:
+            raise SpikingError(f"query must hold at least one frame, got {tuple(x.shape)}")
+        state, out = None, []
+        for t in range(x.shape[0]):
+            step, state = self.forward(x[t:t + 1], state)
+            out.append(step)
+        return {"reference": torch.cat([o.reference for o in out]),
+                "confidence": torch.cat([o.confidence for o in out]),
+                "l2_spikes": torch.stack([o.l2_spikes.sum() for o in out]),
+                "ring_spikes": torch.stack([o.ring_spikes.sum() for o in out]),
+                "synaptic_ops": torch.cat([self.synaptic_ops(o.l2_spikes, o.ring_spikes)
+                                           for o in out]),
+                "counts": torch.cat([o.counts for o in out]),
+                **({"raster": torch.cat([o.ring_spikes for o in out])} if raster else {})}
