@@ -12,7 +12,7 @@ class NeuralError(ValueError):
 
 
 # fields added after the first checkpoints were written, with the behaviour those had
-FORMER_DEFAULTS = {"input_steps": 0, "l1_levels": 0, "l3_levels": 0}
+FORMER_DEFAULTS = {"input_steps": 0, "l1_levels": 0, "l3_levels": 0, "readout": "centre"}
 MAX_COUNT = 2**24  # hidden, n_output, chunk, ... (a size past this is a corrupt setting)
 MAX_ELEMENTS = 2**31  # the largest weight matrix a config may ask for (8 GiB of float32)
 MAX_FACTOR = 1e6  # ring gain and weights: larger ones overflow float32 activity into inf/NaN
@@ -89,6 +89,10 @@ class NeuralConfig:
         hebbian: ``"mean"`` (a unit's weights = mean code of its frames) or ``"centred"``
             (minus the mean code of the whole route).
         uniqueness_window: units around the winner ignored by the confidence margin.
+        readout: ``"centre"`` (the winner's centre frame) or ``"interpolate"`` (the position
+            within the winner's stretch of frames from its neighbours' activity, see
+            :func:`torchseq.neural.readout.decide`; the same decisions while every unit
+            holds one frame, finer when a long route gives units several frames).
         eps: numerical floor of normalisations.
         chunk: frames per batch in ``fit`` and ``run`` (memory bound, not a result change).
         seed: seed of the random masks and L1 weights.
@@ -115,6 +119,7 @@ class NeuralConfig:
     rectify: bool = True
     hebbian: str = "centred"
     uniqueness_window: int = 5
+    readout: str = "centre"
     eps: float = 1e-6
     chunk: int = 256
     seed: int = 0
@@ -177,6 +182,7 @@ class NeuralConfig:
         _check_choice("ring_wrap", self.ring_wrap, (False, True))
         _check_choice("rectify", self.rectify, (False, True))
         _check_choice("hebbian", self.hebbian, ("mean", "centred"))
+        _check_choice("readout", self.readout, ("centre", "interpolate"))
         _check_int("uniqueness_window", self.uniqueness_window, 0, 2**31 - 1)
         _check_real("eps", self.eps, 0.0, 1.0, lo_open=True)
         _check_int("seed", self.seed, *SEED_RANGE)
