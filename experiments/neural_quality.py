@@ -311,6 +311,47 @@ def repeat_rows(repeats=(2, 3), seeds: int = 8, n_reference: int = 200) -> list[
     return rows
 
 
+# issue 15: settings measured over 8 seeds (mean / worst seed); each row changes the default
+SEED_SWEEP = {
+    "default (density_out 1.0)": {},
+    "Table 1 L2->L3 mask (density_out 0.2; the default before issue 15)": dict(density_out=0.2),
+    "density_out 0.5": dict(density_out=0.5),
+    "dense_readout() (decay 0.96)": dict(ring_decay=0.96),
+    "decay 0.975": dict(ring_decay=0.975),
+    "k 15%": dict(k_fraction=0.15),
+    "55 units, centre readout": dict(n_output=55),
+    "55 units, interpolate readout": dict(n_output=55, readout="interpolate"),
+    "37 units, centre readout": dict(n_output=37),
+    "37 units, interpolate readout": dict(n_output=37, readout="interpolate"),
+}
+SWEEP_DATA = ("corridor", "lens", "lens+-2", "demo", "demo-severe", "demo-repeat",
+              "demo-speed0.6", "demo-speed1.6")
+
+
+def seed_sweep_rows(data: dict, seeds: int) -> list[dict]:
+    """Recall@1 mean / worst over ``seeds`` model seeds for each :data:`SEED_SWEEP` row."""
+    rows = []
+    for label, kw in SEED_SWEEP.items():
+        row = {"setting": label}
+        for name in SWEEP_DATA:
+            if name not in data:
+                continue
+            ref, query, gt = data[name]
+            with warnings.catch_warnings():  # units of several frames: fit warns
+                warnings.simplefilter("ignore")
+                v = [run_neural(replace(NeuralConfig(), **kw, seed=seed), ref, query,
+                                gt)["recall_at_1"] for seed in range(seeds)]
+            row[name] = f"{np.mean(v):.3f} / {np.min(v):.3f}"
+        rows.append(row)
+        print(row, flush=True)
+    row = {"setting": "classic SeqSLAM"}
+    for name in SWEEP_DATA:
+        if name in data:
+            row[name] = f"{run_seqslam(*data[name])['recall_at_1']:.3f}"
+    rows.append(row)
+    return rows
+
+
 def replace_block(text: str, name: str, body: str) -> str:
     """Replace ``<!-- name:start -->...<!-- name:end -->`` in ``text`` (unchanged if absent)."""
     a, b = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
@@ -354,6 +395,8 @@ def main(argv=None) -> dict:
                    help="longest route classic SeqSLAM also runs on")
     p.add_argument("--repeat", action="store_true",
                    help="false matches to the wrong repeat on make_demo(repeat=2, 3)")
+    p.add_argument("--seed-sweep", action="store_true",
+                   help="issue 15's settings over --seeds model seeds (mean / worst)")
     p.add_argument("--skip-main", action="store_true",
                    help="skip the main table (run only the sections asked for)")
     args = p.parse_args(argv)
@@ -414,6 +457,15 @@ def main(argv=None) -> dict:
         blocks["long"] = part
         _write(args.out, "neural_long_routes", {k: v for k, v in results.items() if k != "ablation"
                                           and k != "main"}, part)
+    if args.seed_sweep:
+        sweep_data = {**data, **hard_demos()}
+        rows = seed_sweep_rows(sweep_data, args.seeds)
+        results["seed_sweep"] = rows
+        part = (f"### Settings over {args.seeds} model seeds: recall@1 mean / worst seed\n\n"
+                + table(rows, ["setting", *[n for n in SWEEP_DATA if n in sweep_data]]) + "\n")
+        md += "\n" + part
+        blocks["seeds"] = part
+        _write(args.out, "neural_seed_sweep", {"seed_sweep": rows}, part)
     if args.repeat:
         rows = repeat_rows(seeds=args.seeds)
         results["repeat"] = rows
