@@ -92,7 +92,9 @@ class NeuralConfig:
         readout: ``"centre"`` (the winner's centre frame) or ``"interpolate"`` (the position
             within the winner's stretch of frames from its neighbours' activity, see
             :func:`torchseq.neural.readout.decide`; the same decisions while every unit
-            holds one frame, finer when a long route gives units several frames).
+            holds one frame, finer when a long route gives units several frames; measured
+            worse for queries much faster than the reference, and no integer export for
+            units of several frames, so opt-in).
         eps: numerical floor of normalisations.
         chunk: frames per batch in ``fit`` and ``run`` (memory bound, not a result change).
         seed: seed of the random masks and L1 weights.
