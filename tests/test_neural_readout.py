@@ -132,3 +132,31 @@ def test_integer_export_refuses_what_it_cannot_hold():
     fine = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=60, readout="interpolate"))
     fine.fit(ref, log=False)
     integer_model(fine)  # units of one frame: the same decisions as the centre readout
+
+
+@pytest.mark.parametrize("batch", [1, 3])
+def test_float_onnx_follows_the_interpolating_readout(batch):
+    from torchseq.export.int_onnx import session
+    from torchseq.export.onnx_float import build_float_onnx
+    from torchseq.preprocess import resize
+
+    d = make_demo(n_reference=60, size=(24, 32), step=4.0)
+    model = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=20, readout="interpolate"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model.fit(d.reference, log=False)
+    sess = session(build_float_onnx(model))
+    small = resize(d.query, model.config.input_size)
+    state, state_pt = np.zeros((batch, model.n_units), np.float32), None
+    refs, want, units = [], [], []
+    for t in range(0, 60, batch):
+        act, state, ref, _ = sess.run(None, {"frames": small[t:t + batch].numpy(),
+                                             "state": state})
+        out, state_pt = model.step(small[t:t + batch], state_pt)  # the eager definition
+        refs.append(ref)
+        want.append(out.reference.numpy())
+        units.append(act.argmax(1))
+    refs, want, units = np.concatenate(refs), np.concatenate(want), np.concatenate(units)
+    assert np.array_equal(refs, want)
+    spans = model.unit_to_reference.numpy()
+    assert (refs != (spans[units, 0] + spans[units, 1] - 1) // 2).sum() > 5  # not the centres

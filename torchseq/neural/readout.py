@@ -99,10 +99,11 @@ def _decide_numpy(activity: torch.Tensor, unit_centre: torch.Tensor,
 def _within_unit(activity: torch.Tensor, unit: torch.Tensor, spans: torch.Tensor) -> torch.Tensor:
     """``(B,)`` int64 reference within each winner's stretch (see :func:`decide`), in torch."""
     n = activity.shape[1]
-    rows = torch.arange(activity.shape[0], device=activity.device)
-    a0 = activity[rows, unit].to(torch.float64)
-    am = activity[rows, (unit - 1).clamp(0, n - 1)].to(torch.float64)
-    ap = activity[rows, (unit + 1).clamp(0, n - 1)].to(torch.float64)
+
+    def at(index: torch.Tensor) -> torch.Tensor:  # gather: no batch size frozen when traced
+        return activity.gather(1, index.clamp(0, n - 1)[:, None])[:, 0].to(torch.float64)
+
+    a0, am, ap = at(unit), at(unit - 1), at(unit + 1)
     den = am - 2.0 * a0 + ap
     inner = (unit > 0) & (unit < n - 1) & (den < 0)
     x = torch.where(inner, (am - ap) / (2.0 * torch.where(inner, den, -1.0)), 0.0)
