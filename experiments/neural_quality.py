@@ -215,7 +215,7 @@ def offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[dict]]:
 
 # ---------------------------------------------------------------- long routes (issue 15)
 def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
-                   readout: str = "centre") -> dict:
+                   readout: str = "centre", n_output: int | None = None) -> dict:
     """A demo route of ``n_reference`` frames (48x64 frames, 4 px per frame, query at 0.8x):
     recall@1 within the demo's +-2 frames, the decisions' |offset|, bytes beside SeqSLAM's."""
     from torchseq.neural.memory import seqslam_bytes
@@ -224,7 +224,8 @@ def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
     row = {"reference frames": n_reference, "query frames": len(truth), "readout": readout}
     rec, med, p90, fit_s, run_s = [], [], [], [], []
     for seed in range(seeds):
-        model = NeuralSeqSLAM(replace(NeuralConfig(), seed=seed, readout=readout))
+        cfg = replace(NeuralConfig(), seed=seed, readout=readout)
+        model = NeuralSeqSLAM(cfg if n_output is None else replace(cfg, n_output=n_output))
         t0 = time.perf_counter()
         with warnings.catch_warnings():  # fit warns about units of several frames
             warnings.simplefilter("ignore")
@@ -319,6 +320,7 @@ SEED_SWEEP = {
     "dense_readout() (decay 0.96)": dict(ring_decay=0.96),
     "decay 0.975": dict(ring_decay=0.975),
     "k 15%": dict(k_fraction=0.15),
+    "input 32x64 (2,048 L1 units: 2.7x the L1 weights)": dict(input_size=(32, 64)),
     "55 units, centre readout": dict(n_output=55),
     "55 units, interpolate readout": dict(n_output=55, readout="interpolate"),
     "37 units, centre readout": dict(n_output=37),
@@ -391,6 +393,8 @@ def main(argv=None) -> dict:
                    help="comma-separated demo route lengths, e.g. 500,3000,20000")
     p.add_argument("--long-seeds", type=int, default=2,
                    help="model seeds per long route (one for routes over 5,000 frames)")
+    p.add_argument("--long-extra-units", type=int, default=0,
+                   help="also run routes longer than this with n_output = this (interpolate)")
     p.add_argument("--long-seqslam-max", type=int, default=3000,
                    help="longest route classic SeqSLAM also runs on")
     p.add_argument("--repeat", action="store_true",
@@ -448,6 +452,9 @@ def main(argv=None) -> dict:
                 rows.append(long_route_row(n, 1 if n > 5000 else args.long_seeds,
                                            n <= args.long_seqslam_max and readout == "centre",
                                            readout))
+            if args.long_extra_units and n > args.long_extra_units:
+                rows.append(long_route_row(n, 1 if n > 5000 else args.long_seeds, False,
+                                           "interpolate", args.long_extra_units))
         results["long_routes"] = rows
         cols = list(dict.fromkeys(k for r in rows for k in r))
         part = ("### Long demo routes (48x64 frames, query at 0.8x speed, default model; "

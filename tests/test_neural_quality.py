@@ -20,7 +20,7 @@ def test_demo_recall_default_config():
     model = NeuralSeqSLAM()
     model.fit(d.reference, log=False)
     m = evaluate(model.run(d.query).matches, d.ground_truth)
-    assert m["recall_at_1"] >= 0.99  # measured 0.996
+    assert m["recall_at_1"] >= 0.99  # measured 1.000 (0.996 with the 20% L2->L3 mask)
 
 
 @pytest.mark.slow
@@ -32,8 +32,8 @@ def test_corridor_recall_default_config():
     model = NeuralSeqSLAM()
     model.fit(ref, log=False)
     m = evaluate(model.run(query).matches, gt)
-    assert m["recall_at_1"] >= 0.78  # measured 0.838 (the seed reported about 80%)
-    assert m["auc"] >= 0.72  # measured 0.798
+    assert m["recall_at_1"] >= 0.78  # measured 0.811 (20% mask: 0.838; the seed: about 80%)
+    assert m["auc"] >= 0.72  # measured 0.777 (20% mask: 0.798)
 
 
 def _corridor():
@@ -65,4 +65,4 @@ def test_lens_within_two_frames():
     model.fit(ref, log=False)
     got = model.run(query).matches.reference.numpy()
     near = np.abs(got - np.arange(len(query))) <= 2  # the file's ground truth is the identity
-    assert near.mean() >= 0.78  # measured 0.83
+    assert near.mean() >= 0.78  # measured 0.85 (20% mask: 0.83)
