@@ -46,7 +46,7 @@ def decide(activity: torch.Tensor, unit_centre: torch.Tensor, window: int,
     if kernel not in DECIDE_KERNELS:
         raise ValueError(f"kernel must be one of {DECIDE_KERNELS}, got {kernel!r}")
     if spans is not None:
-        reference, confidence = decide(activity, unit_centre, window, kernel)
+        _, confidence = decide(activity, unit_centre, window, kernel)
         unit = activity.argmax(dim=1)
         if kernel == "numpy":
             pos = _within_unit_numpy(activity.numpy(), unit.numpy(), spans.numpy())
