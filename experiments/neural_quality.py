@@ -68,6 +68,8 @@ def hard_demos() -> dict:
     out = {}
     for name, kw in {"demo-light": dict(gain=0.6, gamma=1.8, gradient=0.3, noise=12.0),
                      "demo-severe": dict(gain=0.45, gamma=2.4, gradient=0.45, noise=20.0),
+                     "demo-severe-1.0x": dict(gain=0.45, gamma=2.4, gradient=0.45, noise=20.0,
+                                              speed=1.0),
                      "demo-speed0.6": dict(speed=0.6),
                      "demo-speed1.3": dict(speed=1.3),
                      "demo-speed1.6": dict(speed=1.6)}.items():
@@ -326,8 +328,8 @@ SEED_SWEEP = {
     "37 units, centre readout": dict(n_output=37),
     "37 units, interpolate readout": dict(n_output=37, readout="interpolate"),
 }
-SWEEP_DATA = ("corridor", "lens", "lens+-2", "demo", "demo-severe", "demo-repeat",
-              "demo-speed0.6", "demo-speed1.6")
+SWEEP_DATA = ("corridor", "lens", "lens+-2", "demo", "demo-severe", "demo-severe-1.0x",
+              "demo-repeat", "demo-speed0.6", "demo-speed1.6")
 
 
 def seed_sweep_rows(data: dict, seeds: int) -> list[dict]:
