@@ -5,9 +5,12 @@ One command (from the repository root):
     .venv/bin/python experiments/neural_quality.py [--out experiments/results] [--ablation]
 
 Writes ``neural_quality.json`` and ``neural_quality.md`` (a Markdown table) under ``--out``,
-prints the table. With ``--ablation`` it also runs the ablation over the model's settings
-and the harder demo variants (appearance change, speed, repetitive scenery), and rewrites
-the tables in docs/neural.md (unless ``--no-docs``).
+prints the table. ``--offsets``, ``--long-routes 500,3000,20000`` and ``--repeat`` add the
+offset histograms, the long-route table and the wrong-repeat counts (issue 15), each also
+written to its own ``neural_<section>.json``/``.md`` and its block of docs/neural.md;
+``--skip-main`` runs only those. With ``--ablation`` it also runs the ablation over the
+model's settings and the harder demo variants (appearance change, speed, repetitive
+scenery). Every section rewrites its tables in docs/neural.md (unless ``--no-docs``).
 Classic SeqSLAM (``torchseq.seqslam``, default settings) runs beside it on the same data.
 """
 
@@ -17,6 +20,7 @@ import argparse
 import json
 import sys
 import time
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -64,6 +68,8 @@ def hard_demos() -> dict:
     out = {}
     for name, kw in {"demo-light": dict(gain=0.6, gamma=1.8, gradient=0.3, noise=12.0),
                      "demo-severe": dict(gain=0.45, gamma=2.4, gradient=0.45, noise=20.0),
+                     "demo-severe-1.0x": dict(gain=0.45, gamma=2.4, gradient=0.45, noise=20.0,
+                                              speed=1.0),
                      "demo-speed0.6": dict(speed=0.6),
                      "demo-speed1.3": dict(speed=1.3),
                      "demo-speed1.6": dict(speed=1.6)}.items():
@@ -122,24 +128,240 @@ ABLATION = {
     "float weights (l1_levels 0, l3_levels 0)": dict(l1_levels=0, l3_levels=0),
     "all float (no integer grids)": dict(input_steps=0, l1_levels=0, l3_levels=0),
     "Table 1 winners (k 5%)": dict(k_fraction=0.05),
-    "dense readout (density_out 1.0, decay 0.96)": dict(density_out=1.0, ring_decay=0.96),
+    "Table 1 L2->L3 mask (density_out 0.2)": dict(density_out=0.2),
+    "density_out 0.5": dict(density_out=0.5),
+    "dense_readout() (decay 0.96)": dict(ring_decay=0.96),
     "patch 8": dict(patch_size=8),
     "patch seqslam rounding": dict(patch_mode="seqslam"),
     "no rectify": dict(rectify=False),
     "no ring (decay 0)": dict(ring_decay=0.0, ring_gain=1.0),
     "ring decay 0.9": dict(ring_decay=0.9),
     "ring decay 0.95": dict(ring_decay=0.95),
-    "ring decay 0.96": dict(ring_decay=0.96),
     "ring decay 0.98": dict(ring_decay=0.98),
     "spread 1, no stay": dict(ring_spread=1, ring_stay=0.0),
     "spread 3": dict(ring_spread=3),
+    "stay 0.75 (ring prior 0.89x)": dict(ring_stay=0.75),
+    "stay 0.25 (ring prior 1.14x)": dict(ring_stay=0.25),
     "hebbian mean": dict(hebbian="mean"),
     "k 15%": dict(k_fraction=0.15),
-    "density_out 0.5": dict(density_out=0.5),
-    "density_out 1.0": dict(density_out=1.0),
+    "input 32x64": dict(input_size=(32, 64)),
     "cohorts 4": dict(n_cohorts=4),
     "cohorts 8": dict(n_cohorts=8),
 }
+
+
+# ---------------------------------------------------------------- offsets (issue 15)
+OFFSET_BINS = tuple(range(-3, 4))
+
+
+def offset_row(label: str, engine: str, offsets: np.ndarray, n_unmatched: int = 0) -> dict:
+    """Histogram of decision - truth (in reference frames, rounded), its median, exact share."""
+    r = np.round(offsets).astype(np.int64)
+    row = {"data": label, "engine": engine, "decisions": int(r.size)}
+    row["< -3"] = f"{np.mean(r < -3):.2f}"
+    for b in OFFSET_BINS:
+        row[f"{b:+d}"] = f"{np.mean(r == b):.2f}"
+    row["> +3"] = f"{np.mean(r > 3):.2f}"
+    row["median"] = f"{np.median(offsets):+.1f}"
+    row["exact"] = f"{np.mean(r == 0):.3f}"
+    row["unmatched"] = n_unmatched
+    return row
+
+
+def content_alignment(ref: torch.Tensor, query: torch.Tensor, size=(24, 32), span=3) -> dict:
+    """Engine-free alignment: mean L1 difference of whole-frame z-scored frames, query ``j``
+    against reference ``j + d`` for ``d`` in ``-span..span`` (same-length traverses)."""
+    from torchseq.preprocess import resize, to_grey
+    def flat(x):
+        x = resize(to_grey(x).to(torch.float32), size).reshape(len(x), -1).double()
+        return (x - x.mean(1, keepdim=True)) / (x.std(1, keepdim=True) + 1e-9)
+    r, q = flat(ref), flat(query)
+    out = {}
+    for d in range(-span, span + 1):
+        j = np.arange(len(q))
+        j = j[(j + d >= 0) & (j + d < len(r))]
+        out[f"{d:+d}"] = float((q[j] - r[j + d]).abs().mean())
+    return out
+
+
+def offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[dict]]:
+    """Offsets of both engines' decisions: LENS and corridor against their query index (the
+    centre of their ground truth), the demo against its exact query positions."""
+    from torchseq.seqslam import SeqSLAM
+    rows, align = [], []
+    cases = {}
+    for name in ("lens", "corridor"):
+        if name in data:
+            ref, query, _ = data[name]
+            cases[name] = (ref, query, np.arange(len(query), dtype=np.float64))
+    for speed in (0.8, 1.0, 1.3):
+        d = make_demo(speed=speed)
+        cases[f"demo speed {speed}"] = (d.reference, d.query, d.query_position)
+    for name, (ref, query, truth) in cases.items():
+        off = []
+        for seed in range(seeds):
+            model = NeuralSeqSLAM(replace(NeuralConfig(), seed=seed))
+            model.fit(ref, log=False)
+            off.append(model.run(query).matches.reference.numpy() - truth)
+        rows.append(offset_row(name, f"neural ({seeds} seeds)", np.concatenate(off)))
+        got = SeqSLAM().match(ref, query).matches.reference.numpy()
+        ok = got >= 0
+        rows.append(offset_row(name, "SeqSLAM", got[ok] - truth[ok], int((~ok).sum())))
+        if name in ("lens", "corridor"):
+            a = content_alignment(ref, query)
+            align.append({"data": name, **{k: f"{v:.4f}" for k, v in a.items()},
+                          "best": min(a, key=a.get)})
+        print(rows[-2], rows[-1], flush=True)
+    return rows, align
+
+
+# ---------------------------------------------------------------- long routes (issue 15)
+def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
+                   readout: str = "centre", n_output: int | None = None) -> dict:
+    """A demo route of ``n_reference`` frames (48x64 frames, 4 px per frame, query at 0.8x):
+    recall@1 within the demo's +-2 frames, the decisions' |offset|, bytes beside SeqSLAM's."""
+    from torchseq.neural.memory import seqslam_bytes
+    d = make_demo(n_reference=n_reference, size=(48, 64), step=4.0, dense_ground_truth=False)
+    truth = d.query_position
+    row = {"reference frames": n_reference, "query frames": len(truth), "readout": readout}
+    rec, med, p90, fit_s, run_s = [], [], [], [], []
+    for seed in range(seeds):
+        cfg = replace(NeuralConfig(), seed=seed, readout=readout)
+        model = NeuralSeqSLAM(cfg if n_output is None else replace(cfg, n_output=n_output))
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():  # fit warns about units of several frames
+            warnings.simplefilter("ignore")
+            model.fit(d.reference, log=False)
+        fit_s.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        got = model.run(d.query).matches.reference.numpy()
+        run_s.append(time.perf_counter() - t0)
+        err = np.abs(got - truth)
+        rec.append(float(np.mean(err <= d.tolerance)))  # every query is a positive here
+        med.append(float(np.median(err)))
+        p90.append(float(np.percentile(err, 90)))
+    row["units"] = model.n_units
+    row["frames per unit"] = f"{n_reference / model.n_units:.1f}"
+    row["neural recall_at_1"] = f"{np.mean(rec):.3f}"
+    row["neural median abs offset"] = f"{np.mean(med):.2f}"
+    row["neural p90 abs offset"] = f"{np.mean(p90):.2f}"
+    row["neural MB (dense / masked)"] = (f"{model.model_bytes() / 1e6:.1f} / "
+                                         f"{model.model_bytes(masked_only=True) / 1e6:.1f}")
+    row["neural fit + run s"] = f"{np.mean(fit_s):.1f} + {np.mean(run_s):.1f}"
+    row["SeqSLAM MB"] = f"{seqslam_bytes(n_reference) / 1e6:.1f}"
+    row["seeds"] = seeds
+    if with_seqslam:
+        from torchseq.seqslam import SeqSLAM
+        t0 = time.perf_counter()
+        got = SeqSLAM().match(d.reference, d.query).matches.reference.numpy()
+        ok = got >= 0
+        err = np.abs(got - truth)
+        row["SeqSLAM recall_at_1"] = f"{np.mean(ok & (err <= d.tolerance)):.3f}"
+        row["SeqSLAM median abs offset"] = f"{np.median(err[ok]):.2f}"
+        row["SeqSLAM s"] = f"{time.perf_counter() - t0:.1f}"
+    print(row, flush=True)
+    return row
+
+
+# ---------------------------------------------------------------- repeats (issue 15)
+def repeat_rows(repeats=(2, 3), seeds: int = 8, n_reference: int = 200) -> list[dict]:
+    """False matches to the wrong repeat on ``make_demo(repeat=r)``.
+
+    The repeated stretch is reference frames ``lo .. lo + r * seg`` (``lo = round(R / 4)``,
+    ``seg = round(R / (2 r))``, as in :func:`torchseq.demo.make_demo`). A decision for a
+    query whose true place lies there is "wrong repeat" when it is not within the tolerance
+    of the truth but within it of the same place in another copy (truth +- k seg, k != 0).
+    """
+    from torchseq.seqslam import SeqSLAM
+    rows = []
+    for r in repeats:
+        d = make_demo(repeat=r, n_reference=n_reference)
+        lo, seg = round(0.25 * n_reference), max(1, round(0.5 * n_reference / r))
+        truth = d.query_position
+        inside = (truth >= lo) & (truth < lo + r * seg)
+        ks = np.array([k for k in range(-r + 1, r) if k])
+
+        def score(got, ok):
+            err = np.abs(got - truth)
+            right = ok & (err <= d.tolerance)
+            other = np.abs(got[:, None] - (truth[:, None] + ks[None, :] * seg)).min(1)
+            wrong_copy = ok & ~right & (other <= d.tolerance)
+            lost = ~right & ~wrong_copy
+            return (float(np.mean(right[inside])), float(np.mean(wrong_copy[inside])),
+                    float(np.mean(right[~inside])), float(np.mean(lost[inside])))
+
+        res = []
+        for seed in range(seeds):
+            model = NeuralSeqSLAM(replace(NeuralConfig(), seed=seed))
+            model.fit(d.reference, log=False)
+            got = model.run(d.query).matches.reference.numpy()
+            res.append(score(got, np.ones_like(got, dtype=bool)))
+        res = np.array(res)
+        rows.append({"route": f"repeat={r} (copies of {seg} frames)", "engine":
+                     f"neural ({seeds} seeds)", "queries in copies": int(inside.sum()),
+                     "recall_at_1 in copies": f"{res[:, 0].mean():.3f}",
+                     "wrong copy": f"{res[:, 1].mean():.3f} (max {res[:, 1].max():.3f})",
+                     "other errors in copies": f"{res[:, 3].mean():.3f}",
+                     "recall_at_1 elsewhere": f"{res[:, 2].mean():.3f}"})
+        got = SeqSLAM().match(d.reference, d.query).matches.reference.numpy()
+        s = score(got, got >= 0)
+        rows.append({"route": f"repeat={r} (copies of {seg} frames)", "engine": "SeqSLAM",
+                     "queries in copies": int(inside.sum()),
+                     "recall_at_1 in copies": f"{s[0]:.3f}", "wrong copy": f"{s[1]:.3f}",
+                     "other errors in copies": f"{s[3]:.3f}",
+                     "recall_at_1 elsewhere": f"{s[2]:.3f}"})
+        print(rows[-2], rows[-1], flush=True)
+    return rows
+
+
+# issue 15: settings measured over 8 seeds (mean / worst seed); each row changes the default
+SEED_SWEEP = {
+    "default (density_out 1.0)": {},
+    "Table 1 L2->L3 mask (density_out 0.2; the default before issue 15)": dict(density_out=0.2),
+    "density_out 0.5": dict(density_out=0.5),
+    "dense_readout() (decay 0.96)": dict(ring_decay=0.96),
+    "decay 0.975": dict(ring_decay=0.975),
+    "k 15%": dict(k_fraction=0.15),
+    "input 32x64 (2,048 L1 units: 2.7x the L1 weights)": dict(input_size=(32, 64)),
+    "55 units, centre readout": dict(n_output=55),
+    "55 units, interpolate readout": dict(n_output=55, readout="interpolate"),
+    "37 units, centre readout": dict(n_output=37),
+    "37 units, interpolate readout": dict(n_output=37, readout="interpolate"),
+}
+SWEEP_DATA = ("corridor", "lens", "lens+-2", "demo", "demo-severe", "demo-severe-1.0x",
+              "demo-repeat", "demo-speed0.6", "demo-speed1.6")
+
+
+def seed_sweep_rows(data: dict, seeds: int) -> list[dict]:
+    """Recall@1 mean / worst over ``seeds`` model seeds for each :data:`SEED_SWEEP` row."""
+    rows = []
+    for label, kw in SEED_SWEEP.items():
+        row = {"setting": label}
+        for name in SWEEP_DATA:
+            if name not in data:
+                continue
+            ref, query, gt = data[name]
+            with warnings.catch_warnings():  # units of several frames: fit warns
+                warnings.simplefilter("ignore")
+                v = [run_neural(replace(NeuralConfig(), **kw, seed=seed), ref, query,
+                                gt)["recall_at_1"] for seed in range(seeds)]
+            row[name] = f"{np.mean(v):.3f} / {np.min(v):.3f}"
+        rows.append(row)
+        print(row, flush=True)
+    row = {"setting": "classic SeqSLAM"}
+    for name in SWEEP_DATA:
+        if name in data:
+            row[name] = f"{run_seqslam(*data[name])['recall_at_1']:.3f}"
+    rows.append(row)
+    return rows
+
+
+def replace_block(text: str, name: str, body: str) -> str:
+    """Replace ``<!-- name:start -->...<!-- name:end -->`` in ``text`` (unchanged if absent)."""
+    a, b = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    if a not in text or b not in text:
+        return text
+    return text.split(a)[0] + a + "\n" + body.strip() + "\n" + b + text.split(b)[1]
 
 
 def table(rows: list[dict], cols: list[str]) -> str:
@@ -148,6 +370,11 @@ def table(rows: list[dict], cols: list[str]) -> str:
         cells = [f"{r[c]:.3f}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _write(out: Path, stem: str, results: dict, md: str) -> None:
+    write_text(out / f"{stem}.json", json.dumps(results, indent=1, default=float))
+    write_text(out / f"{stem}.md", md)
 
 
 def main(argv=None) -> dict:
@@ -161,14 +388,32 @@ def main(argv=None) -> dict:
     p.add_argument("--ablation-seeds", type=int, default=3,
                    help="model seeds averaged in the ablation and the appearance sweep")
     p.add_argument("--no-docs", action="store_true",
-                   help="with --ablation, do not rewrite the tables in docs/neural.md")
+                   help="do not rewrite the tables in docs/neural.md")
+    p.add_argument("--offsets", action="store_true",
+                   help="offset histograms of both engines' decisions (LENS, corridor, demo)")
+    p.add_argument("--long-routes", default="",
+                   help="comma-separated demo route lengths, e.g. 500,3000,20000")
+    p.add_argument("--long-seeds", type=int, default=2,
+                   help="model seeds per long route (one for routes over 5,000 frames)")
+    p.add_argument("--long-extra-units", type=int, default=0,
+                   help="also run routes longer than this with n_output = this (interpolate)")
+    p.add_argument("--long-seqslam-max", type=int, default=3000,
+                   help="longest route classic SeqSLAM also runs on")
+    p.add_argument("--repeat", action="store_true",
+                   help="false matches to the wrong repeat on make_demo(repeat=2, 3)")
+    p.add_argument("--seed-sweep", action="store_true",
+                   help="issue 15's settings over --seeds model seeds (mean / worst)")
+    p.add_argument("--skip-main", action="store_true",
+                   help="skip the main table (run only the sections asked for)")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     base = NeuralConfig()
     data = datasets()
     results = {"config": base.to_dict(), "main": [], "ablation": []}
-    for name, (ref, query, gt) in data.items():
+    blocks = {}  # docs/neural.md marker name -> Markdown
+    md = ""
+    for name, (ref, query, gt) in ({} if args.skip_main else data).items():
         row = {"data": name, "R": len(ref), "Q": len(query)}
         runs = [run_neural(replace(base, seed=seed), ref, query, gt) for seed in range(args.seeds)]
         for key in ("recall_at_1", "auc", "recall_at_100_precision"):
@@ -185,8 +430,60 @@ def main(argv=None) -> dict:
     cols = ["data", "R", "Q", "neural recall_at_1", "neural recall_at_1 min",
             "neural recall_at_1 seed 0", "neural auc", "neural recall_at_100_precision",
             "seqslam recall_at_1", "seqslam auc", "seqslam recall_at_100_precision"]
-    md = (f"### Recall@1 and AUC, default settings (neural: mean +- std over {args.seeds} model "
-          "seeds, their minimum, and seed 0)\n\n" + table(results["main"], cols) + "\n")
+    if not args.skip_main:
+        md = (f"### Recall@1 and AUC, default settings (neural: mean +- std over {args.seeds} "
+              "model seeds, their minimum, and seed 0)\n\n" + table(results["main"], cols)
+              + "\n")
+    quality_md, ablation_md = md, ""
+    if args.offsets:
+        rows, align = offsets_section(data, args.seeds)
+        results["offsets"], results["alignment"] = rows, align
+        part = ("### Offsets of the decisions (decision - truth, reference frames; share of "
+                "decisions per offset)\n\n" + table(rows, list(rows[0])) + "\n\n"
+                "### Where the frames themselves align (no engine): mean L1 difference of "
+                "whole-frame z-scored 24x32 frames, query j against reference j + d\n\n"
+                + table(align, list(align[0])) + "\n")
+        md += "\n" + part
+        blocks["offsets"] = part
+        _write(args.out, "neural_offsets", {k: v for k, v in results.items() if k != "ablation"
+                                          and k != "main"}, part)
+    if args.long_routes:
+        rows = []
+        for n in [int(v) for v in args.long_routes.split(",") if v]:
+            for readout in ("centre", "interpolate"):
+                rows.append(long_route_row(n, 1 if n > 5000 else args.long_seeds,
+                                           n <= args.long_seqslam_max and readout == "centre",
+                                           readout))
+            if args.long_extra_units and n > args.long_extra_units:
+                rows.append(long_route_row(n, 1 if n > 5000 else args.long_seeds, False,
+                                           "interpolate", args.long_extra_units))
+        results["long_routes"] = rows
+        cols = list(dict.fromkeys(k for r in rows for k in r))
+        part = ("### Long demo routes (48x64 frames, query at 0.8x speed, default model; "
+                "SeqSLAM's columns on the centre rows)\n\n"
+                + table(rows, cols) + "\n")
+        md += "\n" + part
+        blocks["long"] = part
+        _write(args.out, "neural_long_routes", {k: v for k, v in results.items() if k != "ablation"
+                                          and k != "main"}, part)
+    if args.seed_sweep:
+        sweep_data = {**data, **hard_demos()}
+        rows = seed_sweep_rows(sweep_data, args.seeds)
+        results["seed_sweep"] = rows
+        part = (f"### Settings over {args.seeds} model seeds: recall@1 mean / worst seed\n\n"
+                + table(rows, ["setting", *[n for n in SWEEP_DATA if n in sweep_data]]) + "\n")
+        md += "\n" + part
+        blocks["seeds"] = part
+        _write(args.out, "neural_seed_sweep", {"seed_sweep": rows}, part)
+    if args.repeat:
+        rows = repeat_rows(seeds=args.seeds)
+        results["repeat"] = rows
+        part = ("### Repetitive routes: false matches to the wrong copy\n\n"
+                + table(rows, list(rows[0])) + "\n")
+        md += "\n" + part
+        blocks["repeat"] = part
+        _write(args.out, "neural_repeat", {k: v for k, v in results.items() if k != "ablation"
+                                          and k != "main"}, part)
     if args.ablation:
         data.update(hard_demos())
         for label, kw in ABLATION.items():
@@ -203,6 +500,7 @@ def main(argv=None) -> dict:
             s = run_seqslam(ref, query, gt)
             row[name] = s["recall_at_1"] if s else ""
         results["ablation"].append(row)
+        start = len(md)
         md += (f"\n### Ablation: recall@1 (neural: mean over {args.ablation_seeds} model seeds; "
                "each row changes the default in one way)\n\n") + table(results["ablation"],
                                                     ["setting", *data.keys()]) + "\n"
@@ -219,15 +517,17 @@ def main(argv=None) -> dict:
                f"(neural: mean over {args.ablation_seeds} seeds)\n\n"
                + table(results["degradation"], ["appearance change", "neural recall_at_1",
                                                 "seqslam recall_at_1"]) + "\n")
-    write_text(args.out / "neural_quality.json", json.dumps(results, indent=1, default=float))
-    write_text(args.out / "neural_quality.md", md)
+        ablation_md = md[start:]
+    if not args.skip_main:
+        _write(args.out, "neural_quality", results, md)
     docs = ROOT / "docs" / "neural.md"
-    if args.ablation and not args.no_docs and docs.exists():
+    if args.ablation and not args.skip_main:
+        blocks["quality"] = quality_md + ablation_md
+    if blocks and not args.no_docs and docs.exists():
         text = docs.read_text()
-        a, b = "<!-- quality:start -->", "<!-- quality:end -->"
-        if a in text and b in text:
-            body = md.replace("### ", "#### ").strip()
-            write_text(docs, text.split(a)[0] + a + "\n" + body + "\n" + b + text.split(b)[1])
+        for name, body in blocks.items():
+            text = replace_block(text, name, body.replace("### ", "#### "))
+        write_text(docs, text)
     print(md)
     return results
 

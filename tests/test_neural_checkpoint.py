@@ -232,6 +232,7 @@ def test_version_1_files_load_with_a_warning(saved, tmp_path):
     ("ring_spread_decay", math.inf, "ring_spread_decay must be a finite number"),
     ("rectify", 1, "rectify must be one of False, True"),
     ("hebbian", None, "hebbian must be one of 'mean', 'centred'"),
+    ("readout", "middle", "readout must be one of 'centre', 'interpolate'"),
     ("seed", 0.5, "seed must be an integer"),
     ("n_output", 2**24, "n_output x hidden = .* exceed"),
 ])

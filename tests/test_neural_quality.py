@@ -1,5 +1,7 @@
-"""Recognition quality floors (default config, seed 0), measured with
-experiments/neural_quality.py; over 8 seeds the corridor gives 0.796 +- 0.078 recall@1."""
+"""Recognition quality floors (default config), measured with experiments/neural_quality.py.
+
+Over 8 model seeds the corridor gives 0.866 recall@1 on average, 0.811 for the worst seed
+(density_out 1.0; with Table 1's 0.2 mask: 0.796, worst 0.676)."""
 
 import numpy as np
 import pytest
@@ -8,7 +10,7 @@ from conftest import shared_data
 from torchseq.demo import make_demo
 from torchseq.ground_truth import load_ground_truth
 from torchseq.metrics import evaluate
-from torchseq.neural import NeuralSeqSLAM
+from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.sources import load_traverse
 
 
@@ -18,7 +20,7 @@ def test_demo_recall_default_config():
     model = NeuralSeqSLAM()
     model.fit(d.reference, log=False)
     m = evaluate(model.run(d.query).matches, d.ground_truth)
-    assert m["recall_at_1"] >= 0.99  # measured 0.996
+    assert m["recall_at_1"] >= 0.99  # measured 1.000 (0.996 with the 20% L2->L3 mask)
 
 
 @pytest.mark.slow
@@ -30,8 +32,28 @@ def test_corridor_recall_default_config():
     model = NeuralSeqSLAM()
     model.fit(ref, log=False)
     m = evaluate(model.run(query).matches, gt)
-    assert m["recall_at_1"] >= 0.78  # measured 0.838 (the seed reported about 80%)
-    assert m["auc"] >= 0.72  # measured 0.798
+    assert m["recall_at_1"] >= 0.78  # measured 0.811 (20% mask: 0.838; the seed: about 80%)
+    assert m["auc"] >= 0.72  # measured 0.777 (20% mask: 0.798)
+
+
+def _corridor():
+    root = shared_data("corridor")
+    ref = load_traverse(root / "ref", progress=False)
+    query = load_traverse(root / "query", progress=False)
+    return ref, query, load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
+
+
+@pytest.mark.slow
+def test_corridor_every_seed_at_least_080():
+    """Issue 15: no model seed below 0.80 on the corridor (the L2 -> L3 mask draws were the
+    spread: with density_out 0.2 the worst of these 8 seeds gives 0.676)."""
+    ref, query, gt = _corridor()
+    recalls = []
+    for seed in range(8):
+        model = NeuralSeqSLAM(NeuralConfig(seed=seed))
+        model.fit(ref, log=False)
+        recalls.append(evaluate(model.run(query).matches, gt)["recall_at_1"])
+    assert min(recalls) >= 0.80, recalls  # measured worst 0.811, mean 0.866
 
 
 @pytest.mark.slow
@@ -43,4 +65,4 @@ def test_lens_within_two_frames():
     model.fit(ref, log=False)
     got = model.run(query).matches.reference.numpy()
     near = np.abs(got - np.arange(len(query))) <= 2  # the file's ground truth is the identity
-    assert near.mean() >= 0.78  # measured 0.83
+    assert near.mean() >= 0.78  # measured 0.85 (20% mask: 0.83)

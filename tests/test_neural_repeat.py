@@ -16,3 +16,15 @@ def test_demo_repeat_makes_identical_stretches():
     assert torch.equal(rep.reference[:12], plain.reference[:12])  # views before the copies
     with pytest.raises(ValueError, match="repeat"):
         make_demo(repeat=0)
+
+
+def test_demo_without_dense_ground_truth_is_the_same_route():
+    dense = make_demo(n_reference=40, size=(24, 32), step=4.0, repeat=2)
+    light = make_demo(n_reference=40, size=(24, 32), step=4.0, repeat=2,
+                      dense_ground_truth=False)
+    assert light.ground_truth is None
+    assert torch.equal(dense.reference, light.reference)
+    assert torch.equal(dense.query, light.query)
+    # the positions give the same ground truth
+    want = abs(light.reference_position[:, None] - light.query_position[None, :]) <= 2.0
+    assert (dense.ground_truth == want).all()

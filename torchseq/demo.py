@@ -27,7 +27,7 @@ class DemoRoute:
         reference_position: ``(R,)`` float64 position of each reference frame, in reference frames.
         query_position: ``(Q,)`` float64 position of each query frame, in reference frames.
         ground_truth: ``(R, Q)`` bool, True where reference ``i`` is within ``tolerance``
-            reference frames of query ``j``.
+            reference frames of query ``j`` (None when made with ``dense_ground_truth=False``).
         tolerance: the ground truth's tolerance in reference frames.
     """
 
@@ -35,7 +35,7 @@ class DemoRoute:
     query: torch.Tensor
     reference_position: np.ndarray
     query_position: np.ndarray
-    ground_truth: np.ndarray
+    ground_truth: np.ndarray | None
     tolerance: float
 
 
@@ -121,6 +121,7 @@ def make_demo(
     noise: float = 6.0,
     seed: int = 0,
     repeat: int = 1,
+    dense_ground_truth: bool = True,
 ) -> DemoRoute:
     """Make a reference and a query traverse of one synthetic route.
 
@@ -142,6 +143,9 @@ def make_demo(
             ``step``, frames one copy apart are identical up to sensor noise), so places
             there differ only by where the route came from.
             ``1`` (the default) leaves the world as drawn.
+        dense_ground_truth: build the ``(R, Q)`` ground-truth matrix; False leaves
+            ``ground_truth`` None (long routes: 20,000 frames would need a 500 MB matrix and
+            a 4 GB temporary; the positions give the ground truth exactly).
 
     Returns:
         A :class:`DemoRoute`.
@@ -163,6 +167,6 @@ def make_demo(
     query_pos = np.arange(n_query, dtype=np.float64) * speed
     ref = relight(render(world, ref_pos * step, w), 1.0, 1.0, 0.0, 2.0, rng)
     query = relight(render(world, query_pos * step, w), gain, gamma, gradient, noise, rng)
-    gt = np.abs(ref_pos[:, None] - query_pos[None, :]) <= tolerance
+    gt = np.abs(ref_pos[:, None] - query_pos[None, :]) <= tolerance if dense_ground_truth else None
     return DemoRoute(torch.from_numpy(ref), torch.from_numpy(query), ref_pos, query_pos, gt,
                      tolerance)

@@ -58,6 +58,12 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     if cfg.patch_size and cfg.patch_mode != "zscore":
         raise IntegerFormatError(f"patch_mode {cfg.patch_mode!r} has no integer form "
                                  "(use 'zscore' or patch_size=0)")
+    spans = model.unit_to_reference
+    if getattr(cfg, "readout", "centre") != "centre" and bool(((spans[:, 1] - spans[:, 0]) > 1)
+                                                               .any()):
+        raise IntegerFormatError(f"readout {cfg.readout!r} has no integer form for units of "
+                                 "more than one frame (the format reports each unit's centre); "
+                                 "use readout='centre' or n_output >= the route's frames")
     h, w = cfg.input_size
     n_units = model.n_units
     if max(cfg.n_input, cfg.hidden, n_units) > 32767:

@@ -114,6 +114,8 @@ class NeuralInference(nn.Module):
             self.register_buffer("diagonals", diag)
             self.register_buffer("cohorts", model.cohorts.detach().clone())
             self.register_buffer("unit_centre", model.unit_centre.detach().clone())
+            spans = model.readout_spans
+            self.register_buffer("spans", None if spans is None else spans.detach().clone())
             self.decay, self.gain = (float(v) for v in model.ring.params)
             self.params = model.ring.params
             self.l1_int8 = self.l3_int8 = None
@@ -279,7 +281,8 @@ class NeuralInference(nn.Module):
             diag = self.diagonals if self._kernels["ring"] == "banded" else None
             activity, state = ring_step(e, state, self.shift.to(e.dtype), self.params, diag)
             reference, confidence = decide(activity, self.unit_centre,
-                                           self.config.uniqueness_window, self._kernels["decide"])
+                                           self.config.uniqueness_window, self._kernels["decide"],
+                                           self.spans)
         return NeuralStep(reference, confidence, activity), state
 
     step = forward
@@ -295,7 +298,7 @@ class NeuralInference(nn.Module):
     def decide(self, activity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(reference, confidence)`` of activity ``(B, N)`` with this module's kernel."""
         return decide(activity, self.unit_centre, self.config.uniqueness_window,
-                      self._kernels["decide"])
+                      self._kernels["decide"], self.spans)
 
     def extra_repr(self) -> str:
         """Summary for print(module)."""

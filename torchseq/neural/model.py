@@ -9,6 +9,7 @@ equations of one step are in ``docs/neural.md`` ("Step maths").
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +84,11 @@ class NeuralSeqSLAM(nn.Module):
         self.register_buffer("unit_centre", torch.zeros(n_units, dtype=torch.int64, device=dev))
         self.unfold()
 
+    @property
+    def readout_spans(self) -> torch.Tensor | None:
+        """``unit_to_reference`` when the config reads positions within units, else None."""
+        return self.unit_to_reference if self.config.readout == "interpolate" else None
+
     def _require_fit(self) -> None:
         if not self.fitted:
             raise NeuralError("the model has not learnt a route yet: call fit(reference) first")
@@ -147,7 +153,7 @@ class NeuralSeqSLAM(nn.Module):
         e = self.evidence(self.code(self.encode(frames)))  # (B, N)
         activity, state = self.ring(e, state)
         reference, confidence = decide(activity, self.unit_centre,
-                                       self.config.uniqueness_window)
+                                       self.config.uniqueness_window, spans=self.readout_spans)
         return NeuralStep(reference, confidence, activity), state
 
     forward = step
@@ -179,6 +185,7 @@ class NeuralSeqSLAM(nn.Module):
         n_units = min(t_len, cfg.n_output)
         self._build_output(n_units)
         unit_of_frame, spans = recruit_units(t_len, n_units)
+        _warn_coarse_units(t_len, n_units, cfg.readout)
         dev = self.l1.weight.device
         codes = ((lo, hi, self.code(self.encode(reference[lo:hi])))
                  for lo, hi in _chunks(t_len, cfg.chunk, as_progress(progress, "fit")))
@@ -333,6 +340,30 @@ def checked_grey(frames: torch.Tensor, size: tuple[int, int], device) -> torch.T
     if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
         raise NeuralError("frames hold NaN or infinite values")
     return resize(x, size)
+
+
+COARSE_UNIT_FRAMES = 8  # frames per unit past which even the interpolating readout fails
+
+
+def _warn_coarse_units(n_frames: int, n_units: int, readout: str) -> None:
+    """Say loudly when units stand for several frames (the place resolution this costs).
+
+    Measured on demo routes (docs/neural.md, "Long routes"): 5.4 frames per unit cost the
+    centre readout a fifth of its recall@1 (the interpolating readout keeps it); 36 frames
+    per unit fail both (a unit's weights then average views that share nothing).
+    """
+    per_unit = n_frames / n_units
+    if per_unit <= 1 or (readout == "interpolate" and per_unit <= COARSE_UNIT_FRAMES):
+        return
+    if per_unit > COARSE_UNIT_FRAMES:
+        advice = ("recognition degrades badly this coarse whatever the readout: raise "
+                  "n_output or split the route")
+    else:
+        advice = ("readout='interpolate' reads the position within a unit from its "
+                  "neighbours' activity")
+    warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
+                  f"{per_unit:.1f} frames per unit, so readout {readout!r} places are no finer "
+                  f"than that; {advice} (docs/neural.md, Long routes)", stacklevel=4)
 
 
 def _drop_derived(module, state_dict, prefix, local_metadata) -> None:

@@ -9,12 +9,21 @@ DECIDE_KERNELS = ("torch", "numpy")
 
 
 def decide(activity: torch.Tensor, unit_centre: torch.Tensor, window: int,
-           kernel: str = "torch") -> tuple[torch.Tensor, torch.Tensor]:
+           kernel: str = "torch",
+           spans: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Read the place out of the ring: the most active unit, and a margin as confidence.
 
     ``u* = argmax_u a_u`` (first index on ties); ``reference = unit_centre[u*]``;
     ``confidence = a_{u*} - max_{|v - u*| > window} a_v`` (minus ``min_v a_v`` when every
     unit is inside the window).
+
+    With ``spans`` (readout ``"interpolate"``) the reference is read *within* the winner's
+    stretch of frames ``[f, l)`` from its neighbours' activity: the vertex of the parabola
+    through ``(-1, a_{u*-1}), (0, a_{u*}), (1, a_{u*+1})``,
+    ``x = (a_{u*-1} - a_{u*+1}) / (2 (a_{u*-1} - 2 a_{u*} + a_{u*+1}))`` (``|x| <= 1/2``
+    since ``a_{u*}`` is the maximum; ``x = 0`` when the denominator is 0 and at the first and
+    last unit), then ``reference = clamp(floor((f + l - 1) / 2 + x (l - f) + 1/2), f,
+    l - 1)``: a unit of one frame reports that frame whatever ``x``.
 
     Kernels: ``"torch"`` (any device, traceable: no data-dependent branch while tracing or
     exporting) and ``"numpy"`` (CPU, no gradients: the same numbers with a fraction of the
@@ -25,6 +34,8 @@ def decide(activity: torch.Tensor, unit_centre: torch.Tensor, window: int,
         unit_centre: ``(N,)`` int64 reference frame each unit stands for.
         window: units on each side of the winner that are not rivals.
         kernel: ``"torch"`` or ``"numpy"``.
+        spans: ``(N, 2)`` int64 first and one-past-last reference frame of each unit
+            (``unit_to_reference``); None: report ``unit_centre``.
 
     Returns:
         ``(reference (B,) int64, confidence (B,) float)``.
@@ -32,10 +43,17 @@ def decide(activity: torch.Tensor, unit_centre: torch.Tensor, window: int,
     # a window reaching past the ring changes nothing (every unit is inside already); clamped
     # so a hostile checkpoint's 10**9 cannot size an index tensor
     window = min(int(window), activity.shape[1])
+    if kernel not in DECIDE_KERNELS:
+        raise ValueError(f"kernel must be one of {DECIDE_KERNELS}, got {kernel!r}")
+    if spans is not None:
+        _, confidence = decide(activity, unit_centre, window, kernel)
+        unit = activity.argmax(dim=1)
+        if kernel == "numpy":
+            pos = _within_unit_numpy(activity.numpy(), unit.numpy(), spans.numpy())
+            return torch.from_numpy(pos), confidence
+        return _within_unit(activity, unit, spans), confidence
     if kernel == "numpy":
         return _decide_numpy(activity, unit_centre, window)
-    if kernel != "torch":
-        raise ValueError(f"kernel must be one of {DECIDE_KERNELS}, got {kernel!r}")
     tracing = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()  # no data-dependence
     unit = activity.argmax(dim=1)
     best = activity.gather(1, unit[:, None])[:, 0]
@@ -76,3 +94,34 @@ def _decide_numpy(activity: torch.Tensor, unit_centre: torch.Tensor,
     if inside.any():
         second[inside] = a[inside].min(axis=1)
     return unit_centre[torch.from_numpy(unit)], torch.from_numpy(best - second)
+
+
+def _within_unit(activity: torch.Tensor, unit: torch.Tensor, spans: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` int64 reference within each winner's stretch (see :func:`decide`), in torch."""
+    n = activity.shape[1]
+
+    def at(index: torch.Tensor) -> torch.Tensor:  # gather: no batch size frozen when traced
+        return activity.gather(1, index.clamp(0, n - 1)[:, None])[:, 0].to(torch.float64)
+
+    a0, am, ap = at(unit), at(unit - 1), at(unit + 1)
+    den = am - 2.0 * a0 + ap
+    inner = (unit > 0) & (unit < n - 1) & (den < 0)
+    x = torch.where(inner, (am - ap) / (2.0 * torch.where(inner, den, -1.0)), 0.0)
+    first, last = spans[unit, 0], spans[unit, 1]
+    pos = torch.floor((first + last - 1).to(torch.float64) / 2.0 + x * (last - first) + 0.5)
+    return torch.minimum(torch.maximum(pos.to(torch.int64), first), last - 1)
+
+
+def _within_unit_numpy(a: np.ndarray, unit: np.ndarray, spans: np.ndarray) -> np.ndarray:
+    """Kernel of :func:`_within_unit` in NumPy (the same float64 operations)."""
+    n = a.shape[1]
+    rows = np.arange(a.shape[0])
+    a0 = a[rows, unit].astype(np.float64)
+    am = a[rows, np.clip(unit - 1, 0, n - 1)].astype(np.float64)
+    ap = a[rows, np.clip(unit + 1, 0, n - 1)].astype(np.float64)
+    den = am - 2.0 * a0 + ap
+    inner = (unit > 0) & (unit < n - 1) & (den < 0)
+    x = np.where(inner, (am - ap) / (2.0 * np.where(inner, den, -1.0)), 0.0)
+    first, last = spans[unit, 0], spans[unit, 1]
+    pos = np.floor((first + last - 1).astype(np.float64) / 2.0 + x * (last - first) + 0.5)
+    return np.minimum(np.maximum(pos.astype(np.int64), first), last - 1)
