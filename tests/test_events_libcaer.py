@@ -96,6 +96,13 @@ def test_sensor_size_from_argument_attributes_or_coordinates(tmp_path):
         assert read_events(path).sensor_size == (346, 260)
 
 
+def test_sensor_size_from_the_first_valid_frame(tmp_path):
+    path = tmp_path / "frames.h5"
+    pol = polarity_packet([10], [20], [30], [1])
+    write_ddd20(path, [frame_packet(8, 8, valid=False), pol, frame_packet(240, 180)])
+    assert read_events(path).sensor_size == (240, 180)
+
+
 def test_empty_recording_and_group_option(tmp_path):
     path = tmp_path / "empty.h5"
     write_ddd20(path, [frame_packet(8, 6)])
@@ -230,3 +237,21 @@ def test_fuzz_mutated_packets(tmp_path_factory, muts, chunk):
     assert (np.diff(ev["t"]) >= 0).all()
     assert [ev[k].tolist() for k in "txyp"] == [list(c) for c in oracle(path)]
     assert POLARITY_EVENT == 1
+
+
+def test_rows_are_bounded_by_the_stored_chunks(tmp_path):
+    """A dataset declaring 10^12 rows reads only the rows its allocated chunks hold."""
+    from torchseq.events.libcaer import PacketRows
+
+    path = tmp_path / "grown.h5"
+    write_ddd20(path, _recording(seed=2, n_packets=3))
+    want = _events(path)[1]
+    with h5py.File(path, "a") as f:
+        f["dvs/data"].resize(10**12, axis=0)
+    with h5py.File(path, "r") as f:
+        assert PacketRows(f["dvs/data"], "x").n == 128  # one allocated chunk
+    assert _events(path)[1] == want
+    flat = tmp_path / "flat.h5"
+    write_ddd20(flat, _recording(seed=2, n_packets=3), chunked=False)
+    with h5py.File(flat, "r") as f:  # an unchunked dataset must store every row
+        assert PacketRows(f["dvs/data"], "x").n == f["dvs/data"].shape[0]

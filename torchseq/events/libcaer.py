@@ -212,12 +212,14 @@ class PacketRows:
                 yield a + i, header, body
 
     def frame_size(self) -> tuple[int, int] | None:
-        """The ``(W, H)`` of the first valid APS frame in the file, or None."""
+        """The ``(W, H)`` of the first valid, plausible APS frame in the file, or None."""
         for row, header, _ in self.packets(headers_only=True):
             if header["type"] == FRAME_EVENT and header["number"]:
                 body = np.asarray(self.d[row, 2], np.uint8)
-                if len(body) == header["capacity"] * header["size"]:
-                    return _frame_extent(header, body)
+                size = _frame_extent(header, body) \
+                    if len(body) == header["capacity"] * header["size"] else None
+                if size is not None:
+                    return size
         return None
 
 
