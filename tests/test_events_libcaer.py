@@ -25,7 +25,7 @@ from libcaer_writer import (  # noqa: E402
 )
 
 from torchseq.events import EventFormatError, iter_events, read_events  # noqa: E402
-from torchseq.events.libcaer import FRAME_EVENT, POLARITY_EVENT  # noqa: E402
+from torchseq.events.libcaer import FRAME_EVENT  # noqa: E402
 
 
 def _recording(seed=0, n_packets=12, crossing=True):
@@ -223,10 +223,13 @@ def test_fuzz_mutated_packets(tmp_path_factory, muts, chunk):
     path = tmp_path_factory.mktemp("fz") / "m.h5"
     write_ddd20(path, _mutate(SEED, muts))
     try:
-        s = read_events(path, chunk_events=chunk)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a damaged frame: size from the coordinates
+            s = read_events(path, chunk_events=chunk)
     except EventFormatError as err:
         assert str(path) in str(err)
-        with pytest.raises(EventFormatError):
+        with pytest.raises(EventFormatError), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
             list(iter_events(path, 5))
         return
     w, h = s.sensor_size
@@ -236,7 +239,6 @@ def test_fuzz_mutated_packets(tmp_path_factory, muts, chunk):
     assert (ev["y"] < h).all() and np.isin(ev["p"], (0, 1)).all()
     assert (np.diff(ev["t"]) >= 0).all()
     assert [ev[k].tolist() for k in "txyp"] == [list(c) for c in oracle(path)]
-    assert POLARITY_EVENT == 1
 
 
 def test_rows_are_bounded_by_the_stored_chunks(tmp_path):
