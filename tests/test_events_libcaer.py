@@ -21,6 +21,7 @@ from libcaer_writer import (  # noqa: E402
     imu_packet,
     oracle,
     polarity_packet,
+    polarity_packets,
     write_ddd20,
 )
 
@@ -182,6 +183,32 @@ def test_eval_frames_from_a_ddd20_file(tmp_path):
     frames = load_event_frames(path, duration_ms=10)
     assert frames.shape[-2:] == (260, 346) and frames.abs().sum() > 0
     assert frames.equal(load_event_frames(tmp_path / "same.npz", duration_ms=10))
+
+
+def test_torchseq_eval_on_ddd20_files_matches_the_same_events_as_aedat(tmp_path, capsys):
+    """eval on the real DVS128 recording, rewritten as DDD20 packets, gives the AEDAT's metrics."""
+    import json
+
+    from conftest import shared_data
+    from test_frontends import run_inprocess
+
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    s = read_events(aedat)
+    path = tmp_path / "rec.hdf5"
+    write_ddd20(path, polarity_packets(s.events), attrs={"width": 128, "height": 128})
+    assert np.array_equal(read_events(path).events, s.events)
+    metrics = []
+    for src in (aedat, path):
+        out = tmp_path / src.suffix[1:]
+        code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--reference",
+                                  str(src), "--query", str(src), "--tolerance", "2",
+                                  "--frame-size", "16x16", "--image-size", "16x16",
+                                  "--patch-size", "4", "--out", str(out), "--no-tensorboard")
+        assert code == 0, err
+        metrics.append(json.loads((out / "metrics.json").read_text())["seqslam"])
+    assert metrics[0]["n_queries"] == 689
+    assert metrics[1]["n_queries"] == 689 and metrics[1]["recall_at_1"] == metrics[0][
+        "recall_at_1"]
 
 
 # --- fuzz: mutated packets give the oracle's events or an EventFormatError -------------------
