@@ -29,6 +29,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from torchseq.events.h5vlen import VlenReader
 from torchseq.events.stream import EVENT_DTYPE, EventFormatError, EventStream, check_sensor_size
 
 HEADER_BYTES = 28
@@ -176,6 +177,7 @@ class PacketRows:
     def __init__(self, d, where: str) -> None:
         self.d, self.where_file = d, where
         self.n = stored_rows(d, where)
+        self.reader = VlenReader(d, where)
 
     def where(self, row: int) -> str:
         """The row, for messages."""
@@ -189,20 +191,20 @@ class PacketRows:
         """
         for a in range(0, self.n, ROWS_PER_READ):
             b = min(a + ROWS_PER_READ, self.n)
-            block = self.d[a:b, 1] if headers_only else self.d[a:b]
+            block = self.reader.rows(a, b, (1,) if headers_only else (0, 1, 2))
             for i, row in enumerate(block):
                 where = self.where(a + i)
-                head = row if headers_only else row[1]
+                head = row[0] if headers_only else row[1]
                 if headers_only:
                     if len(head) == 0:
                         continue
                 elif not any(len(v) for v in row):
                     continue  # the dataset's unused tail (DDD20 grows it in blocks)
-                header = parse_header(np.asarray(head, np.uint8), where)
+                header = parse_header(head, where)
                 if headers_only:
                     yield a + i, header, None
                     continue
-                body = np.asarray(row[2], np.uint8)
+                body = row[2]
                 need = header["capacity"] * header["size"]
                 if len(body) != need:
                     raise EventFormatError(
@@ -215,7 +217,7 @@ class PacketRows:
         """The ``(W, H)`` of the first valid, plausible APS frame in the file, or None."""
         for row, header, _ in self.packets(headers_only=True):
             if header["type"] == FRAME_EVENT and header["number"]:
-                body = np.asarray(self.d[row, 2], np.uint8)
+                body = self.reader.rows(row, row + 1, (2,))[0][0]
                 size = _frame_extent(header, body) \
                     if len(body) == header["capacity"] * header["size"] else None
                 if size is not None:
