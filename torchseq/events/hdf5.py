@@ -11,12 +11,13 @@ of ``t, x, y, p`` under one of the names in :data:`torchseq.events.columns.ALIAS
 - ``events/{ts,xs,ys,ps}`` (Stoffregen et al.'s layout): float seconds.
 - a compound ``events`` dataset with named fields, or an ``(N, 4)`` ``events`` dataset with
   columns ``t, x, y, p``.
+- DDD20's original recordings: raw libcaer packets, one per row of ``/dvs/data``
+  (:mod:`torchseq.events.libcaer`; found first, at ``dvs`` or ``group=``).
 
 Units come from a ``units``/``unit`` attribute of the time dataset, else int = us and
 float by times.py; ``time_unit=`` overrides. A root dataset or attribute ``t_offset`` (DSEC, in us)
 is added. The sensor size comes from ``sensor_size=``, else ``width``/``height`` attributes
-of the group or the root, else the largest coordinates (with a warning). DDD20's original
-recordings (raw libcaer packets inside HDF5) are not this layout and are not read.
+of the group or the root, else the largest coordinates (with a warning).
 
 Nothing is read before the declared sizes are checked against the bytes the file stores:
 an unfiltered dataset must store all its elements, a compressed one at most
@@ -41,6 +42,7 @@ from torchseq.events.columns import (
     to_microseconds,
     unit_from_text,
 )
+from torchseq.events.libcaer import PacketRows, find_packet_dataset, iter_packet_events
 from torchseq.events.stream import EventFormatError, EventStream
 from torchseq.events.times import FloatTimeRule
 
@@ -193,6 +195,15 @@ def _reader(kind: str, data, names):
 
 
 def _iter_open(f, path, chunk_events, sensor_size, group, columns, time_unit, h5py):
+    packets = find_packet_dataset(f, group, h5py)
+    if packets is not None:  # libcaer packets (DDD20): times are us by definition
+        where = f"{path}:{packets.name}"
+        if columns or time_unit:
+            raise EventFormatError(f"{where}: libcaer packets; columns= and time_unit= do not "
+                                   f"apply")
+        size = sensor_size if sensor_size is not None else _size_from_attrs(packets.parent, f)
+        yield from iter_packet_events(PacketRows(packets, where), chunk_events, size)
+        return
     g, found = _locate(f, group, h5py, columns)
     where = f"{path}:{g.name}"
     if found["kind"] == "columns":

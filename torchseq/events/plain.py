@@ -12,7 +12,10 @@ make the reader allocate gigabytes), object dtypes are refused, and ``.npz`` mem
 read in bounded pieces, so memory never exceeds what the archive really decompresses to.
 A large ``.npy`` is streamed through a memory map, ``chunk_events`` at a time.
 Values are converted exactly (:func:`~torchseq.events.stream.make_events`): CSV integers
-are parsed as int64, never through float64.
+are parsed as int64, never through float64. CSV times written with fractions follow the
+one float-time rule (:mod:`torchseq.events.times`: under 1e5 they are seconds, with a
+warning; beyond, refused); whole numbers, however written (``10``, ``10.0``, ``1e3``), are
+exact integer microseconds, with the rule's warning when written as floats below 1e5.
 """
 
 from __future__ import annotations
@@ -38,7 +41,12 @@ from torchseq.events.stream import (
     file_error,
     make_events,
 )
-from torchseq.events.times import FloatTimeRule, float_times_to_us, with_us_times
+from torchseq.events.times import (
+    FloatTimeRule,
+    float_time_unit,
+    float_times_to_us,
+    with_us_times,
+)
 from torchseq.npyfile import ZIP_ERRORS, NpyHeader, check_size, read_header, read_member
 
 _ZIP_ERRORS = ZIP_ERRORS + (lzma.LZMAError,)
@@ -209,6 +217,31 @@ def _exact_ints(rows: list[list[str]], first_line: list[int], path) -> np.ndarra
     return out
 
 
+_PLAIN_INT = re.compile(r"[-+]?\d+")
+
+
+def _csv_float_times(tokens: list[str], lines: list[int], path) -> np.ndarray | None:
+    """``(N,)`` int64 us from a ``t`` column written with fractions, by the float-time rule.
+
+    None when every time is a whole number (plain integers, or floats such as ``10.0``: the
+    rule reads those as microseconds, warning below 1e5), which the caller then parses
+    exactly instead of through float64.
+    """
+    if all(_PLAIN_INT.fullmatch(tok) for tok in tokens):
+        return None
+    t = np.empty(len(tokens), np.float64)
+    for i, (k, tok) in enumerate(zip(lines, tokens)):
+        try:
+            t[i] = float(tok)
+        except ValueError:
+            raise file_error(path, None, f"line {k}: time {tok!r} is not a number") from None
+    try:
+        unit = float_time_unit(t, str(path))
+        return None if unit == "us" else float_times_to_us(t, str(path), unit)
+    except EventFormatError as err:
+        raise file_error(path, None, str(err).removeprefix(f"{path}: ")) from None
+
+
 def read_csv(path: str | Path, sensor_size: tuple[int, int] | None = None) -> EventStream:
     """Read ``t,x,y,p`` text (comma/whitespace separated, optional header naming the columns)."""
     path = Path(path)
@@ -233,12 +266,18 @@ def read_csv(path: str | Path, sensor_size: tuple[int, int] | None = None) -> Ev
         if len(row) != 4:
             raise file_error(path, None, f"line {k}: need 4 columns t, x, y, p, found "
                              f"{len(row)}: {ln[:60]!r}")
+    lines, tc = [k for k, _ in numbered], order.index("t")
+    t_us = _csv_float_times([r[tc] for r in rows], lines, path)
+    if t_us is not None:  # the times are parsed; the integer columns stay exact
+        rows = [r[:tc] + ["0"] + r[tc + 1:] for r in rows]
     try:
         data = np.loadtxt(io.StringIO("\n".join(" ".join(r) for r in rows)), dtype=np.int64,
                           ndmin=2) if rows else np.empty((0, 4), np.int64)
     except ValueError:
-        data = _exact_ints(rows, [k for k, _ in numbered], path)
+        data = _exact_ints(rows, lines, path)
     cols = {name: data[:, i] for i, name in enumerate(order)}
+    if t_us is not None:
+        cols["t"] = t_us
     try:
         events = make_events(cols["t"], cols["x"], cols["y"], cols["p"])
     except EventFormatError as err:
