@@ -75,3 +75,26 @@ def test_integer_columns_stay_exact_beside_float_times(tmp_path):
     bad = "'2.5' is not an integer"
     with pytest.raises(EventFormatError, match=bad), pytest.warns(UserWarning):
         read_events(_csv(tmp_path, "0.5,2.5,1,1\n", "f.csv"), sensor_size=(8, 8))
+
+
+def test_a_declared_unit_scales_without_guessing(tmp_path):
+    # epoch seconds with fractions: refused by the rule, read exactly once the unit is declared
+    times = ["1700000000.25", "1700000000.500001"]
+    path = _csv(tmp_path, "t,x,y,p\n" + "".join(f"{t},1,2,1\n" for t in times))
+    with pytest.raises(EventFormatError, match="too large to be seconds"):
+        read_events(path, sensor_size=(4, 4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # declared: no guess, no warning
+        s = read_events(path, sensor_size=(4, 4), time_unit="s")
+    want = [int((Decimal(t) * 10**6).to_integral_value()) for t in times]
+    assert s.events["t"].tolist() == want
+    # integer columns in a declared unit stay exact: ms scaled, ns floored like HDF5 columns
+    ints = _csv(tmp_path, "7,1,1,1\n9007199254740993,1,1,1\n", "i.csv")
+    assert read_events(ints, sensor_size=(4, 4), time_unit="ms").events["t"].tolist() == [
+        7000, 9007199254740993000]
+    assert read_events(ints, sensor_size=(4, 4), time_unit="ns").events["t"].tolist() == [
+        0, 9007199254740]
+    assert read_events(ints, sensor_size=(4, 4), time_unit="us").events["t"].tolist() == [
+        7, 9007199254740993]
+    with pytest.raises(ValueError, match="time_unit must be one of"):
+        read_events(ints, sensor_size=(4, 4), time_unit="h")

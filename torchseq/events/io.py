@@ -41,7 +41,8 @@ DEFAULT_CHUNK = 1 << 20
 # registers its options here beside its detect_format and _chunks lines
 FORMAT_OPTIONS = {"aedat2": {"layout", "flip_y", "truncated"}, "aedat4": {"truncated"},
                   "raw": {"truncated", "evt3_time", "evt3_kernel"},
-                  "hdf5": {"group", "columns", "time_unit"}, "parquet": {"columns", "time_unit"}}
+                  "hdf5": {"group", "columns", "time_unit"}, "parquet": {"columns", "time_unit"},
+                  "csv": {"time_unit"}}
 
 
 def _check_options(path: Path, fmt: str, options: dict) -> None:
@@ -108,11 +109,13 @@ def _chunks(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict)
         from torchseq.events.parquet import iter_parquet
 
         return iter_parquet(path, chunk_events, sensor_size, **options)
+    if fmt == "csv":
+        return iter([read_csv(path, sensor_size, **options)])
     if options:
         raise TypeError(f"options {sorted(options)} do not apply to {fmt} files")
     if fmt == "npy":
         return iter_npy(path, chunk_events, sensor_size)
-    return iter([read_npz(path, sensor_size) if fmt == "npz" else read_csv(path, sensor_size)])
+    return iter([read_npz(path, sensor_size)])
 
 
 def _checked(path: Path, fmt: str, chunk_events: int, sensor_size, options: dict,

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from torchseq.atomic import atomic_open
+from torchseq.events.columns import check_unit, to_microseconds
 from torchseq.events.stream import (
     Chunk,
     EventFormatError,
@@ -220,12 +221,13 @@ def _exact_ints(rows: list[list[str]], first_line: list[int], path) -> np.ndarra
 _PLAIN_INT = re.compile(r"[-+]?\d+")
 
 
-def _csv_float_times(tokens: list[str], lines: list[int], path) -> np.ndarray | None:
-    """``(N,)`` int64 us from a ``t`` column written with fractions, by the float-time rule.
+def _csv_float_times(tokens: list[str], lines: list[int], path, unit: str | None = None
+                     ) -> np.ndarray | None:
+    """``(N,)`` int64 us from a ``t`` column written with fractions, in ``unit`` or by the rule.
 
-    None when every time is a whole number (plain integers, or floats such as ``10.0``: the
-    rule reads those as microseconds, warning below 1e5), which the caller then parses
-    exactly instead of through float64.
+    None when every time is a plain integer, or (no ``unit``) a whole number such as ``10.0``
+    (the rule reads those as microseconds, warning below 1e5): the caller then parses them
+    exactly instead of through float64 and scales them by ``unit``.
     """
     if all(_PLAIN_INT.fullmatch(tok) for tok in tokens):
         return None
@@ -236,15 +238,27 @@ def _csv_float_times(tokens: list[str], lines: list[int], path) -> np.ndarray | 
         except ValueError:
             raise file_error(path, None, f"line {k}: time {tok!r} is not a number") from None
     try:
-        unit = float_time_unit(t, str(path))
-        return None if unit == "us" else float_times_to_us(t, str(path), unit)
+        if unit is None:
+            unit = float_time_unit(t, str(path))
+            if unit == "us":
+                return None
+        return float_times_to_us(t, str(path), unit)
     except EventFormatError as err:
         raise file_error(path, None, str(err).removeprefix(f"{path}: ")) from None
 
 
-def read_csv(path: str | Path, sensor_size: tuple[int, int] | None = None) -> EventStream:
-    """Read ``t,x,y,p`` text (comma/whitespace separated, optional header naming the columns)."""
+def read_csv(path: str | Path, sensor_size: tuple[int, int] | None = None,
+             time_unit: str | None = None) -> EventStream:
+    """Read ``t,x,y,p`` text (comma/whitespace separated, optional header naming the columns).
+
+    Args:
+        path: the text file.
+        sensor_size: ``(W, H)``; default from the largest coordinates (with a warning).
+        time_unit: the ``t`` column's unit, ``"s"``, ``"ms"``, ``"us"`` or ``"ns"``; None:
+            integers are microseconds, fractions follow the float-time rule (times.py).
+    """
     path = Path(path)
+    check_unit(time_unit)
     if sensor_size is not None:
         sensor_size = check_sensor_size(sensor_size)
     text = path.read_text(encoding="utf-8", errors="replace")
@@ -267,7 +281,7 @@ def read_csv(path: str | Path, sensor_size: tuple[int, int] | None = None) -> Ev
             raise file_error(path, None, f"line {k}: need 4 columns t, x, y, p, found "
                              f"{len(row)}: {ln[:60]!r}")
     lines, tc = [k for k, _ in numbered], order.index("t")
-    t_us = _csv_float_times([r[tc] for r in rows], lines, path)
+    t_us = _csv_float_times([r[tc] for r in rows], lines, path, time_unit)
     if t_us is not None:  # the times are parsed; the integer columns stay exact
         rows = [r[:tc] + ["0"] + r[tc + 1:] for r in rows]
     try:
@@ -278,6 +292,11 @@ def read_csv(path: str | Path, sensor_size: tuple[int, int] | None = None) -> Ev
     cols = {name: data[:, i] for i, name in enumerate(order)}
     if t_us is not None:
         cols["t"] = t_us
+    elif time_unit is not None:
+        try:
+            cols["t"] = to_microseconds(cols["t"], time_unit, str(path))
+        except EventFormatError as err:
+            raise file_error(path, None, str(err).removeprefix(f"{path}: ")) from None
     try:
         events = make_events(cols["t"], cols["x"], cols["y"], cols["p"])
     except EventFormatError as err:
