@@ -178,3 +178,21 @@ def test_device_input_does_not_follow_the_validation_query(camera_checkpoint, tm
     assert report["query_frame_size"] == [48, 64]
     assert report["device_frame_size"] == [120, 160] and report["integer_pool"] == [5, 5]
     assert report["device_frame_size_source"] == "the checkpoint's reference frames"
+
+
+def test_summary_lines_report_the_nir_validation(tmp_path):
+    from torchseq.export.cli import summary_lines
+
+    report = {"query_source": "q", "device_frame_size": [4, 8], "device_frame_size_source": "s",
+              "checks": {"nir_consumers_agree": False}, "passed": False,
+              "nir": {"file": "model.nir",
+                      "spiking": {"agreement_with_rate_model": 0.5, "recall_at_1": 0.25},
+                      "consumers": {"snntorch": {"agreement": 0.75, "recall_at_1": 0.5},
+                                    "norse": {"skipped": "norse is not installed"}}}}
+    (tmp_path / "validation.json").write_text(json.dumps(report))
+    lines = summary_lines(tmp_path)
+    assert "nir: model.nir, spiking model agreement with the rate model 0.5, recall_at_1 0.25" \
+        in lines
+    assert "nir_snntorch: agreement 0.75, recall_at_1 0.5" in lines
+    assert "nir_norse: skipped: norse is not installed" in lines
+    assert lines[-1] == "FAIL: nir_consumers_agree"

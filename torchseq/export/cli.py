@@ -222,6 +222,16 @@ def summary_lines(out_dir) -> list[str]:
     for key, value in report.items():
         if key.endswith("_agreement") or key.endswith("_error") or key == "recall_at_1":
             lines.append(f"{key}: {value}")
+    nir = report.get("nir")
+    if nir:
+        spiking = nir.get("spiking", {})
+        lines.append(f"nir: {nir['file']}, spiking model agreement with the rate model "
+                     f"{spiking.get('agreement_with_rate_model')}, recall_at_1 "
+                     f"{spiking.get('recall_at_1')}")
+        for name, c in nir.get("consumers", {}).items():
+            lines.append(f"nir_{name}: " + (f"agreement {c['agreement']}, recall_at_1 "
+                                            f"{c['recall_at_1']}" if "agreement" in c
+                                            else "; ".join(f"{k}: {v}" for k, v in c.items())))
     failed = [k for k, v in report["checks"].items() if not v]
     lines.append("PASS" if report["passed"] else f"FAIL: {', '.join(failed)}")
     return lines
