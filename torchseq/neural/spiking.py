@@ -55,6 +55,11 @@ class SpikingError(ValueError):
 class SpikingConfig:
     """Settings of the rate -> spiking conversion.
 
+    The defaults (``K = 128`` rungs down to ``low = 0.01``, about 3.6% apart) follow the
+    dense L2 -> L3 default of the rate model, whose winning unit leads the next one by a
+    median 1.9% on the corridor (2.9% with the former 20% mask): the former ``K = 64``,
+    ``low = 0.03`` (5.4% apart) tied them too often (``docs/nir.md``, "Choosing the ladder").
+
     Attributes:
         levels: ring neurons per output unit (the thermometer code's ``K``).
         spacing: the ring's ladder of values, ``"geometric"`` or ``"uniform"``.
@@ -62,9 +67,9 @@ class SpikingConfig:
         chunk: reference frames encoded at once during calibration.
     """
 
-    levels: int = 64
+    levels: int = 128
     spacing: str = "geometric"
-    low: float = 0.03
+    low: float = 0.01
     chunk: int = 256
 
     def validate(self) -> None:
