@@ -34,6 +34,7 @@ Why one step per frame and levels in space: see ``docs/nir.md`` ("Why one time s
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
@@ -41,6 +42,7 @@ import torch
 from torch import nn
 
 from torchseq.neural.readout import decide
+from torchseq.quantise import factor_power_of_two
 
 DT = 1e-4  # seconds per time step written into the NIR graph (snnTorch's importer assumes it)
 
@@ -53,6 +55,11 @@ class SpikingError(ValueError):
 class SpikingConfig:
     """Settings of the rate -> spiking conversion.
 
+    The defaults (``K = 128`` rungs down to ``low = 0.01``, about 3.6% apart) follow the
+    dense L2 -> L3 default of the rate model, whose winning unit leads the next one by a
+    median 1.9% on the corridor (2.9% with the former 20% mask): the former ``K = 64``,
+    ``low = 0.03`` (5.4% apart) tied them too often (``docs/nir.md``, "Choosing the ladder").
+
     Attributes:
         levels: ring neurons per output unit (the thermometer code's ``K``).
         spacing: the ring's ladder of values, ``"geometric"`` or ``"uniform"``.
@@ -60,9 +67,9 @@ class SpikingConfig:
         chunk: reference frames encoded at once during calibration.
     """
 
-    levels: int = 64
+    levels: int = 128
     spacing: str = "geometric"
-    low: float = 0.03
+    low: float = 0.01
     chunk: int = 256
 
     def validate(self) -> None:
@@ -139,6 +146,24 @@ def ladder(config: SpikingConfig, a_max: float) -> tuple[torch.Tensor, torch.Ten
     return g, theta
 
 
+def l1_sum_grid(w1: torch.Tensor, input_steps: int, l1_levels: int) -> float | None:
+    """The step ``q`` every L1 sum is a multiple of, or None where the sums are not on a grid.
+
+    With the model's integer grids (:mod:`torchseq.neural.fixed_point`: inputs multiples of
+    ``1 / input_steps``, weights integers times one power of two ``s``) every sum is an
+    integer times ``q = s / input_steps``, exact in float32 whatever the order.
+
+    Args:
+        w1: ``(M, D)`` folded L1 weights.
+        input_steps: the model's ``input_steps`` (0: float input, no grid).
+        l1_levels: the model's ``l1_levels`` (0: float weights, no grid).
+    """
+    if not input_steps or not l1_levels:
+        return None
+    factored = factor_power_of_two(w1, l1_levels)
+    return None if factored is None else factored[1] / input_steps
+
+
 class SpikingSeqSLAM(nn.Module):
     """A fitted :class:`~torchseq.neural.NeuralSeqSLAM` as a spiking network (one step per frame).
 
@@ -193,7 +218,10 @@ class SpikingSeqSLAM(nn.Module):
         """Convert a fitted rate model, calibrating three scales on its reference traverse.
 
         Calibration (no learning): ``theta2`` = median over reference frames of the midpoint
-        between the ``k``-th and ``k+1``-th largest L1 sums (so about ``k`` L2 units fire);
+        between the ``k``-th and ``k+1``-th largest L1 sums (so about ``k`` L2 units fire),
+        moved to the middle of its cell of the L1 sums' grid where they have one
+        (:func:`l1_sum_grid`): no sum can then sit on the threshold, so the L2 code is the
+        same in float32, float64 and any consumer's summation order;
         ``sigma_c`` = median over reference frames of cohort ``c``'s std of the L3 evidence
         of those spikes; the ladder's top ``g_K = a_max``, the largest activity of the
         unquantised ring ``a = max(e + decay * S a, 0)`` over the reference.
@@ -231,6 +259,9 @@ class SpikingSeqSLAM(nn.Module):
         theta2 = float(torch.quantile((top[:, k - 1] + top[:, -1]) / 2, 0.5))
         if not theta2 > 0:
             raise SpikingError(f"degenerate L2 threshold {theta2} (a blank reference?)")
+        grid = l1_sum_grid(w1, mc.input_steps, mc.l1_levels)
+        if grid is not None:  # halfway between two attainable sums: no sum ever ties with it
+            theta2 = (math.floor(theta2 / grid) + 0.5) * grid
         z2 = (h > theta2).float()
         n_c = g.sum(0).clamp_min(1.0)  # (C,)
         e = z2 @ w3f.T  # (R, N)
@@ -247,7 +278,8 @@ class SpikingSeqSLAM(nn.Module):
         if not a_max > 0:
             raise SpikingError("the ring never becomes active on the reference: nothing to scale")
         g, theta = ladder(cfg, a_max)
-        calibration = {"theta2": theta2, "sigma": [float(v) for v in sigma], "a_max": a_max,
+        calibration = {"theta2": theta2, "l1_grid": grid, "sigma": [float(v) for v in sigma],
+                       "a_max": a_max,
                        "decay": decay, "gain": gain, "k": k, "levels": cfg.levels,
                        "spacing": cfg.spacing, "low": cfg.low,
                        "ladder": [float(v) for v in g], "thresholds": [float(v) for v in theta],
