@@ -196,3 +196,6 @@ def test_summary_lines_report_the_nir_validation(tmp_path):
     assert "nir_snntorch: agreement 0.75, recall_at_1 0.5" in lines
     assert "nir_norse: skipped: norse is not installed" in lines
     assert lines[-1] == "FAIL: nir_consumers_agree"
+    report["nir"] = {"skipped": "--no-nir"}
+    (tmp_path / "validation.json").write_text(json.dumps(report))
+    assert "nir: skipped (--no-nir)" in summary_lines(tmp_path)

@@ -222,8 +222,10 @@ def summary_lines(out_dir) -> list[str]:
     for key, value in report.items():
         if key.endswith("_agreement") or key.endswith("_error") or key == "recall_at_1":
             lines.append(f"{key}: {value}")
-    nir = report.get("nir")
-    if nir:
+    nir = report.get("nir") or {}
+    if "skipped" in nir:
+        lines.append(f"nir: skipped ({nir['skipped']})")
+    elif nir:
         spiking = nir.get("spiking", {})
         lines.append(f"nir: {nir['file']}, spiking model agreement with the rate model "
                      f"{spiking.get('agreement_with_rate_model')}, recall_at_1 "
