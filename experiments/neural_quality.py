@@ -215,12 +215,17 @@ def offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[dict]]:
     return rows, align
 
 
-def frame_differences(ref: torch.Tensor, query: torch.Tensor, size=(24, 32)) -> np.ndarray:
-    """``(Q, R)`` mean L1 difference of whole-frame z-scored frames (no engine)."""
-    from torchseq.preprocess import resize, to_grey
+def frame_differences(ref: torch.Tensor, query: torch.Tensor, size=(24, 32),
+                      patch: int = 0) -> np.ndarray:
+    """``(Q, R)`` mean L1 difference of whole-frame z-scored frames (no engine); ``patch``
+    > 0: of OpenSeqSLAM's patch-normalised images (``patch`` x ``patch`` blocks) instead."""
+    from torchseq.preprocess import patch_normalise, resize, to_grey
 
     def flat(x):
-        x = resize(to_grey(x).to(torch.float32), size).reshape(len(x), -1).double()
+        x = resize(to_grey(x).to(torch.float32), size)
+        if patch:
+            return patch_normalise(x, patch, "seqslam").reshape(len(x), -1).double()
+        x = x.reshape(len(x), -1).double()
         return (x - x.mean(1, keepdim=True)) / (x.std(1, keepdim=True) + 1e-9)
     r, q = flat(ref), flat(query)
     return (torch.cdist(q, r, p=1) / r.shape[1]).numpy()
@@ -261,10 +266,12 @@ REFINE = {"ring argmax (default)": (0.0, None), "a + 0.3 z within +-1 unit": (0.
           "a + 0.1 z": (0.1, None)}
 
 
-def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[dict]]:
+def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[dict],
+                                                              list[dict]]:
     """Offsets measured against the data's own alignment instead of the file's ground truth:
     the local content offset (LENS, corridor), the network's own feed-forward evidence
-    (argmax of z, no ring: what the ring adds) and SeqSLAM's decision; then the readout
+    (argmax of z, no ring: what the ring adds) and SeqSLAM's decision; on LENS the same
+    against content measured with other frames and diagonals; then the readout
     experiment (current evidence added at read-out) on LENS, corridor and demo speeds."""
     from torchseq.seqslam import SeqSLAM
     cases = {}
@@ -279,7 +286,7 @@ def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[d
         d = make_demo(speed=speed)
         cases[f"demo speed {speed}"] = (d.reference, d.query, np.asarray(d.query_position),
                                         np.asarray(d.ground_truth))
-    rows, refine = [], {k: {"readout": k} for k in REFINE}
+    rows, robust, refine = [], [], {k: {"readout": k} for k in REFINE}
     for name, (ref, query, truth, gt) in cases.items():
         gt = np.asarray(gt, bool)
         ss = SeqSLAM().match(ref, query).matches.reference.numpy()
@@ -301,6 +308,21 @@ def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[d
                 by[k][0].append(dec - (truth if content is None else content))
                 by[k][1].append(gt[dec, np.arange(len(query))].mean())
         g, o = np.concatenate(got), np.concatenate(own)
+        if name == "lens":  # the content measure's own choices: descriptor and diagonal
+            for label, kw in (("z-scored 24x32", {}), ("z-scored 32x64", {"size": (32, 64)}),
+                              ("SeqSLAM patch-normalised 32x64", {"size": (32, 64),
+                                                                  "patch": 8})):
+                diff = frame_differences(ref, query, **kw)
+                for half in (1, 2, 5):
+                    c = np.arange(len(query)) + local_content_offset(diff, half)
+                    rn, rs = g - np.tile(c, seeds), (ss - c)[ok]
+                    robust.append({"content frames": label, "diagonal": f"+-{half}",
+                                   "content - truth median": f"{np.median(c - truth):+.0f}",
+                                   "neural median": f"{np.median(rn):+.0f}",
+                                   "neural exact": f"{np.mean(rn == 0):.2f}",
+                                   "SeqSLAM median": f"{np.median(rs):+.0f}",
+                                   "SeqSLAM exact": f"{np.mean(rs == 0):.2f}",
+                                   "SeqSLAM +1": f"{np.mean(rs == 1):.2f}"})
         if content is not None:
             rows.append(offset_row(name, f"neural ({seeds} seeds)", g - np.tile(content, seeds)))
             rows[-1]["against"] = "content"
@@ -323,7 +345,7 @@ def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[d
     order = ["data", "engine", "against"]
     rows = [{**{c: r[c] for c in order}, **{c: v for c, v in r.items() if c not in order}}
             for r in rows]
-    return rows, list(refine.values())
+    return rows, robust, list(refine.values())
 
 
 # ---------------------------------------------------------------- long routes (issue 15)
@@ -561,19 +583,24 @@ def main(argv=None) -> dict:
         _write(args.out, "neural_offsets", {k: v for k, v in results.items() if k != "ablation"
                                           and k != "main"}, part)
     if args.relative_offsets:
-        rows, refine = relative_offsets_section(data, args.seeds)
+        rows, robust, refine = relative_offsets_section(data, args.seeds)
         results["relative_offsets"], results["readout_refinement"] = rows, refine
+        results["content_variants"] = robust
         part = ("### Offsets against the data's own alignment (decision - that alignment, "
                 "reference frames; share of decisions per offset)\n\n"
                 + table(rows, list(rows[0])) + "\n\n"
-                "### Readout experiment: current evidence added at read-out (recall@1 / "
+                + ("### LENS: the same against content measured with other frames and "
+                   "diagonals (decision - content)\n\n" + table(robust, list(robust[0]))
+                   + "\n\n" if robust else "")
+                + "### Readout experiment: current evidence added at read-out (recall@1 / "
                 "exact share / median offset; LENS and corridor against the content, the demo "
                 "against its exact positions)\n\n"
                 + table(refine, list(dict.fromkeys(k for r in refine for k in r))) + "\n")
         md += "\n" + part
         blocks["relative"] = part
         _write(args.out, "neural_relative_offsets",
-               {"relative_offsets": rows, "readout_refinement": refine}, part)
+               {"relative_offsets": rows, "content_variants": robust,
+                "readout_refinement": refine}, part)
     if args.long_routes:
         rows = []
         for n in [int(v) for v in args.long_routes.split(",") if v]:
