@@ -76,3 +76,23 @@ def test_demo_decisions_at_the_exact_position(speed, exact):
     off = model.run(d.query).matches.reference.numpy() - np.asarray(d.query_position)
     assert abs(np.median(off)) < 0.5
     assert np.mean(np.round(off) == 0) >= exact  # measured 0.73, 1.00, 0.71
+
+
+def test_experiment_measures_the_same_content_alignment():
+    """experiments/neural_quality.py (--relative-offsets, the docs' tables) measures the content
+    alignment as this file's plain loop does (synthetic frames: no shared data needed)."""
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "experiments" / "neural_quality.py"
+    spec = importlib.util.spec_from_file_location("neural_quality_for_test", path)
+    nq = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(nq)
+    g = torch.Generator().manual_seed(0)
+    ref = torch.rand(40, 24, 32, generator=g) * 255
+    # the query's content: reference j - 1 in the first half, j + 2 in the second, plus noise
+    src = np.r_[np.maximum(np.arange(20) - 1, 0), np.minimum(np.arange(20, 40) + 2, 39)]
+    query = ref[src] + torch.rand(40, 24, 32, generator=g) * 40
+    want = _content_alignment(ref, query)
+    got = np.arange(40) + nq.local_content_offset(nq.frame_differences(ref, query))
+    assert np.array_equal(got, want)
+    assert np.mean(want[3:17] == src[3:17]) == 1 and np.mean(want[23:37] == src[23:37]) == 1
