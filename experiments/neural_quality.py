@@ -215,6 +215,176 @@ def offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[dict]]:
     return rows, align
 
 
+def frame_differences(ref: torch.Tensor, query: torch.Tensor, size=(24, 32),
+                      patch: int = 0) -> np.ndarray:
+    """``(Q, R)`` mean L1 difference of whole-frame z-scored frames (no engine); ``patch``
+    > 0: of OpenSeqSLAM's patch-normalised images (``patch`` x ``patch`` blocks) instead."""
+    from torchseq.preprocess import patch_normalise, resize, to_grey
+
+    def flat(x):
+        x = resize(to_grey(x).to(torch.float32), size)
+        if patch:
+            return patch_normalise(x, patch, "seqslam").reshape(len(x), -1).double()
+        x = x.reshape(len(x), -1).double()
+        return (x - x.mean(1, keepdim=True)) / (x.std(1, keepdim=True) + 1e-9)
+    r, q = flat(ref), flat(query)
+    return (torch.cdist(q, r, p=1) / r.shape[1]).numpy()
+
+
+def local_content_offset(diff: np.ndarray, half: int = 2, search: int = 5) -> np.ndarray:
+    """Per query ``j``, the offset ``d`` (``|d| <= search``) at which the content aligns:
+    ``argmin_d mean_{k=-half..half} diff[j + k, j + k + d]`` (pairs inside both traverses;
+    first ``d`` on ties). ``(Q, R) -> (Q,)`` int64; the query index is the reference."""
+    n_q, n_r = diff.shape
+    out = np.zeros(n_q, np.int64)
+    for j in range(n_q):
+        best = np.inf
+        for d in range(-search, search + 1):
+            k = np.arange(max(-half, -j, -j - d), min(half, n_q - 1 - j, n_r - 1 - j - d) + 1)
+            if k.size == 0:
+                continue
+            v = diff[j + k, j + k + d].mean()
+            if v < best:
+                best, out[j] = v, d
+    return out
+
+
+def refined_decision(model: NeuralSeqSLAM, activity: torch.Tensor, evidence: torch.Tensor,
+                     beta: float, window: int | None) -> np.ndarray:
+    """Post-hoc readout experiment (not a library option): ``argmax(a + beta z)``, over the
+    units within ``window`` of the ring's winner (None: every unit). ``beta = 0``: default."""
+    score = activity + beta * evidence
+    if window is not None:
+        u0 = activity.argmax(1, keepdim=True)
+        near = (torch.arange(activity.shape[1])[None, :] - u0).abs() <= window
+        score = torch.where(near, score, torch.tensor(-float("inf")))
+    return model.unit_centre[score.argmax(1)].numpy()
+
+
+REFINE = {"ring argmax (default)": (0.0, None), "a + 0.3 z within +-1 unit": (0.3, 1),
+          "a + 0.3 z within +-2 units": (0.3, 2), "a + 0.03 z": (0.03, None),
+          "a + 0.1 z": (0.1, None)}
+
+
+def coarse_unit_rows(n_reference: int = 3000, speeds=(0.8, 1.0, 1.3)) -> list[dict]:
+    """Signed offsets when units hold several frames (a long demo route on the default 555
+    units, 48x64 frames as in the long-route table, seed 0): per readout the decisions
+    against the exact positions, and which unit wins against the unit holding the query's
+    nearest frame, for the ring and for the feed-forward evidence alone (argmax of z)."""
+    rows = []
+    for speed in speeds:
+        d = make_demo(n_reference=n_reference, size=(48, 64), step=4.0,
+                      dense_ground_truth=False, speed=speed)
+        truth = np.asarray(d.query_position)
+        for readout in ("centre", "interpolate"):
+            model = NeuralSeqSLAM(replace(NeuralConfig(), readout=readout))
+            with warnings.catch_warnings():  # fit warns about units of several frames
+                warnings.simplefilter("ignore")
+                model.fit(d.reference, log=False)
+            res = model.run(d.query)
+            off = res.matches.reference.numpy() - truth
+            row = {"speed": f"{speed}x", "readout": readout,
+                   "frames per unit": f"{n_reference / model.n_units:.1f}",
+                   "median offset": f"{np.median(off):+.1f}",
+                   "exact": f"{np.mean(np.round(off) == 0):.2f}",
+                   "within +-2": f"{np.mean(np.abs(off) <= 2):.3f}"}
+            if readout == "centre":
+                last = model.unit_to_reference[:, 1].numpy()
+                unit = np.searchsorted(last, np.clip(np.round(truth), 0, n_reference - 1),
+                                       side="right")
+                with torch.inference_mode():
+                    z = model.evidence(model.code(model.encode(d.query)))
+                for lab, x in (("ring", res.activity), ("evidence", z)):
+                    du = x.argmax(1).numpy() - unit
+                    row[f"{lab}: previous unit"] = f"{np.mean(du < 0):.2f}"
+                    row[f"{lab}: right unit"] = f"{np.mean(du == 0):.2f}"
+            rows.append(row)
+            print(row, flush=True)
+    return rows
+
+
+def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[dict],
+                                                              list[dict]]:
+    """Offsets measured against the data's own alignment instead of the file's ground truth:
+    the local content offset (LENS, corridor), the network's own feed-forward evidence
+    (argmax of z, no ring: what the ring adds) and SeqSLAM's decision; on LENS the same
+    against content measured with other frames and diagonals; then the readout
+    experiment (current evidence added at read-out) on LENS, corridor and demo speeds."""
+    from torchseq.seqslam import SeqSLAM
+    cases = {}
+    for name in ("lens", "corridor"):
+        if name in data:
+            ref, query, gt = data[name]
+            cases[name] = (ref, query, np.arange(len(query), dtype=np.float64), gt)
+    if "lens" in data:
+        i = np.arange(len(data["lens"][0]))
+        cases["lens+-2"] = (*cases["lens"][:3], np.abs(i[:, None] - i[None, :]) <= 2)
+    for speed in (0.6, 0.8, 1.0, 1.3, 1.6):
+        d = make_demo(speed=speed)
+        cases[f"demo speed {speed}"] = (d.reference, d.query, np.asarray(d.query_position),
+                                        np.asarray(d.ground_truth))
+    rows, robust, refine = [], [], {k: {"readout": k} for k in REFINE}
+    for name, (ref, query, truth, gt) in cases.items():
+        gt = np.asarray(gt, bool)
+        ss = SeqSLAM().match(ref, query).matches.reference.numpy()
+        ok = ss >= 0
+        content = None
+        if name in ("lens", "corridor"):
+            content = np.arange(len(query)) + local_content_offset(frame_differences(ref, query))
+        got, own, by = [], [], {k: ([], []) for k in REFINE}
+        for seed in range(seeds):
+            model = NeuralSeqSLAM(replace(NeuralConfig(), seed=seed))
+            model.fit(ref, log=False)
+            activity = model.run(query).activity
+            with torch.inference_mode():
+                z = model.evidence(model.code(model.encode(query)))
+            got.append(model.unit_centre[activity.argmax(1)].numpy())
+            own.append(model.unit_centre[z.argmax(1)].numpy())
+            for k, (beta, window) in REFINE.items():
+                dec = refined_decision(model, activity, z, beta, window)
+                by[k][0].append(dec - (truth if content is None else content))
+                by[k][1].append(gt[dec, np.arange(len(query))].mean())
+        g, o = np.concatenate(got), np.concatenate(own)
+        if name == "lens":  # the content measure's own choices: descriptor and diagonal
+            for label, kw in (("z-scored 24x32", {}), ("z-scored 32x64", {"size": (32, 64)}),
+                              ("SeqSLAM patch-normalised 32x64", {"size": (32, 64),
+                                                                  "patch": 8})):
+                diff = frame_differences(ref, query, **kw)
+                for half in (1, 2, 5):
+                    c = np.arange(len(query)) + local_content_offset(diff, half)
+                    rn, rs = g - np.tile(c, seeds), (ss - c)[ok]
+                    robust.append({"content frames": label, "diagonal": f"+-{half}",
+                                   "content - truth median": f"{np.median(c - truth):+.0f}",
+                                   "neural median": f"{np.median(rn):+.0f}",
+                                   "neural exact": f"{np.mean(rn == 0):.2f}",
+                                   "SeqSLAM median": f"{np.median(rs):+.0f}",
+                                   "SeqSLAM exact": f"{np.mean(rs == 0):.2f}",
+                                   "SeqSLAM +1": f"{np.mean(rs == 1):.2f}"})
+        if content is not None:
+            rows.append(offset_row(name, f"neural ({seeds} seeds)", g - np.tile(content, seeds)))
+            rows[-1]["against"] = "content"
+            rows.append(offset_row(name, "SeqSLAM", (ss - content)[ok], int((~ok).sum())))
+            rows[-1]["against"] = "content"
+        if name != "lens+-2":
+            rows.append(offset_row(name, f"neural ({seeds} seeds)", g - o))
+            rows[-1]["against"] = "own evidence (no ring)"
+            rows.append(offset_row(name, f"neural ({seeds} seeds)",
+                                   (g - np.tile(ss, seeds))[np.tile(ok, seeds)]))
+            rows[-1]["against"] = "SeqSLAM"
+        against = "content" if content is not None else "truth"
+        for k in REFINE:
+            off = np.round(np.concatenate(by[k][0])).astype(np.int64)
+            cell = f"{np.mean(by[k][1]):.3f}"
+            if name != "lens+-2":
+                cell += f" / {np.mean(off == 0):.2f} / {np.median(np.concatenate(by[k][0])):+.1f}"
+            refine[k][name + ("" if name == "lens+-2" else f" (vs {against})")] = cell
+        print(rows[-1], flush=True)
+    order = ["data", "engine", "against"]
+    rows = [{**{c: r[c] for c in order}, **{c: v for c, v in r.items() if c not in order}}
+            for r in rows]
+    return rows, robust, list(refine.values())
+
+
 # ---------------------------------------------------------------- long routes (issue 15)
 def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
                    readout: str = "centre", n_output: int | None = None) -> dict:
@@ -399,6 +569,8 @@ def main(argv=None) -> dict:
                    help="also run routes longer than this with n_output = this (interpolate)")
     p.add_argument("--long-seqslam-max", type=int, default=3000,
                    help="longest route classic SeqSLAM also runs on")
+    p.add_argument("--relative-offsets", action="store_true",
+                   help="offsets against the data's own alignment and the readout experiment")
     p.add_argument("--repeat", action="store_true",
                    help="false matches to the wrong repeat on make_demo(repeat=2, 3)")
     p.add_argument("--seed-sweep", action="store_true",
@@ -447,6 +619,31 @@ def main(argv=None) -> dict:
         blocks["offsets"] = part
         _write(args.out, "neural_offsets", {k: v for k, v in results.items() if k != "ablation"
                                           and k != "main"}, part)
+    if args.relative_offsets:
+        rows, robust, refine = relative_offsets_section(data, args.seeds)
+        results["relative_offsets"], results["readout_refinement"] = rows, refine
+        results["content_variants"] = robust
+        coarse = coarse_unit_rows()
+        results["coarse_units"] = coarse
+        part = ("### Offsets against the data's own alignment (decision - that alignment, "
+                "reference frames; share of decisions per offset)\n\n"
+                + table(rows, list(rows[0])) + "\n\n"
+                + ("### LENS: the same against content measured with other frames and "
+                   "diagonals (decision - content)\n\n" + table(robust, list(robust[0]))
+                   + "\n\n" if robust else "")
+                + "### Units of several frames: a 3,000-frame demo route on 555 units (seed 0; "
+                "offsets against the exact positions; which unit wins, ring and evidence "
+                "alone, against the unit holding the query's frame)\n\n"
+                + table(coarse, list(dict.fromkeys(k for r in coarse for k in r))) + "\n\n"
+                + "### Readout experiment: current evidence added at read-out (recall@1 / "
+                "exact share / median offset; LENS and corridor against the content, the demo "
+                "against its exact positions)\n\n"
+                + table(refine, list(dict.fromkeys(k for r in refine for k in r))) + "\n")
+        md += "\n" + part
+        blocks["relative"] = part
+        _write(args.out, "neural_relative_offsets",
+               {"relative_offsets": rows, "content_variants": robust,
+                "coarse_units": coarse, "readout_refinement": refine}, part)
     if args.long_routes:
         rows = []
         for n in [int(v) for v in args.long_routes.split(",") if v]:
