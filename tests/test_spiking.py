@@ -268,6 +268,11 @@ class TestCalibration:
             sp.run(torch.zeros(3, 5))
         with pytest.raises(SpikingError, match="state"):
             sp(sp.encode(demo.query[:2]), sp.zero_state(3))
+        interp = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=20,
+                                            readout="interpolate"))
+        interp.fit(demo.reference, log=False)
+        with pytest.raises(SpikingError, match="readout='interpolate'"):
+            SpikingSeqSLAM.convert(interp, demo.reference)
 
 
 def _agreement(model, sp, query, gt):

@@ -232,7 +232,8 @@ class SpikingSeqSLAM(nn.Module):
             config: :class:`SpikingConfig` (None: defaults).
 
         Raises:
-            SpikingError: an unfitted model, a bad reference, or a degenerate calibration.
+            SpikingError: an unfitted model, a readout other than ``"centre"``, a bad
+                reference, or a degenerate calibration.
         """
         cfg = config or SpikingConfig()
         cfg.validate()
@@ -243,6 +244,10 @@ class SpikingSeqSLAM(nn.Module):
             raise SpikingError("reference must be a (R, H, W) tensor of R >= 2 frames, got "
                                f"{getattr(reference, 'shape', type(reference).__name__)}")
         mc = model.config
+        if mc.readout != "centre":  # the decision would silently differ from the rate model's
+            raise SpikingError(f"the spiking network reads each unit's centre frame; the rate "
+                               f"model's readout={mc.readout!r} has no spiking (or NIR) form "
+                               f"yet: convert a model with readout='centre'")
         w1 = model.l1.folded_weight().detach().float().cpu()  # (M, D)
         w3f = model.l3.folded_weight().detach().float().cpu()  # (N, M)
         g = model.cohorts.detach().float().cpu()  # (N, C)
