@@ -140,4 +140,4 @@ def test_every_integer_form_agrees_and_follows_the_oracle(interp):
     assert (ref != centre).mean() > 0.2
     # and the float model's decisions on the same uint8 frames agree (its own interpolation)
     ref_float = model.run(torch.from_numpy(frames).float()).matches.reference.numpy()
-    assert np.mean(ref == ref_float) >= 0.9
+    assert np.mean(ref == ref_float) >= 0.95  # measured 73 of 74 (one frame off by one)
