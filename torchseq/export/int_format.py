@@ -138,8 +138,10 @@ class IntegerModel:
 
     @property
     def params(self) -> dict:
-        """Every name of :data:`PARAM_NAMES` -> int (a new dict; the file's ``params`` are
-        those of :attr:`format_version`'s names)."""
+        """Every name of :data:`PARAM_NAMES` -> int (a new dict).
+
+        The file's ``params`` section holds the names of :attr:`format_version`.
+        """
         i, l1, l3, c, r = self.input, self.l1, self.l3, self.cohort, self.ring
         return {"height": i.height, "width": i.width, "pool_h": i.pool_h, "pool_w": i.pool_w,
                 "patch": i.patch, "input_mode": i.input_mode, "x_frac": i.x_frac,
