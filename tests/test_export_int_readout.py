@@ -1,6 +1,7 @@
 """The integer interpolating read-out (format version 2): its exact rule against the float
 definition and the plain-Python oracle, and every integer form bit-exact with the others."""
 
+import json
 import struct
 import zlib
 from fractions import Fraction
@@ -141,3 +142,19 @@ def test_every_integer_form_agrees_and_follows_the_oracle(interp):
     # and the float model's decisions on the same uint8 frames agree (its own interpolation)
     ref_float = model.run(torch.from_numpy(frames).float()).matches.reference.numpy()
     assert np.mean(ref == ref_float) >= 0.95  # measured 73 of 74 (one frame off by one)
+
+
+def test_checkpoint_export_of_an_interpolating_model_passes(interp, tmp_path):
+    from torchseq.export import export_checkpoint
+    from torchseq.export.int_format import read_integer_model
+
+    model, frames, _ = interp
+    model.save(tmp_path / "m.pt")
+    out = tmp_path / "export"
+    assert export_checkpoint(tmp_path / "m.pt", out, query=frames[:30])
+    report = json.loads((out / "validation.json").read_text())
+    assert report["integer_onnx_bit_exact"] is True and report["integer_agreement"] >= 0.95
+    assert "no spiking (NIR) form" in report["nir"]["skipped"]  # reported, not silently absent
+    assert not (out / "model.nir").exists()
+    stored = read_integer_model(out / "model_int.tsq")
+    assert stored.format_version == 2 and stored.params["readout"] == READOUT_INTERPOLATE
