@@ -12,11 +12,12 @@ SMALL = {"hidden": 512, "n_output": 40}
 
 
 @lru_cache(maxsize=None)
-def small_setup(seed: int = 1, hidden: int = 1024, n_output: int = 40, n_reference: int = 60):
+def small_setup(seed: int = 1, hidden: int = 1024, n_output: int = 40, n_reference: int = 60,
+                readout: str = "centre"):
     """A small model fitted on a small demo route, its integer model and uint8 device frames."""
     demo = make_demo(n_reference=n_reference, size=(48, 64), seed=seed)
     torch.manual_seed(0)
-    model = NeuralSeqSLAM(NeuralConfig(hidden=hidden, n_output=n_output))
+    model = NeuralSeqSLAM(NeuralConfig(hidden=hidden, n_output=n_output, readout=readout))
     model.fit(demo.reference, log=False)
     pool = choose_pool(tuple(demo.query.shape[1:]), model.config.input_size)
     frames = device_frames(demo.query, model.config.input_size, pool)

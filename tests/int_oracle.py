@@ -67,4 +67,24 @@ def oracle_step(model, frame, state):
     best = max(range(n_units), key=lambda u: (act[u], -u))
     rivals = [act[v] for v in range(n_units) if abs(v - best) > p["window"]]
     second = max(rivals) if rivals else min(act)
+    if p.get("readout", 0) == 1:
+        first, last = (int(v) for v in a["unit_to_ref"][best])
+        return act, oracle_within_unit(act, best, first, last), act[best] - second
     return act, int(a["unit_centre"][best]), act[best] - second
+
+
+def oracle_within_unit(act, best, first, last):
+    """The interpolating read-out as the float definition writes it, in exact fractions.
+
+    The vertex of the parabola through ``(-1, am), (0, a0), (1, ap)``,
+    ``x = (am - ap) / (2 (am - 2 a0 + ap))`` (0 at the ring's ends and when the curvature is
+    not negative), then ``clamp(floor((first + last - 1) / 2 + x (last - first) + 1/2),
+    first, last - 1)``.
+    """
+    x = Fraction(0)
+    if 0 < best < len(act) - 1:
+        am, a0, ap = act[best - 1], act[best], act[best + 1]
+        if am - 2 * a0 + ap < 0:
+            x = Fraction(am - ap, 2 * (am - 2 * a0 + ap))
+    pos = math.floor(Fraction(first + last - 1, 2) + x * (last - first) + Fraction(1, 2))
+    return min(max(pos, first), last - 1)

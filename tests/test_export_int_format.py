@@ -1,4 +1,4 @@
-"""Integer file format v1: dict/file round trips and every rejection with a clear error."""
+"""Integer file format v1 and v2: dict/file round trips and every rejection with a clear error."""
 
 import struct
 import zlib
@@ -34,7 +34,8 @@ def _same(a: IntegerModel, b: IntegerModel) -> None:
 
 def test_dict_round_trip(model):
     d = model.to_dict()
-    assert d["format_version"] == FORMAT_VERSION
+    assert d["format_version"] == 1 < FORMAT_VERSION  # the centre read-out: still version 1
+    assert "readout" not in d["params"]
     _same(IntegerModel.from_dict(d), model)
 
 
@@ -68,8 +69,11 @@ def test_unknown_version(model):
     with pytest.raises(IntegerFormatError, match="unsupported format_version 99"):
         decode(_reseal(data))
     d = model.to_dict()
-    d["format_version"] = 2
+    d["format_version"] = 3
     with pytest.raises(IntegerFormatError, match="format_version"):
+        IntegerModel.from_dict(d)
+    d["format_version"] = 2  # a version-2 dict must name the read-out
+    with pytest.raises(IntegerFormatError, match=r"missing \['readout'\]"):
         IntegerModel.from_dict(d)
 
 

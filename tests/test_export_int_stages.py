@@ -21,6 +21,7 @@ from int_oracle import oracle_step
 
 from torchseq.export.int_format import (
     PARAM_NAMES,
+    PARAM_NAMES_V1,
     CohortStage,
     InputStage,
     IntegerFormatError,
@@ -51,10 +52,11 @@ def _raw_file(params: dict, arrays: dict) -> bytes:
         return struct.pack("<16sBBH4IQI", name.encode(), CODES[a.dtype.str[1:]],
                            a.ndim, 0, *dims, len(payload), zlib.crc32(payload)) + payload
 
-    body = sec("params", np.array([params[n] for n in PARAM_NAMES], "<i8"))
+    version, names = (2, PARAM_NAMES) if "readout" in params else (1, PARAM_NAMES_V1)
+    body = sec("params", np.array([params[n] for n in names], "<i8"))
     body += b"".join(sec(n, arrays[n]) for n in ORDER)
     total = 32 + len(body) + 4
-    head = struct.pack("<8sIIQ", b"TSQI\r\n\x1a\n", 1, len(ORDER) + 1, total)
+    head = struct.pack("<8sIIQ", b"TSQI\r\n\x1a\n", version, len(ORDER) + 1, total)
     head += struct.pack("<II", zlib.crc32(head), 0)
     data = head + body
     return data + struct.pack("<I", zlib.crc32(data))
@@ -237,7 +239,7 @@ def _reseal(data: bytearray) -> bytes:
 HOSTILE = [0, 1, -1, 2, 7, 62, 63, 64, 2**15 - 1, 2**15, 2**16, 2**24, 2**31 - 1, 2**31,
            2**53, 2**61, 2**62, 2**63 - 1, -2**63]
 mutations = st.one_of(
-    st.tuples(st.just("param"), st.integers(0, len(PARAM_NAMES) - 1),
+    st.tuples(st.just("param"), st.integers(0, len(PARAM_NAMES_V1) - 1),
               st.one_of(st.sampled_from(HOSTILE), st.integers(-2**63, 2**63 - 1))),
     st.tuples(st.just("bit"), st.integers(1, len(ORDER)), st.integers(0, 2**31)),
 )

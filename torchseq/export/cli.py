@@ -199,7 +199,11 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         report["files_bytes"][name] = (out / name).stat().st_size
     from torchseq.export.nir_validate import calibration_frames, export_nir
 
-    if nir:
+    readout = getattr(model.config, "readout", "centre")
+    if nir and readout != "centre":  # SpikingSeqSLAM.convert refuses it (no spiking form)
+        report["nir"] = {"skipped": f"readout={readout!r} has no spiking (NIR) form; the "
+                                    "ONNX and integer files hold it"}
+    elif nir:
         calib, calib_source = calibration_frames(model, rec, query is not None, frames)
         report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source)
     else:

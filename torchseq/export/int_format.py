@@ -21,6 +21,8 @@ from torchseq.export.int_stages import (
     INPUT_RAW,
     INPUT_ZSCORE,
     MAX_FAN_IN,
+    READOUT_CENTRE,
+    READOUT_INTERPOLATE,
     X_MAX,
     CohortStage,
     InputStage,
@@ -35,14 +37,15 @@ from torchseq.export.int_stages import (
 
 __all__ = [
     "FORMAT_VERSION", "INPUT_RAW", "INPUT_ZSCORE", "MAGIC", "MAX_FAN_IN", "PARAM_NAMES",
-    "SECTIONS", "SUPPORTED_VERSIONS", "X_MAX", "CohortStage", "InputStage", "IntegerFormatError",
+    "PARAM_NAMES_V1", "READOUT_CENTRE", "READOUT_INTERPOLATE", "SECTIONS", "SUPPORTED_VERSIONS",
+    "X_MAX", "CohortStage", "InputStage", "IntegerFormatError",
     "IntegerModel", "L1Product", "L3Product", "ReadoutStage", "RingStage", "decode", "encode",
     "read_integer_model", "write_integer_model",
 ]
 
 MAGIC = b"TSQI\r\n\x1a\n"
-FORMAT_VERSION = 1
-SUPPORTED_VERSIONS = (1,)
+FORMAT_VERSION = 2  # the newest; a model is written in the oldest version that holds it
+SUPPORTED_VERSIONS = (1, 2)
 _HEADER = struct.Struct("<8sIIQII")  # magic, version, n_sections, file_bytes, header_crc, 0
 _SECTION = struct.Struct("<16sBBH4IQI")  # name, dtype, ndim, 0, dims[4], payload bytes, crc
 _TRAILER = struct.Struct("<I")
@@ -52,13 +55,16 @@ DTYPES = {1: np.dtype("<u1"), 2: np.dtype("<i1"), 3: np.dtype("<u2"), 4: np.dtyp
 _CODES = {v: k for k, v in DTYPES.items()}
 
 # params: the integer scalars of the header section, in file order (docs/integer_format.md).
-PARAM_NAMES = (
+# Version 1 holds the first 24; version 2 appends ``readout`` (version 1: READOUT_CENTRE).
+PARAM_NAMES_V1 = (
     "height", "width", "pool_h", "pool_w", "patch", "input_mode", "x_frac", "sqrt_frac",
     "norm_const", "n_input", "hidden", "k", "l1_fan_in", "n_units", "l3_fan_in", "e_shift",
     "n_cohorts", "rectify", "gain_const", "gain_shift", "state_frac", "ring_frac",
     "ring_width", "window",
 )
-# section name -> (dtype, shape as param names or ints)
+PARAM_NAMES = (*PARAM_NAMES_V1, "readout")
+_NAMES = {1: PARAM_NAMES_V1, 2: PARAM_NAMES}
+# section name -> (dtype, shape as param names or ints; params: version 2's, version 1 has 24)
 SECTIONS = {
     "params": (np.dtype("<i8"), (len(PARAM_NAMES),)),
     "l1.cols": (np.dtype("<u2"), ("hidden", "l1_fan_in")),
@@ -122,8 +128,20 @@ class IntegerModel:
                                          f"l3's {n}")
 
     @property
+    def format_version(self) -> int:
+        """The oldest format version that holds this model: 1 for the centre read-out, else 2.
+
+        A centre model is written exactly as version 1 always was (readers of version 1
+        keep reading it); only the interpolating read-out needs version 2.
+        """
+        return 1 if self.readout.readout == READOUT_CENTRE else 2
+
+    @property
     def params(self) -> dict:
-        """Every name of :data:`PARAM_NAMES` -> int (a new dict: the file's ``params``)."""
+        """Every name of :data:`PARAM_NAMES` -> int (a new dict).
+
+        The file's ``params`` section holds the names of :attr:`format_version`.
+        """
         i, l1, l3, c, r = self.input, self.l1, self.l3, self.cohort, self.ring
         return {"height": i.height, "width": i.width, "pool_h": i.pool_h, "pool_w": i.pool_w,
                 "patch": i.patch, "input_mode": i.input_mode, "x_frac": i.x_frac,
@@ -133,7 +151,7 @@ class IntegerModel:
                 "n_cohorts": c.n_cohorts, "rectify": c.rectify, "gain_const": c.gain_const,
                 "gain_shift": c.gain_shift, "state_frac": c.state_frac,
                 "ring_frac": r.ring_frac, "ring_width": r.cols.shape[1],
-                "window": self.readout.window}
+                "window": self.readout.window, "readout": self.readout.readout}
 
     @property
     def arrays(self) -> dict:
@@ -146,8 +164,15 @@ class IntegerModel:
                 "unit_to_ref": self.readout.unit_to_ref}
 
     @classmethod
-    def from_params(cls, params: dict, arrays: dict) -> IntegerModel:
+    def from_params(cls, params: dict, arrays: dict,
+                    format_version: int | None = None) -> IntegerModel:
         """Build and check a model from the file's view (``params`` and section arrays).
+
+        Args:
+            params: the names of :data:`PARAM_NAMES` (version 2) or :data:`PARAM_NAMES_V1`
+                (version 1: the centre read-out) -> int.
+            arrays: the sections other than ``params``.
+            format_version: 1 or 2; None: 2 when ``params`` has ``readout``, else 1.
 
         Raises:
             IntegerFormatError: a missing or unknown name, a non-integer parameter, a shape
@@ -155,8 +180,14 @@ class IntegerModel:
         """
         if not isinstance(params, dict) or not isinstance(arrays, dict):
             raise IntegerFormatError("params and arrays must be dicts")
-        missing = [n for n in PARAM_NAMES if n not in params]
-        unknown = sorted(map(str, set(params) - set(PARAM_NAMES)))
+        if format_version is None:
+            format_version = 2 if "readout" in params else 1
+        if format_version not in _NAMES:
+            raise IntegerFormatError(f"unsupported integer format_version {format_version!r} "
+                                     f"(this reader knows {SUPPORTED_VERSIONS})")
+        wanted = _NAMES[format_version]
+        missing = [n for n in wanted if n not in params]
+        unknown = sorted(map(str, set(params) - set(wanted)))
         if missing or unknown:
             raise IntegerFormatError(f"params: missing {missing}, unknown {unknown}")
         names = set(SECTIONS) - {"params"}
@@ -164,7 +195,8 @@ class IntegerModel:
             raise IntegerFormatError(
                 f"arrays: missing {sorted(names - set(arrays))}, unknown section types "
                 f"{sorted(map(str, set(arrays) - names))}")
-        p = {n: integer(n, params[n], -2**63, 2**63 - 1) for n in PARAM_NAMES}
+        p = {n: integer(n, params[n], -2**63, 2**63 - 1) for n in wanted}
+        p.setdefault("readout", READOUT_CENTRE)
         for name, top in _SIZES.items():
             integer(name, p[name], 1, top)
         a = {}
@@ -184,11 +216,16 @@ class IntegerModel:
             CohortStage(a["cohort"], p["n_cohorts"], p["gain_const"], p["gain_shift"],
                         p["state_frac"], p["rectify"]),
             RingStage(a["ring.cols"], a["ring.values"], p["ring_frac"]),
-            ReadoutStage(a["unit_centre"], a["unit_to_ref"], p["window"]))
+            ReadoutStage(a["unit_centre"], a["unit_to_ref"], p["window"], p["readout"]))
 
     def to_dict(self) -> dict:
-        """``{"format_version", "params", "arrays"}`` (arrays copied, writable)."""
-        return {"format_version": FORMAT_VERSION, "params": self.params,
+        """``{"format_version", "params", "arrays"}`` (arrays copied, writable).
+
+        ``format_version`` is :attr:`format_version` and ``params`` holds its names.
+        """
+        version = self.format_version
+        params = {n: v for n, v in self.params.items() if n in _NAMES[version]}
+        return {"format_version": version, "params": params,
                 "arrays": {k: np.array(v) for k, v in self.arrays.items()}}
 
     @classmethod
@@ -200,7 +237,7 @@ class IntegerModel:
         if isinstance(version, bool) or version not in SUPPORTED_VERSIONS:
             raise IntegerFormatError(f"unsupported integer format_version {version!r} "
                                      f"(this reader knows {SUPPORTED_VERSIONS})")
-        return cls.from_params(d.get("params"), d.get("arrays"))
+        return cls.from_params(d.get("params"), d.get("arrays"), version)
 
     def check(self) -> IntegerModel:
         """Return self: a model is checked when built and cannot change afterwards."""
@@ -208,14 +245,18 @@ class IntegerModel:
 
 
 def encode(model: IntegerModel) -> bytes:
-    """Serialise a model to the bytes of a format-version-1 file."""
+    """Serialise a model to the bytes of a file of its :attr:`~IntegerModel.format_version`.
+
+    A centre read-out model gives exactly the bytes version 1 always gave.
+    """
     if not isinstance(model, IntegerModel):
         raise IntegerFormatError(f"encode takes an IntegerModel, got {type(model).__name__}")
-    parts = [_section("params", np.array([model.params[n] for n in PARAM_NAMES], "<i8"))]
+    version = model.format_version
+    parts = [_section("params", np.array([model.params[n] for n in _NAMES[version]], "<i8"))]
     parts += [_section(n, model.arrays[n]) for n in SECTIONS if n != "params"]
     body = b"".join(parts)
     total = _HEADER.size + len(body) + _TRAILER.size
-    head = _HEADER.pack(MAGIC, FORMAT_VERSION, len(parts), total, 0, 0)
+    head = _HEADER.pack(MAGIC, version, len(parts), total, 0, 0)
     head = head[:24] + struct.pack("<I", zlib.crc32(head[:24])) + head[28:]
     data = head + body
     return data + _TRAILER.pack(zlib.crc32(data))
@@ -289,11 +330,13 @@ def decode(data: bytes, source: str = "<bytes>") -> IntegerModel:
         pos += nbytes
     if pos != total - _TRAILER.size:
         raise bad("unexpected bytes after the last section")
-    if "params" not in found or found["params"].shape != (len(PARAM_NAMES),):
-        raise bad("missing or malformed params section")
-    params = {n: int(v) for n, v in zip(PARAM_NAMES, found.pop("params"))}
+    names = _NAMES[version]
+    if "params" not in found or found["params"].shape != (len(names),):
+        raise bad(f"missing or malformed params section (version {version} holds "
+                  f"{len(names)} parameters)")
+    params = {n: int(v) for n, v in zip(names, found.pop("params"))}
     try:
-        return IntegerModel.from_params(params, found)
+        return IntegerModel.from_params(params, found, version)
     except IntegerFormatError as err:
         raise bad(str(err)) from None
 

@@ -15,6 +15,8 @@ import torch
 from torchseq.export.int_format import (
     INPUT_RAW,
     INPUT_ZSCORE,
+    READOUT_CENTRE,
+    READOUT_INTERPOLATE,
     X_MAX,
     IntegerFormatError,
     IntegerModel,
@@ -58,12 +60,11 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     if cfg.patch_size and cfg.patch_mode != "zscore":
         raise IntegerFormatError(f"patch_mode {cfg.patch_mode!r} has no integer form "
                                  "(use 'zscore' or patch_size=0)")
-    spans = model.unit_to_reference
-    if getattr(cfg, "readout", "centre") != "centre" and bool(((spans[:, 1] - spans[:, 0]) > 1)
-                                                               .any()):
-        raise IntegerFormatError(f"readout {cfg.readout!r} has no integer form for units of "
-                                 "more than one frame (the format reports each unit's centre); "
-                                 "use readout='centre' or n_output >= the route's frames")
+    readouts = {"centre": READOUT_CENTRE, "interpolate": READOUT_INTERPOLATE}
+    readout = getattr(cfg, "readout", "centre")
+    if readout not in readouts:
+        raise IntegerFormatError(f"readout {readout!r} has no integer form (the format holds "
+                                 f"{sorted(readouts)})")
     h, w = cfg.input_size
     n_units = model.n_units
     if max(cfg.n_input, cfg.hidden, n_units) > 32767:
@@ -74,6 +75,7 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     p = {"height": h, "width": w, "pool_h": int(pool[0]), "pool_w": int(pool[1]), "patch": patch,
          "n_input": cfg.n_input, "hidden": cfg.hidden,
          "k": cfg.k, "n_units": n_units, "window": min(int(cfg.uniqueness_window), n_units),
+         "readout": readouts[readout],
          "sqrt_frac": SQRT_FRAC, "state_frac": STATE_FRAC, "ring_frac": RING_FRAC}
     if patch:
         n = patch * patch

@@ -18,6 +18,7 @@ import torch
 
 from torchseq.export.int_format import (
     INPUT_ZSCORE,
+    READOUT_INTERPOLATE,
     X_MAX,
     IntegerFormatError,
     IntegerModel,
@@ -171,6 +172,33 @@ def input_stage(frames: np.ndarray, p: dict) -> np.ndarray:
     return x.transpose(2, 3, 0, 4, 1).reshape(b, h * w)
 
 
+def within_unit(a: np.ndarray, unit: np.ndarray, spans: np.ndarray) -> np.ndarray:
+    """The interpolating read-out of :func:`torchseq.export.int_step.within_unit` in NumPy.
+
+    ``min(f + floor(L (a0 - am) / D), l - 1)`` for a winner with both neighbours and
+    ``D = 2 a0 - am - ap > 0``, else ``f + L // 2`` (int64 floor division: exact).
+
+    Args:
+        a: ``(B, N)`` int32 activity.
+        unit: ``(B,)`` winners.
+        spans: ``(N, 2)`` int64 ``[first, last)`` of each unit.
+
+    Returns:
+        ``(B,)`` int64 reference frame.
+    """
+    n = a.shape[1]
+    rows = np.arange(a.shape[0])
+    a0 = a[rows, unit].astype(np.int64)
+    am = a[rows, np.maximum(unit - 1, 0)].astype(np.int64)
+    ap = a[rows, np.minimum(unit + 1, n - 1)].astype(np.int64)
+    den = 2 * a0 - am - ap
+    inner = (unit > 0) & (unit < n - 1) & (den > 0)
+    first, last = spans[unit, 0], spans[unit, 1]
+    length = last - first
+    quot = np.where(inner, length * (a0 - am), length) // np.where(inner, den, 2)
+    return np.minimum(first + quot, last - 1)
+
+
 # binary k-WTA of int32 (B, M): the k largest, ties to the lowest indices (NumPy only)
 kwta_int = kwta_numpy
 
@@ -216,6 +244,7 @@ class IntegerRuntime:
         self.ring_cols = a["ring.cols"].astype(np.int64)
         self.ring_values = a["ring.values"].astype(np.int64)
         self.unit_centre = a["unit_centre"].astype(np.int64)
+        self.unit_to_ref = a["unit_to_ref"].astype(np.int64)
 
     @property
     def n_units(self) -> int:
@@ -279,6 +308,8 @@ class IntegerRuntime:
         best = a[np.arange(a.shape[0]), unit].astype(np.int64)
         rival = np.abs(np.arange(self.n_units)[None, :] - unit[:, None]) > self.params["window"]
         second = np.where(rival, a, a.min(1, keepdims=True)).max(1).astype(np.int64)
+        if self.params["readout"] == READOUT_INTERPOLATE:
+            return within_unit(a, unit, self.unit_to_ref), best - second
         return self.unit_centre[unit], best - second
 
     def step(self, frames: np.ndarray,

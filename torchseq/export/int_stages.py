@@ -19,6 +19,7 @@ import numpy as np
 from torchseq.quantise import fixed_point  # the writer's own rounding (HALF_AWAY)
 
 INPUT_RAW, INPUT_ZSCORE = 0, 1
+READOUT_CENTRE, READOUT_INTERPOLATE = 0, 1  # the read-out parameter (format version 2)
 X_MAX = 2047  # L1 activity and L1 weights are 12-bit: |x|, |w| <= 2047 (int32 sums)
 MAX_FAN_IN = (2**31 - 1) // (X_MAX * X_MAX)  # 512: an L1 sum cannot overflow int32
 MAX_SIZE = 2**15 - 1  # n_input, hidden and n_units (uint16 indices, int32 sums)
@@ -305,11 +306,15 @@ class ReadoutStage:
         unit_to_ref: ``(N, 2)`` int32 first and one-past-last reference frame of each unit,
             ``0 <= first <= unit_centre < last``.
         window: units around the winner the margin ignores, ``0..32767``.
+        readout: ``READOUT_CENTRE`` (0): the winner's ``unit_centre``;
+            ``READOUT_INTERPOLATE`` (1): the frame within the winner's span read from its
+            neighbours' activity (docs/integer_format.md, step 8; format version 2).
     """
 
     unit_centre: np.ndarray
     unit_to_ref: np.ndarray
     window: int
+    readout: int = READOUT_CENTRE
 
     def __post_init__(self) -> None:
         shape = np.shape(self.unit_centre)
@@ -322,5 +327,8 @@ class ReadoutStage:
             _fail("section unit_to_ref: spans must satisfy 0 <= first < last")
         if (centre < first).any() or (centre >= last).any():
             _fail("section unit_centre: each centre must lie in its unit's span")
+        # interpolate: (last - first) * (a0 - am) < 2**31 * 2**32 = 2**63 (int32 activity),
+        # so the one product of the read-out fits int64 with no further bound
         _frozen(self, unit_centre=centre, unit_to_ref=spans,
-                window=integer("window", self.window, 0, MAX_SIZE))
+                window=integer("window", self.window, 0, MAX_SIZE),
+                readout=integer("readout", self.readout, READOUT_CENTRE, READOUT_INTERPOLATE))

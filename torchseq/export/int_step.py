@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchseq.export.int_format import INPUT_ZSCORE, X_MAX, IntegerModel
+from torchseq.export.int_format import INPUT_ZSCORE, READOUT_INTERPOLATE, X_MAX, IntegerModel
 
 INT32_MAX = 2**31 - 1
 ISQRT_BITS = 31  # isqrt handles 0 <= v < 2**62; result bits 30..0
@@ -89,6 +89,40 @@ def isqrt(v: torch.Tensor, bits: int = ISQRT_BITS) -> torch.Tensor:
     r = torch.sqrt(v.to(torch.float64)).floor().to(torch.int64).clamp_max(INT32_MAX)
     r = r - (r * r > v).long()
     return r + ((r + 1) * (r + 1) <= v).long()
+
+
+def within_unit(act: torch.Tensor, unit: torch.Tensor, spans: torch.Tensor) -> torch.Tensor:
+    """The interpolating read-out (step 8): the frame within each winner's span, exactly.
+
+    With ``a0, am, ap`` the winner's and its neighbours' activity, ``D = 2 a0 - am - ap``
+    and the span ``[f, l)``, ``L = l - f``: ``reference = min(f + floor(L (a0 - am) / D),
+    l - 1)`` when the winner has both neighbours and ``D > 0``, else ``f + floor(L / 2)``.
+    This is the float read-out ``floor((f + l - 1) / 2 + x L + 1/2)`` with the parabola's
+    vertex ``x = (am - ap) / (2 (am - 2 a0 + ap))`` as an exact rational. ``0 <= a0 - am <=
+    D`` (``a0`` is the maximum) keeps the quotient in ``0..L`` and non-negative, and
+    ``L (a0 - am) < 2**31 * 2**32`` fits int64.
+
+    Args:
+        act: ``(B, N)`` int32 activity.
+        unit: ``(B,)`` int64 winner (first index of the maximum).
+        spans: ``(N, 2)`` int64 first and one-past-last frame of each unit.
+
+    Returns:
+        ``(B,)`` int64 reference frame.
+    """
+    n = act.shape[1]
+
+    def at(index: torch.Tensor) -> torch.Tensor:
+        return act.gather(1, index.clamp(0, n - 1)[:, None])[:, 0].to(torch.int64)
+
+    a0, am, ap = at(unit), at(unit - 1), at(unit + 1)
+    den = 2 * a0 - am - ap
+    inner = (unit > 0) & (unit < n - 1) & (den > 0)
+    first, last = spans[unit, 0], spans[unit, 1]
+    length = last - first
+    num = torch.where(inner, length * (a0 - am), length)
+    quot = _TruncDiv.apply(num, torch.where(inner, den, 2))  # non-negative: the floor
+    return torch.minimum(first + quot, last - 1)
 
 
 def _at_least(x: torch.Tensor, v: int) -> torch.Tensor:
@@ -212,6 +246,7 @@ class IntegerStepModule(nn.Module):
         buf("ring_cols", a["ring.cols"])
         buf("ring_values", a["ring.values"])
         buf("unit_centre", a["unit_centre"])
+        buf("unit_to_ref", a["unit_to_ref"])
         buf("units", np.arange(p["n_units"]))
 
     def input_stage(self, frames: torch.Tensor) -> torch.Tensor:
@@ -271,6 +306,8 @@ class IntegerStepModule(nn.Module):
         rival = (self.units[None, :] - unit[:, None]).abs() > self.params["window"]
         floor = act.min(1, keepdim=True).values
         second = torch.where(rival, act, floor).max(1, keepdim=True).values.to(torch.int64)
+        if self.params["readout"] == READOUT_INTERPOLATE:
+            return within_unit(act, unit, self.unit_to_ref), (best - second).squeeze(1)
         return self.unit_centre[unit], (best - second).squeeze(1)
 
     def forward(self, frames: torch.Tensor,
