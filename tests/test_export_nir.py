@@ -280,6 +280,19 @@ class TestBudget:
         assert b["weight_grids"] == {"l1": "int8", "l3": "float", "levels": "int8_per_row",
                                      "shift": "float"}
 
+    def test_no_identity_for_populations_joined_through_linear_nodes(self, tiny_file,
+                                                                       monkeypatch):
+        # _effective built np.eye(population) on every path although only a direct edge
+        # needs it: 18.8 GiB for the default 555-unit ring (export of a 689-frame event
+        # route was OOM-killed)
+        want = budget(tiny_file[2])
+
+        def no_eye(*args, **kwargs):
+            raise AssertionError("np.eye called")
+
+        monkeypatch.setattr(np, "eye", no_eye)
+        assert budget(tiny_file[2]) == want
+
     def test_weight_grid(self):
         from torchseq.export.hardware_budget import weight_grid
 

@@ -55,9 +55,11 @@ def _effective(graph) -> dict[tuple[str, str], np.ndarray]:
             node, w = stack.pop()
             n = graph.nodes[node]
             if node in pops:
-                eye = np.eye(int(np.prod(n.output_type["output"])), dtype=np.float32)
+                # the identity only for a direct edge: the ring (555 units x 128 levels)
+                # would make it 71,040^2 floats (18.8 GiB) on every path
+                add = w if w is not None else np.eye(int(np.prod(n.output_type["output"])),
+                                                     dtype=np.float32)
                 acc = out.get((src, node))
-                add = w if w is not None else eye
                 out[(src, node)] = add if acc is None else acc + add
             elif isinstance(n, (nir.Linear, nir.Affine)):
                 ww = n.weight.astype(np.float32)
