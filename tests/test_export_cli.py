@@ -135,13 +135,32 @@ def test_a_failed_check_exits_1(checkpoint, tmp_path, monkeypatch, capsys):
     import torchseq.export.validate as validate
 
     monkeypatch.setattr(validate, "MIN_AGREEMENT", 1.01)  # no variant can reach it
+    monkeypatch.setattr(validate, "MIN_UINT8_AGREEMENT", 1.01)
     code = main([str(checkpoint / "small.pt"), "--out", str(tmp_path), "--query",
                  str(checkpoint / "query.npy")])
     assert code == 1
     report = json.loads((tmp_path / "validation.json").read_text())
     assert report["passed"] is False and report["checks"]["integer_agreement"] is False
     assert report["checks"]["integer_onnx_bit_exact"] is True and "recall_at_1" not in report
-    assert "FAIL: float_onnx_agreement, integer_agreement" in capsys.readouterr().out
+    assert ("FAIL: float_onnx_agreement, integer_agreement, uint8_input_agreement"
+            in capsys.readouterr().out)
+
+
+def test_frames_that_are_not_grey_levels_fail_the_uint8_check(checkpoint, tmp_path, capsys):
+    # event frames are window means (about 0..0.3), not grey levels: rounding them to the
+    # integer device's uint8 input erases them, which used to pass silently (integer vs
+    # PyTorch compared on the same erased frames)
+    query = np.load(checkpoint / "query.npy") / 255.0
+    np.save(tmp_path / "q01.npy", query)
+    code = main([str(checkpoint / "small.pt"), "--out", str(tmp_path / "out"), "--query",
+                 str(tmp_path / "q01.npy")])
+    assert code == 1
+    report = json.loads((tmp_path / "out" / "validation.json").read_text())
+    assert report["checks"]["uint8_input_agreement"] is False
+    assert report["checks"]["integer_agreement"] is True  # the erased frames agree
+    out = capsys.readouterr().out
+    assert "warning: the integer device's uint8 input changes" in out
+    assert "not grey levels" in out and "FAIL: uint8_input_agreement" in out
 
 
 def test_corrupt_checkpoint_fails_with_one_line(checkpoint, tmp_path):

@@ -280,6 +280,40 @@ class TestBudget:
         assert b["weight_grids"] == {"l1": "int8", "l3": "float", "levels": "int8_per_row",
                                      "shift": "float"}
 
+    def test_no_identity_for_populations_joined_through_linear_nodes(self, tiny_file,
+                                                                       monkeypatch):
+        # _effective built np.eye(population) on every path although only a direct edge
+        # needs it: 18.8 GiB for the default 555-unit ring (export of a 689-frame event
+        # route was OOM-killed)
+        want = budget(tiny_file[2])
+
+        def no_eye(*args, **kwargs):
+            raise AssertionError("np.eye called")
+
+        monkeypatch.setattr(np, "eye", no_eye)
+        assert budget(tiny_file[2]) == want
+
+    def test_row_blocks_give_the_whole_product(self, tiny_file, monkeypatch):
+        from functools import partial
+
+        from torchseq.export import hardware_budget as hb
+
+        want = budget(tiny_file[2])
+        monkeypatch.setattr(hb, "_row_blocks", partial(hb._row_blocks.func if isinstance(
+            hb._row_blocks, partial) else hb._row_blocks, max_elements=7))
+        assert budget(tiny_file[2]) == want  # one row per block
+        monkeypatch.undo()
+        rng = np.random.default_rng(0)
+        top, rest = rng.integers(-1, 2, (9, 4)).astype(np.float32), rng.integers(-3, 4, (4, 6))
+        paths = [(top, rest.astype(np.float32), 9), (None, None, 9)]  # + a direct edge
+        got = np.concatenate([b for _, b in hb._row_blocks([paths[0]], max_elements=10)])
+        np.testing.assert_array_equal(got, top @ rest.astype(np.float32))
+        top9 = rng.random((9, 9)).astype(np.float32)
+        blocks = list(hb._row_blocks([(top9, None, 9), (None, None, 9)], max_elements=20))
+        assert [r0 for r0, _ in blocks] == [0, 2, 4, 6, 8]
+        np.testing.assert_array_equal(np.concatenate([b for _, b in blocks]),
+                                      top9 + np.eye(9, dtype=np.float32))
+
     def test_weight_grid(self):
         from torchseq.export.hardware_budget import weight_grid
 

@@ -66,3 +66,15 @@ def test_ds_odd_rounds_up_and_needs_more_queries():
         engine.match_descriptors(desc(30), desc(10))
     out = engine.match_descriptors(desc(30), desc(11))
     assert (out.matches.reference >= 0).sum() <= 1 and out.matches.reference[0] == -1
+
+
+def test_a_config_that_is_not_a_seqslamconfig_is_named():
+    # StreamingSeqSLAM(config, reference) (arguments swapped) used to end in torch's
+    # "Boolean value of Tensor with more than one value is ambiguous"
+    from torchseq.seqslam import StreamingSeqSLAM
+
+    frames = torch.rand(20, 32, 64)
+    with pytest.raises(TypeError, match="config must be a SeqSLAMConfig or None, got Tensor"):
+        SeqSLAM(frames)
+    with pytest.raises(TypeError, match="reference first"):
+        StreamingSeqSLAM(SeqSLAMConfig(), frames)

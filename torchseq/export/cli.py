@@ -238,6 +238,7 @@ def summary_lines(out_dir) -> list[str]:
             lines.append(f"nir_{name}: " + (f"agreement {c['agreement']}, recall_at_1 "
                                             f"{c['recall_at_1']}" if "agreement" in c
                                             else "; ".join(f"{k}: {v}" for k, v in c.items())))
+    lines += [f"warning: {w}" for w in report.get("warnings", [])]
     failed = [k for k, v in report["checks"].items() if not v]
     lines.append("PASS" if report["passed"] else f"FAIL: {', '.join(failed)}")
     return lines

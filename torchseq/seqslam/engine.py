@@ -70,6 +70,10 @@ class SeqSLAM(nn.Module):
                  device: torch.device | str | None = None,
                  dtype: torch.dtype | None = None) -> None:
         super().__init__()
+        if config is not None and not isinstance(config, SeqSLAMConfig):
+            raise TypeError(f"config must be a SeqSLAMConfig or None, got "
+                            f"{type(config).__name__} (StreamingSeqSLAM takes the reference "
+                            f"first: StreamingSeqSLAM(reference, config))")
         self.config = (config or SeqSLAMConfig()).validate()
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.dtype = dtype
