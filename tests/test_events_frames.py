@@ -378,3 +378,20 @@ def test_frame_pixel_budget_boundary(monkeypatch):
     np.testing.assert_allclose(accumulate(ev, (12, 8), downsample=(4, 6)).numpy(),
                                loop_pool(loop_frames(ev, 12, 8, window_us=10_000), 4, 6),
                                rtol=0, atol=1e-6)
+
+
+def test_a_far_time_anchor_warns_about_its_empty_leading_windows():
+    import warnings
+
+    ev = sample(50, 12, 8, span=10_000)
+    ev["t"] += 10_000_000  # the recording starts 10 s after sensor time zero
+    with pytest.warns(UserWarning, match=r"1,000 of the 1,00[12] windows \(10.0 s\) .* empty"):
+        f = accumulate(ev, (12, 8), window_us=10_000, anchor="zero")
+    assert f.shape[0] in (1001, 1002) and f[:1000].abs().sum() == 0 and f[1000:].abs().sum() > 0
+    with pytest.warns(UserWarning, match="100 of the 10[12] windows"):  # the bound itself
+        accumulate(ev, (12, 8), window_us=10_000, anchor=10_000_000 - 100 * 10_000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning: the first event, or few empty windows
+        accumulate(ev, (12, 8), window_us=10_000)
+        accumulate(ev, (12, 8), window_us=10_000, anchor=10_000_000 - 99 * 10_000)
+        accumulate(ev, (12, 8), event_count=10, anchor="zero")

@@ -18,6 +18,7 @@ other devices (CUDA) the same arithmetic runs in torch on the device.
 from __future__ import annotations
 
 import numbers
+import warnings
 
 import numpy as np
 import torch
@@ -31,6 +32,9 @@ MAX_FRAME_ELEMENTS = 2**32  # bound on T * C * H * W of one accumulation (16 GiB
 # bound on C * H * W of one frame as built (64 MiB float32): 16x the largest event sensors
 # made (1280x960, two channels); a header declaring a 32768x32768 sensor is refused
 MAX_FRAME_PIXELS = 2**24
+# a time anchor that leaves at least this many empty windows before the first event, and
+# more empty windows than full ones, is warned about (e.g. anchor='zero' on a late recording)
+EMPTY_LEAD_WARN = 100
 
 
 def window_origin(t: np.ndarray, anchor: str | int = "first") -> int:
@@ -195,6 +199,13 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
         raise ValueError(
             f"{n_frames} windows of {channels}x{out_h}x{out_w} would need {size:,} elements "
             f"(> {MAX_FRAME_ELEMENTS:,}): use a later anchor, longer windows or downsample")
+    if window_us is not None and origin < t_first:
+        empty = (t_first - origin) // window_us  # windows that end before the first event
+        if empty >= EMPTY_LEAD_WARN and 2 * empty > n_frames:
+            warnings.warn(f"anchor {anchor!r}: {empty:,} of the {n_frames:,} windows "
+                          f"({(t_first - origin) / 1e6:.1f} s) end before the first event (at "
+                          f"{t_first} us) and are empty frames; anchor='first' starts at the "
+                          f"first event", stacklevel=2)
     _, kernel = _kernel_for(dev)
     frames = kernel(events, origin, window_us, event_count, n_frames, geometry,
                     mode == "signed", acc, dev, ordered)
