@@ -462,3 +462,30 @@ def test_two_channel_frames_squeezed_by_the_image_size_warn(tmp_path, capsys):
     code, err = run_inprocess("eval", capsys, *common, "--image-size", "8x16",
                               "--out", str(tmp_path / "ok"))
     assert code == 0 and "halves change shape" not in err, err  # same shape: no warning
+
+
+def test_time_unit_flag_reads_epoch_seconds_csv(tmp_path, capsys):
+    # a CSV of Unix-epoch seconds: refused without a unit, read with --time-unit s
+    rng = np.random.default_rng(0)
+    n = 4000
+    t = 1_700_000_000.0 + np.sort(rng.random(n)) * 2.0
+    rows = "".join(f"{a:.6f},{b},{c},{d}\n" for a, b, c, d in zip(
+        t, rng.integers(0, 16, n), rng.integers(0, 16, n), rng.integers(0, 2, n)))
+    path = tmp_path / "e.csv"
+    path.write_text("t,x,y,p\n" + rows)
+    common = ["--engine", "seqslam", "--reference", str(path), "--query", str(path),
+              "--window-ms", "100", "--ds", "4", "--image-size", "16x16", "--patch-size", "4",
+              "--no-tensorboard"]
+    code, err = run_inprocess("eval", capsys, *common, "--out", str(tmp_path / "a"))
+    assert code == 2 and "--time-unit s" in err
+    code, err = run_inprocess("eval", capsys, *common, "--time-unit", "s",
+                              "--out", str(tmp_path / "b"))
+    assert code == 0, err
+    m = json.loads((tmp_path / "b" / "metrics.json").read_text())["seqslam"]
+    assert m["n_queries"] == 20  # 2 s of events in 100 ms windows
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    code, err = run_inprocess("eval", capsys, "--reference", str(aedat), "--query", str(aedat),
+                              "--time-unit", "s", "--out", str(tmp_path / "c"))
+    assert code == 2 and "time_unit" in err and "do not apply" in err
+    code, err = run_inprocess("eval", capsys, "--time-unit", "h")
+    assert code == 2 and "--time-unit must be s, ms, us or ns" in err

@@ -215,7 +215,8 @@ def event_options(window_ms: float, event_count: int | None,
                   sensor_size: str | None = None, mode: str = "count",
                   evt3_time: str = "spec", truncated: str = "error", t_start: float = 0.0,
                   duration: float | None = None, hot_pixel: float | None = None,
-                  refractory_us: int | None = None) -> EventFrameOptions:
+                  refractory_us: int | None = None, time_unit: str | None = None
+                  ) -> EventFrameOptions:
     """Check and bundle the event-accumulation flags.
 
     ``--event-mode two-channel`` (or ``two_channel``) puts the OFF and ON counts side by side
@@ -226,6 +227,8 @@ def event_options(window_ms: float, event_count: int | None,
         raise UsageError(f"--evt3-time must be spec or carry, got {evt3_time!r}")
     if truncated not in ("error", "drop"):
         raise UsageError(f"--truncated must be error or drop, got {truncated!r}")
+    if time_unit not in (None, "s", "ms", "us", "ns"):
+        raise UsageError(f"--time-unit must be s, ms, us or ns, got {time_unit!r}")
     if str(mode).replace("_", "-") not in EVENT_MODES:
         raise UsageError(f"--event-mode must be one of {', '.join(EVENT_MODES)}, got {mode!r}")
     if not (math.isfinite(window_ms) and 0 < window_ms <= MAX_WINDOW_MS):
@@ -247,7 +250,7 @@ def event_options(window_ms: float, event_count: int | None,
                              mode=str(mode).replace("-", "_"), evt3_time=evt3_time,
                              truncated=truncated, start_ms=float(t_start),
                              duration_ms=duration, hot_pixel=hot_pixel,
-                             refractory_us=refractory_us)
+                             refractory_us=refractory_us, time_unit=time_unit)
 
 
 @dataclasses.dataclass
@@ -269,6 +272,7 @@ class EventFlags:
     duration: float | None = None
     hot_pixel: float | None = None
     refractory_us: int | None = None
+    time_unit: str | None = None
 
 
 EVENT_HELP = {
@@ -288,6 +292,8 @@ EVENT_HELP = {
                  "pixel (default: off)",
     "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
     "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "time_unit": "CSV, HDF5 and Parquet event files: the time column's unit, s, ms, us or ns "
+                 "(default: integers are us, fractions follow the float-time rule)",
     "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
                  "incomplete record",
 }
@@ -298,7 +304,7 @@ def event_frame_options(cfg: EventFlags) -> EventFrameOptions:
     return event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
                          cfg.window_anchor, cfg.sensor_size, cfg.event_mode, cfg.evt3_time,
                          cfg.truncated, cfg.t_start, cfg.duration, cfg.hot_pixel,
-                         cfg.refractory_us)
+                         cfg.refractory_us, cfg.time_unit)
 
 
 def event_flags_set(cfg: EventFlags) -> list[str]:

@@ -61,6 +61,9 @@ class EventFrameOptions:
             :func:`torchseq.events.prophesee.decode_evt3`).
         truncated: a recording cut short (AEDAT 2.0/4, ``.raw``): ``"error"`` or ``"drop"``
             its last incomplete record.
+        time_unit: the time column's unit in CSV, HDF5 and Parquet files (``"s"``, ``"ms"``,
+            ``"us"``, ``"ns"``); None: integers are microseconds, fractions follow the
+            float-time rule (:mod:`torchseq.events.times`).
     """
 
     window_ms: float = 10.0
@@ -75,6 +78,7 @@ class EventFrameOptions:
     duration_ms: float | None = None
     hot_pixel: float | None = None
     refractory_us: int | None = None
+    time_unit: str | None = None
 
     def __post_init__(self) -> None:
         if self.sensor_size is not None:  # tonic's (W, H, P): the polarity count is not a size
@@ -405,6 +409,8 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
         kwargs["truncated"] = opts.truncated
     if opts.anchor != "first":
         kwargs["anchor"] = opts.anchor
+    if opts.time_unit is not None:  # a format without a time column refuses it by name
+        kwargs["time_unit"] = opts.time_unit
     try:
         return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
                                  frame_size=opts.frame_size, **kwargs)

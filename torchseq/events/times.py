@@ -65,8 +65,9 @@ def float_time_unit(t: np.ndarray, name: str = "events") -> str:
         return "s"
     raise EventFormatError(
         f"{name}: float timestamps {t.min():g}..{t.max():g} have fractional parts but are too "
-        f"large to be seconds after sensor time zero: declare the unit (time_unit='s' for an "
-        f"epoch in seconds) or convert them to int64 microseconds")
+        f"large to be seconds after sensor time zero: declare the unit (time_unit='s', or "
+        f"--time-unit s on the command line, for an epoch in seconds) or convert them to int64 "
+        f"microseconds")
 
 
 def float_times_to_us(t: np.ndarray, name: str = "events", unit: str | None = None
