@@ -18,6 +18,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from torchseq.events.times import UNITS_PER_US
 from torchseq.sources import (
     EventFrameOptions,
     FrameSelection,
@@ -227,7 +228,7 @@ def event_options(window_ms: float, event_count: int | None,
         raise UsageError(f"--evt3-time must be spec or carry, got {evt3_time!r}")
     if truncated not in ("error", "drop"):
         raise UsageError(f"--truncated must be error or drop, got {truncated!r}")
-    if time_unit not in (None, "s", "ms", "us", "ns"):
+    if time_unit is not None and time_unit not in UNITS_PER_US:  # the readers' units
         raise UsageError(f"--time-unit must be s, ms, us or ns, got {time_unit!r}")
     if str(mode).replace("_", "-") not in EVENT_MODES:
         raise UsageError(f"--event-mode must be one of {', '.join(EVENT_MODES)}, got {mode!r}")
