@@ -94,7 +94,7 @@ def oracle_candidate_rule(enh, cand, ds, vmin, vmax, rwindow, top_k, report, flo
     return match, uniq, ranked
 
 
-CONFIGS = [{}, dict(match_at="trajectory"), dict(metric="l2"), dict(enhance_window=0),
+CONFIGS = [{}, dict(match_at="start"), dict(metric="l2"), dict(enhance_window=0),
            dict(ds=5, vmin=0.5, vmax=1.5, rwindow=3), dict(speed_ratio=0.9, enhance_window=5)]
 
 
@@ -125,9 +125,10 @@ def test_all_candidates_reproduce_exact_mode(over, dtype, device):
 def test_all_candidates_equal_the_loop_oracle():
     rng = np.random.default_rng(4)
     ref, query = route(rng, 40, 36, 1.1)
-    got = SeqSLAM(SeqSLAMConfig(candidates=100)).match_descriptors(
-        torch.tensor(ref), torch.tensor(query))
-    want = oracle_seqslam(oracle_enhance(oracle_difference(ref, query)))
+    config = SeqSLAMConfig(candidates=100)
+    got = SeqSLAM(config).match_descriptors(torch.tensor(ref), torch.tensor(query))
+    want = oracle_seqslam(oracle_enhance(oracle_difference(ref, query)),
+                          match_at=config.match_rule)
     np.testing.assert_array_equal(got.matches.reference, want[0])
     np.testing.assert_array_equal(got.ranked, want[3])
     np.testing.assert_allclose(got.matches.score, want[2], rtol=1e-10, atol=1e-10)
