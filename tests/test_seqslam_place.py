@@ -70,3 +70,24 @@ def test_default_has_no_systematic_offset_on_the_demo(speed):
     off = got[ok] - np.asarray(d.query_position)[ok]
     assert abs(np.median(off)) <= 0.5
     assert np.mean(np.abs(off) <= 2) >= 0.98
+
+
+def test_experiment_reports_both_rules():
+    """experiments/neural_quality.py's offsets tables take SeqSLAM's places under both rules
+    from one run: the default's are the engine's matches, and at 0.8x (best velocity 0.8,
+    m = 8, or 0.9 on a few queries) start + ds/2 sits 5 - floor(m / 2) = 1 frame further on."""
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "experiments" / "neural_quality.py"
+    spec = importlib.util.spec_from_file_location("neural_quality_for_place_test", path)
+    nq = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(nq)
+    d = make_demo(speed=0.8)
+    places = nq.seqslam_places(d.reference, d.query)
+    assert list(places) == ["SeqSLAM (trajectory, default)", "SeqSLAM (start + ds/2)"]
+    default = places["SeqSLAM (trajectory, default)"]
+    assert np.array_equal(default, SeqSLAM().match(d.reference, d.query).matches.reference)
+    start = places["SeqSLAM (start + ds/2)"]
+    ok = default >= 0
+    assert np.array_equal(ok, start >= 0)
+    assert np.mean(start[ok] - default[ok] == 1) >= 0.9  # measured 1.0 (m = 8: 230, m = 9: 9)
