@@ -165,12 +165,51 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def rank_cost(n: int = 3000, repeats: int = 3) -> str:
+    """Seconds of ``search`` (both rules, one thread) listing each ranked place once against
+    the same search listing the top-K starts as they come (places may repeat)."""
+    import importlib
+    import time
+
+    search_module = importlib.import_module("torchseq.seqslam.search")  # the module
+
+    torch.set_num_threads(1)
+    e = torch.rand(n, n, generator=torch.Generator().manual_seed(0))
+    speeds = SeqSLAM().speeds
+    distinct = search_module._first_distinct
+
+    def as_they_come(place, k):
+        return place[:, :k], torch.full((len(place),), k)
+
+    lines = [f"| {n} x {n}, one thread | each place once s | top-K starts s | ratio |",
+             "|---|---:|---:|---:|"]
+    for rule in ("trajectory", "start"):
+        t = {}
+        for label, fn in (("once", distinct), ("starts", as_they_come)):
+            search_module._first_distinct = fn
+            best = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                search(e, 10, speeds, match_at=rule)
+                best.append(time.perf_counter() - t0)
+            t[label] = min(best)
+        search_module._first_distinct = distinct
+        lines.append(f"| {rule} | {t['once']:.2f} | {t['starts']:.2f} | "
+                     f"{t['once'] / t['starts']:.2f} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--long", type=int, default=3000, help="long demo route (0: skip)")
     p.add_argument("--only", default="", help="comma-separated route name prefixes")
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--rank-cost", action="store_true",
+                   help="only: search time with ranked places listed once vs as they come")
     args = p.parse_args()
+    if args.rank_cost:
+        print(rank_cost())
+        return
     rows = []
     for name, route in routes(args.long).items():
         if args.only and not any(name.startswith(x) for x in args.only.split(",")):

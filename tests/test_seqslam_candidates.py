@@ -13,6 +13,7 @@ from seqslam_oracle import (
     oracle_enhance,
     oracle_seqslam,
     oracle_velocities,
+    rank_places,
 )
 
 from torchseq.ground_truth import load_ground_truth
@@ -84,10 +85,7 @@ def oracle_candidate_rule(enh, cand, ds, vmin, vmax, rwindow, top_k, report, flo
             return min(x + off, n_ref - 1)
 
         s = int(np.argmin(score))
-        order = np.argsort(score, kind="stable")[:top_k]
-        for r, x in enumerate(order):
-            if np.isfinite(score[x]):
-                ranked[out, r] = place(x)
+        ranked[out] = rank_places(score, place, top_k)
         if np.isfinite(score[s]):
             match[out] = place(s)
             uniq[out] = _uniqueness(score, s, rwindow)
