@@ -36,7 +36,8 @@ class SeqSLAMConfig:
             ``"trajectory"`` = start + floor(v_best ds/2), the row the best trajectory
             actually crosses at the centre column (its step ``k = ds/2`` of ``0..ds``), or
             ``"start"`` = start + ds/2 (OpenSeqSLAM; exact only at velocity 1, so a query
-            at 0.8x speed is reported 1.4 frames ahead and one at 1.3x 0.6 behind).
+            at 0.8x speed is reported 1.4 frames ahead and one at 1.3x 0.6 behind, demo
+            medians).
             None (default): ``"trajectory"``; the :meth:`openseqslam` preset sets
             ``"start"``. The rule moves only the reported place (and the ranked
             candidates' places), never the best start or its uniqueness; measured in
