@@ -178,8 +178,10 @@ def run_one(impl: str, n: int) -> dict:
     reset_peak()
     base = rss_mb()
     t0 = time.perf_counter()
-    if impl == "engine":
-        result = SeqSLAM().match_descriptors(torch.from_numpy(ref), torch.from_numpy(query))
+    if impl == "engine":  # OpenSeqSLAM's start + ds/2, the rule both baselines implement
+        from torchseq.seqslam import SeqSLAMConfig
+        result = SeqSLAM(SeqSLAMConfig(match_at="start")).match_descriptors(
+            torch.from_numpy(ref), torch.from_numpy(query))
         times = dict(result.seconds)
         match = result.matches.reference.numpy()
     elif impl == "numpy":

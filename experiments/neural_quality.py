@@ -186,8 +186,8 @@ def content_alignment(ref: torch.Tensor, query: torch.Tensor, size=(24, 32), spa
 
 def offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[dict]]:
     """Offsets of both engines' decisions: LENS and corridor against their query index (the
-    centre of their ground truth), the demo against its exact query positions."""
-    from torchseq.seqslam import SeqSLAM
+    centre of their ground truth), the demo against its exact query positions; SeqSLAM under
+    each ``match_at`` rule."""
     rows, align = [], []
     cases = {}
     for name in ("lens", "corridor"):
@@ -204,15 +204,35 @@ def offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[dict]]:
             model.fit(ref, log=False)
             off.append(model.run(query).matches.reference.numpy() - truth)
         rows.append(offset_row(name, f"neural ({seeds} seeds)", np.concatenate(off)))
-        got = SeqSLAM().match(ref, query).matches.reference.numpy()
-        ok = got >= 0
-        rows.append(offset_row(name, "SeqSLAM", got[ok] - truth[ok], int((~ok).sum())))
+        for label, got in seqslam_places(ref, query).items():
+            ok = got >= 0
+            rows.append(offset_row(name, label, got[ok] - truth[ok], int((~ok).sum())))
         if name in ("lens", "corridor"):
             a = content_alignment(ref, query)
             align.append({"data": name, **{k: f"{v:.4f}" for k, v in a.items()},
                           "best": min(a, key=a.get)})
-        print(rows[-2], rows[-1], flush=True)
+        print(*rows[-3:], sep="\n", flush=True)
     return rows, align
+
+
+def seqslam_places(ref: torch.Tensor, query: torch.Tensor) -> dict:
+    """Classic SeqSLAM's decisions under each ``match_at`` rule (the default config
+    otherwise; one engine run, both rules read from its enhanced matrix by the engine's own
+    search): ``{"SeqSLAM (trajectory, default)": (Q,), "SeqSLAM (start + ds/2)": (Q,)}``."""
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+    from torchseq.seqslam.search import search
+    cfg = replace(SeqSLAMConfig(), keep_matrices=True)
+    engine = SeqSLAM(cfg)
+    res = engine.match(ref, query)
+    out = {}
+    for rule, label in (("trajectory", "SeqSLAM (trajectory, default)"),
+                        ("start", "SeqSLAM (start + ds/2)")):
+        got = search(res.enhanced, cfg.sequence_length, engine.speeds, cfg.rwindow, cfg.top_k,
+                     cfg.max_chunk_elements, match_at=rule)[0].numpy()
+        if rule == cfg.match_rule and not np.array_equal(got, res.matches.reference.numpy()):
+            raise RuntimeError("search on the enhanced matrix disagrees with the engine")
+        out[label] = got
+    return out
 
 
 def frame_differences(ref: torch.Tensor, query: torch.Tensor, size=(24, 32),
@@ -310,7 +330,6 @@ def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[d
     (argmax of z, no ring: what the ring adds) and SeqSLAM's decision; on LENS the same
     against content measured with other frames and diagonals; then the readout
     experiment (current evidence added at read-out) on LENS, corridor and demo speeds."""
-    from torchseq.seqslam import SeqSLAM
     cases = {}
     for name in ("lens", "corridor"):
         if name in data:
@@ -326,7 +345,8 @@ def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[d
     rows, robust, refine = [], [], {k: {"readout": k} for k in REFINE}
     for name, (ref, query, truth, gt) in cases.items():
         gt = np.asarray(gt, bool)
-        ss = SeqSLAM().match(ref, query).matches.reference.numpy()
+        places = seqslam_places(ref, query)
+        ss = places["SeqSLAM (trajectory, default)"]
         ok = ss >= 0
         content = None
         if name in ("lens", "corridor"):
@@ -363,8 +383,10 @@ def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[d
         if content is not None:
             rows.append(offset_row(name, f"neural ({seeds} seeds)", g - np.tile(content, seeds)))
             rows[-1]["against"] = "content"
-            rows.append(offset_row(name, "SeqSLAM", (ss - content)[ok], int((~ok).sum())))
-            rows[-1]["against"] = "content"
+            for label, got in places.items():
+                sel = got >= 0
+                rows.append(offset_row(name, label, (got - content)[sel], int((~sel).sum())))
+                rows[-1]["against"] = "content"
         if name != "lens+-2":
             rows.append(offset_row(name, f"neural ({seeds} seeds)", g - o))
             rows[-1]["against"] = "own evidence (no ring)"

@@ -82,6 +82,18 @@ def _uniqueness(score: np.ndarray, s: int, rwindow: int) -> float:
     return float(score[s] / second)
 
 
+def rank_places(score: np.ndarray, report, top_k: int) -> np.ndarray:
+    """Starts in a stable sort by score, each reporting ``report(start)``; a place already
+    listed is skipped (its best start listed it); the first ``top_k`` places, -1 padded."""
+    out = []
+    for x in np.argsort(score, kind="stable"):
+        if len(out) == top_k or not np.isfinite(score[x]):
+            break
+        if report(x) not in out:
+            out.append(report(x))
+    return np.array(out + [-1] * (top_k - len(out)))
+
+
 def oracle_seqslam(enhanced: np.ndarray, ds: int = 10, vmin: float = 0.8, vmax: float = 1.2,
                    rwindow: int = 10, top_k: int = 10, match_at: str = "start",
                    edges: bool = False):
@@ -91,6 +103,7 @@ def oracle_seqslam(enhanced: np.ndarray, ds: int = 10, vmin: float = 0.8, vmax: 
     its trajectory crosses at the centre column, ``s + (ds/2 * m) // ds``. ``edges=True``
     also scores the first ds/2 queries from the window that starts at them (reporting ``s``)
     and the last ds/2 from the window that ends at them (reporting ``s + (ds m) // ds``).
+    Ranked candidates are distinct places (:func:`rank_places`).
     """
     ds = ds + ds % 2
     n_ref, n_query = enhanced.shape
@@ -122,10 +135,7 @@ def oracle_seqslam(enhanced: np.ndarray, ds: int = 10, vmin: float = 0.8, vmax: 
 
         s = int(np.argmin(score))
         best[n] = score[s]
-        order = np.argsort(score, kind="stable")[:top_k]
-        for r, x in enumerate(order):
-            if np.isfinite(score[x]):
-                ranked[n, r] = report(x)
+        ranked[n] = rank_places(score, report, top_k)
         if not np.isfinite(score[s]):
             continue
         match[n] = report(s)

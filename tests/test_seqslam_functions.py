@@ -132,8 +132,12 @@ def test_rank_scores_ties_go_to_the_lower_start(n, k, device):
     s[3] = 1.0  # a row of one value
     start, best, _, ranked = rank_scores(torch.tensor(s, device=device), 4, n - 1, 4, k)
     for r in range(64):
-        order = sorted(range(n), key=lambda i: (s[r, i], i))[:k]  # stable: lower start first
-        want = [min(i + 2, n - 2) if np.isfinite(s[r, i]) else -1 for i in order]
+        order = sorted(range(n), key=lambda i: (s[r, i], i))  # stable: lower start first
+        want = []  # each place once (starts past n - 4 all report the clamped n - 2)
+        for i in order:
+            if np.isfinite(s[r, i]) and min(i + 2, n - 2) not in want:
+                want.append(min(i + 2, n - 2))
+        want = want[:k]
         assert ranked[r].tolist() == want + [-1] * (k - len(want)), r
         assert int(start[r]) == order[0] and float(best[r]) == s[r, order[0]]
 
@@ -151,3 +155,40 @@ def test_search_with_tied_scores_matches_oracle():
     np.testing.assert_array_equal(ranked.numpy(), w_ranked)
     np.testing.assert_array_equal(match.numpy(), w_match)
     np.testing.assert_allclose(best.numpy(), w_best, rtol=1e-12)
+
+
+def test_rank_scores_lists_each_place_once_however_many_starts_report_it():
+    """Starts 0..29 (the best 30) all report place 50 through ``centre``; the rest report
+    start + 2. The ranking lists 50 once and then the next places, however deep it must go."""
+    from torchseq.seqslam.search import rank_scores
+
+    n, k = 80, 4
+    scores = torch.arange(n, dtype=torch.float64)[None].repeat(2, 1)
+    centre = torch.full((2, n), 2, dtype=torch.int64)
+    centre[:, :30] = 50 - torch.arange(30)
+    scores[1, 31] = math.inf  # an unscored start is skipped
+    start, best, _, ranked = rank_scores(scores, 4, 100, 4, k, centre)
+    assert ranked[0].tolist() == [50, 32, 33, 34]
+    assert ranked[1].tolist() == [50, 32, 34, 35]
+    assert start.tolist() == [0, 0] and best.tolist() == [0.0, 0.0]
+    few = scores.clone()
+    few[:, 31:] = math.inf  # only two distinct places hold finite scores
+    assert rank_scores(few, 4, 100, 4, k, centre)[3].tolist() == [[50, 32, -1, -1]] * 2
+
+
+@pytest.mark.parametrize("integer", [False, True])
+def test_start_velocity_equals_the_full_velocity_map(integer):
+    """The trajectory rule's velocities, computed for chosen starts only, are those of
+    ``trajectory_scores(with_velocity=True)`` for every start (inf row and ties included)."""
+    from torchseq.seqslam.search import start_velocity, trajectory_offsets, trajectory_scores
+
+    rng = np.random.default_rng(11)
+    e = rng.integers(0, 3, (60, 40)) if integer else rng.uniform(0, 5, (60, 40))
+    d_t = torch.tensor(e, dtype=torch.float32).T.contiguous()
+    ds = 10
+    offsets = trajectory_offsets(ds, velocities(ds, 0.8, 1.2))
+    _, full = trajectory_scores(d_t, 5, 35, ds, offsets, with_velocity=True)
+    starts = torch.arange(61).repeat(30, 1)
+    assert torch.equal(start_velocity(d_t, 5, ds, offsets, starts), full)
+    some = torch.tensor(rng.integers(0, 61, (30, 7)))
+    assert torch.equal(start_velocity(d_t, 5, ds, offsets, some), full.gather(1, some))

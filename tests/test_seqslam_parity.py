@@ -89,7 +89,7 @@ def test_engine_matches_oracle_with_other_metrics(metric):
         torch.tensor(ref), torch.tensor(query))
     e = oracle_enhance(oracle_difference(ref, query, metric), 10)
     np.testing.assert_allclose(result.enhanced.numpy(), e, atol=1e-8)
-    assert_parity(result, oracle_seqslam(e), exact_scores=False)
+    assert_parity(result, oracle_seqslam(e, match_at="trajectory"), exact_scores=False)
 
 
 def test_search_is_identical_for_any_chunk_budget():
@@ -150,13 +150,14 @@ def test_corridor_matches_oracle_and_recall():
     np.testing.assert_array_equal(result.difference.double().numpy(), d)
     e = oracle_enhance(d)
     np.testing.assert_allclose(result.enhanced.double().numpy(), e, atol=1e-4)
-    assert_parity(result, oracle_seqslam(e), exact_scores=False)
+    assert_parity(result, oracle_seqslam(e, match_at="trajectory"), exact_scores=False)
     metrics = evaluate(result.matches, gt, result.ranked.numpy())
     print("corridor", metrics)
-    # measured with OpenSeqSLAM's defaults: recall@1 = 0.378 (42/111); this fisheye corridor
-    # is hard for 64x32 patch-normalised frames (contrast enhancement off gives 0.586, ds=20
-    # gives 0.450, see docs/seqslam.md). The floor guards against regressions only.
-    assert metrics["recall_at_1"] >= 0.35
+    # measured with OpenSeqSLAM's parameters: recall@1 = 0.441 (49/111) reporting where the
+    # best trajectory crosses the query (the default), 0.378 with OpenSeqSLAM's start + ds/2
+    # (same starts); this fisheye corridor is hard for 64x32 patch-normalised frames
+    # (contrast enhancement off gives 0.586, ds=20 gives 0.450, see docs/seqslam.md).
+    assert metrics["recall_at_1"] >= 0.42
 
 
 def test_demo_recall():

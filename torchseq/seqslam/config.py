@@ -33,10 +33,15 @@ class SeqSLAMConfig:
         max_chunk_elements: memory budget, in elements of the working dtype, of every chunked
             temporary (difference blocks, enhancement blocks, trajectory scores).
         match_at: which reference a winning trajectory reports for the query at its centre:
-            ``"start"`` = start + ds/2 (OpenSeqSLAM, exact only at velocity 1) or
             ``"trajectory"`` = start + floor(v_best ds/2), the row the best trajectory
-            actually crosses at the centre column. None (default): ``"trajectory"`` when
-            ``speed_ratio`` is set (speeds far from 1), else ``"start"`` (parity).
+            actually crosses at the centre column (its step ``k = ds/2`` of ``0..ds``), or
+            ``"start"`` = start + ds/2 (OpenSeqSLAM; exact only at velocity 1, so a query
+            at 0.8x speed is reported 1.4 frames ahead and one at 1.3x 0.6 behind, demo
+            medians).
+            None (default): ``"trajectory"``; the :meth:`openseqslam` preset sets
+            ``"start"``. The rule moves only the reported place (and the ranked
+            candidates' places), never the best start or its uniqueness; measured in
+            docs/seqslam.md, "Where the reported place sits".
         preprocessing: ``"torchseq"`` (default): float grey, a flat 8x8 block becomes 127;
             ``"openseqslam"``: OpenSeqSLAM's uint8 rules (MATLAB ``rgb2gray`` rounded to
             integer grey, integer resize output, ``127 + round(z)`` stored in uint8 so a flat
@@ -172,10 +177,8 @@ class SeqSLAMConfig:
 
     @property
     def match_rule(self) -> str:
-        """``match_at`` with its default resolved: ``"start"`` or ``"trajectory"``."""
-        if self.match_at is not None:
-            return self.match_at
-        return "trajectory" if self.speed_ratio is not None else "start"
+        """``match_at`` with its default resolved: None -> ``"trajectory"``."""
+        return "trajectory" if self.match_at is None else self.match_at
 
     @property
     def velocity_range(self) -> tuple[float, float]:

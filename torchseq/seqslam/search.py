@@ -89,6 +89,43 @@ def trajectory_scores(
     return best, best_v
 
 
+def start_velocity(d_t: torch.Tensor, first: int, ds: int, offsets: list[list[int]],
+                   starts: torch.Tensor) -> torch.Tensor:
+    """Best velocity index of chosen starts only (ties -> slowest).
+
+    The same sums in the same order as ``trajectory_scores(..., with_velocity=True)``, so
+    the same index, at the cost of the chosen starts instead of all ``R + 1``.
+
+    Args:
+        d_t: ``(Q, R)`` query-major enhanced difference matrix.
+        first: query centre of row 0 of ``starts``.
+        ds: even sequence length.
+        offsets: per velocity, the row offsets of the ``ds + 1`` steps.
+        starts: ``(C, m)`` int64 starts of centres ``first .. first + C - 1`` (``R``: the
+            inf row).
+
+    Returns:
+        ``(C, m)`` int64 velocity indices (0 where every velocity runs off the reference).
+    """
+    n_ref = d_t.shape[1]
+    cols = (first - ds // 2 + torch.arange(len(starts), device=d_t.device))[:, None]
+    best = torch.full(starts.shape, math.inf, dtype=d_t.dtype, device=d_t.device)
+    best_v = torch.zeros_like(starts)
+    for vi, off in enumerate(offsets):
+        width = n_ref - off[-1]  # starts whose whole trajectory stays inside
+        if width <= 0:
+            continue
+        inside = starts < width
+        s = starts.clamp_max(width - 1)
+        acc = d_t[cols, s + off[0]]
+        for k in range(1, ds + 1):
+            acc += d_t[cols + k, s + off[k]]
+        acc.masked_fill_(~inside, math.inf)
+        best_v.masked_fill_(acc < best, vi)
+        torch.minimum(best, acc, out=best)
+    return best_v
+
+
 def uniqueness_ratio(best: torch.Tensor, second: torch.Tensor,
                      shift: float = 0.0) -> torch.Tensor:
     """OpenSeqSLAM's uniqueness: ``(best + shift) / (second + shift)``, elementwise.
@@ -126,11 +163,24 @@ def _lowest_tied(scores: torch.Tensor, cand: torch.Tensor, vals: torch.Tensor
     return cand, vals
 
 
+def _offsets_of(centre, starts: torch.Tensor, ds: int) -> torch.Tensor:
+    """``(C, m)`` offsets from ``(C, m)`` starts to the reference they report.
+
+    ``centre``: None (``ds / 2``), a ``(C, R + 1)`` tensor, or a function of the starts.
+    """
+    if centre is None:
+        return torch.full_like(starts, ds // 2)
+    return centre(starts) if callable(centre) else centre.gather(1, starts)
+
+
 def _rank(
     scores: torch.Tensor, ds: int, n_ref: int, rwindow: int, top_k: int,
-    centre: torch.Tensor | None = None,
+    centre=None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`rank_scores` with the best score outside the window in place of the ratio."""
+    """:func:`rank_scores` with the best score outside the window in place of the ratio.
+
+    ``centre`` may also be a function of ``(C, m)`` starts (see :func:`_offsets_of`).
+    """
     rows, n_starts = scores.shape
     start = scores.argmin(dim=1)  # first minimum: ties -> lowest start
     best = scores.gather(1, start[:, None])[:, 0]
@@ -138,18 +188,46 @@ def _rank(
     half = rwindow // 2
     inside = (idx[None] >= (start - half)[:, None]) & (idx[None] <= (start + half)[:, None])
     second = scores.masked_fill(inside, math.inf).min(dim=1).values
-    k = min(top_k, n_starts)
-    vals, cand = torch.topk(scores, k, dim=1, largest=False, sorted=True)
+    m = min(2 * top_k, n_starts)
+    while True:  # widen the prefix until it holds top_k distinct places (or all of them)
+        cand, vals = _top_starts(scores, m)
+        shift = _offsets_of(centre, cand, ds)
+        place = torch.where(torch.isfinite(vals), (cand + shift).clamp_max(n_ref - 1), -1)
+        ranked, found = _first_distinct(place, top_k)
+        if m == n_starts or bool(((found >= top_k) | (place[:, -1] < 0)).all()):
+            return start, best, second, ranked
+        m = min(2 * m, n_starts)
+
+
+def _top_starts(scores: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(C, m)`` starts and scores: the first ``m`` of a stable sort by score."""
+    vals, cand = torch.topk(scores, m, dim=1, largest=False, sorted=True)
     cand, vals = _lowest_tied(scores, cand, vals)
     order = cand.argsort(dim=1)  # make ties come out lowest start first
     cand, vals = cand.gather(1, order), vals.gather(1, order)
     order = vals.argsort(dim=1, stable=True)
-    cand, vals = cand.gather(1, order), vals.gather(1, order)
-    shift = ds // 2 if centre is None else centre.gather(1, cand)
-    ranked = torch.where(torch.isfinite(vals), (cand + shift).clamp_max(n_ref - 1), -1)
-    if k < top_k:
-        ranked = torch.cat([ranked, ranked.new_full((rows, top_k - k), -1)], dim=1)
-    return start, best, second, ranked
+    return cand.gather(1, order), vals.gather(1, order)
+
+
+def _first_distinct(place: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per row, the first ``k`` distinct places ``>= 0`` in order, and how many it holds.
+
+    Returns ``(C, k)`` places (``-1`` padded) and ``(C,)`` counts of distinct places.
+    Starts that report the same place (``match_at="trajectory"``: ``s + floor(v ds/2)`` with
+    each start's own velocity, or clamped to ``R - 1``) count once, at their best-ranked
+    start; without this a top-10 list repeats places (corridor: 7 distinct of 10).
+    """
+    rows, m = place.shape
+    by_place, pos = place.sort(dim=1, stable=True)  # equal places keep their rank order
+    first = torch.ones_like(by_place, dtype=torch.bool)
+    first[:, 1:] = by_place[:, 1:] != by_place[:, :-1]
+    keep = torch.zeros_like(first).scatter_(1, pos, first) & (place >= 0)
+    rank = keep.cumsum(1) - 1
+    sel = keep & (rank < k)
+    out = place.new_full((rows, k), -1)
+    r, c = sel.nonzero(as_tuple=True)
+    out[r, rank[r, c]] = place[r, c]
+    return out, keep.sum(1)
 
 
 def rank_scores(
@@ -171,8 +249,9 @@ def rank_scores(
         ``(C,)`` best start, ``(C,)`` best score, ``(C,)`` uniqueness
         (:func:`uniqueness_ratio` of the best and the best outside ``start +- rwindow // 2``)
         and ``(C, top_k)`` ranked references (``start + ds / 2`` clamped to ``R - 1``, ``-1``
-        for inf scores). Ties go to the lower start: the best start is the first minimum,
-        and the ranking is a stable sort's, also where ties straddle the K-th place.
+        for inf scores or when fewer remain), each reference once, at the rank of its best
+        start. Ties go to the lower start: the best start is the first minimum, and the
+        ranking is a stable sort's, also where ties straddle the K-th place.
     """
     start, best, second, ranked = _rank(scores, ds, n_ref, rwindow, top_k, centre)
     return start, best, uniqueness_ratio(best, second), ranked
@@ -271,11 +350,14 @@ def search_scores(
 
     def block(c0: int) -> None:
         c1 = min(c0 + rows, stop)
-        scores, best_v = trajectory_scores(d_t, c0, c1, ds, offsets, with_velocity=by_velocity)
-        centre = half[best_v] if by_velocity else None  # (C, R + 1) offset to report
+        scores, _ = trajectory_scores(d_t, c0, c1, ds, offsets)
+        centre = None  # offset to report: ds/2, or that of each ranked start's best velocity
+        if by_velocity:
+            def centre(starts):
+                return half[start_velocity(d_t, c0, ds, offsets, starts)]
         start, best, second, rank = _rank(scores, ds, n_ref, rwindow, top_k, centre)
         ok = torch.isfinite(best)
-        shift = ds // 2 if centre is None else centre.gather(1, start[:, None])[:, 0]
+        shift = _offsets_of(centre, start[:, None], ds)[:, 0]
         match[c0:c1] = torch.where(ok, (start + shift).clamp_max(n_ref - 1), -1)
         best_score[c0:c1] = best
         second_score[c0:c1] = second
