@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+import numpy as np
 import torch
 
 from torchseq.neural.fixed_point import round_rows
@@ -31,6 +32,111 @@ def recruit_units(n_frames: int, n_units: int) -> tuple[torch.Tensor, torch.Tens
     unit = torch.arange(n_frames, dtype=torch.int64) * n_units // n_frames  # (T,)
     start = (torch.arange(n_units, dtype=torch.int64) * n_frames + n_units - 1) // n_units
     end = torch.cat([start[1:], torch.tensor([n_frames])])
+    return unit, torch.stack([start, end], 1)
+
+
+RECRUIT_RULES = ("uniform", "novelty")
+BISECTION_STEPS = 60  # halvings of the threshold interval (float64 has 53 bits)
+
+
+def novelty_starts(winners: np.ndarray, threshold: float) -> np.ndarray:
+    """First frame of each unit when a new unit starts where the current one stops matching.
+
+    Walks the route in order. The current unit holds frames ``s..t-1``; frame ``t`` starts
+    a new unit when its code's overlap with the unit's mean code,
+    ``o_t = sum_{j=s}^{t-1} |c_t & c_j| / (k (t - s))`` (1 when every frame of the unit has
+    ``t``'s code, 0 when none shares a winner with it), is below ``threshold``; else it
+    joins the unit. Frame 0 starts the first unit. ``threshold <= 0``: one unit;
+    ``threshold > 1``: one unit per frame.
+
+    Args:
+        winners: ``(T, k)`` integer indices of each frame's ``k`` active L2 units (the binary
+            k-WTA code; distinct within a row).
+        threshold: the overlap below which a new unit starts.
+
+    Returns:
+        ``(U,)`` int64 ascending first frames, starting with 0.
+    """
+    n_frames, k = winners.shape
+    if winners.size and int(winners.max()) >= winners.size:  # sparse labels: bound the sums
+        winners = np.unique(winners, return_inverse=True)[1].reshape(n_frames, k)
+    hidden = int(winners.max()) + 1 if winners.size else 1
+    hits = np.zeros(hidden, np.int64)  # sum of the current unit's codes
+    starts = [0]
+    held = 0  # frames in the current unit
+    limit = float(threshold) * k  # o_t < threshold  <=>  dot < threshold * k * held
+    for t in range(n_frames):
+        row = winners[t]
+        if held and float(hits[row].sum()) < limit * held:
+            starts.append(t)
+            hits[:] = 0
+            held = 0
+        hits[row] += 1
+        held += 1
+    return np.asarray(starts, np.int64)
+
+
+def recruit_by_novelty(winners: torch.Tensor | np.ndarray,
+                       n_units: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Recruit exactly ``n_units`` units along the route where the codes change.
+
+    The units are :func:`novelty_starts`'s stretches at the threshold found by bisection
+    on ``[0, 2]`` (:data:`BISECTION_STEPS` halvings, stopping early at exactly ``n_units``
+    stretches): the largest threshold tried that gives at most ``n_units`` stretches. If
+    that is fewer (the count need not grow monotonically with the threshold, and a route
+    of identical frames is one stretch for every threshold up to 1), the longest stretch
+    is cut in two at its middle (``[a, a + (b - a) // 2)``, ``[a + (b - a) // 2, b)``;
+    the earliest on ties) until there are ``n_units``. With ``n_units == T`` every unit is
+    one frame, exactly as :func:`recruit_units`.
+
+    Args:
+        winners: ``(T, k)`` integer indices of each frame's active L2 units.
+        n_units: units ``N`` (``1 <= N <= T``).
+
+    Returns:
+        ``(unit_of_frame (T,) int64, spans (N, 2) int64)`` as :func:`recruit_units`.
+    """
+    w = winners.detach().cpu().numpy() if isinstance(winners, torch.Tensor) else winners
+    w = np.asarray(w)
+    if w.ndim != 2 or w.shape[1] == 0 or not np.issubdtype(w.dtype, np.integer):
+        raise ValueError(f"winners must be a (T, k) integer array, got {w.dtype} {w.shape}")
+    n_frames = w.shape[0]
+    if not 1 <= n_units <= n_frames:
+        raise ValueError(f"need 1 <= n_units <= n_frames, got {n_units} and {n_frames}")
+    if w.min() < 0:
+        raise ValueError("winners must be non-negative unit indices")
+    if n_units == n_frames:
+        return recruit_units(n_frames, n_units)
+    best = novelty_starts(w, 0.0)  # one stretch
+    lo, hi = 0.0, 2.0  # count(lo) <= N < count(hi) (2.0: every frame its own stretch)
+    for _ in range(BISECTION_STEPS):
+        if best.size == n_units:
+            break
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        starts = novelty_starts(w, mid)
+        if starts.size <= n_units:
+            lo, best = mid, starts
+        else:
+            hi = mid
+    return _spans_from_starts(_split_longest(best, n_frames, n_units), n_frames)
+
+
+def _split_longest(starts: np.ndarray, n_frames: int, n_units: int) -> np.ndarray:
+    """Cut the longest stretch at its middle (earliest on ties) until there are ``n_units``."""
+    bounds = list(starts.tolist()) + [n_frames]
+    while len(bounds) - 1 < n_units:
+        lengths = np.diff(bounds)
+        i = int(lengths.argmax())  # first index on ties
+        bounds.insert(i + 1, bounds[i] + int(lengths[i]) // 2)
+    return np.asarray(bounds[:-1], np.int64)
+
+
+def _spans_from_starts(starts: np.ndarray, n_frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+    start = torch.from_numpy(starts)
+    end = torch.cat([start[1:], torch.tensor([n_frames])])
+    unit = torch.repeat_interleave(torch.arange(start.numel()), end - start)
     return unit, torch.stack([start, end], 1)
 
 
