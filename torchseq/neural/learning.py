@@ -64,10 +64,11 @@ def novelty_starts(winners: np.ndarray, threshold: float) -> np.ndarray:
     hits = np.zeros(hidden, np.int64)  # sum of the current unit's codes
     starts = [0]
     held = 0  # frames in the current unit
-    limit = float(threshold) * k  # o_t < threshold  <=>  dot < threshold * k * held
+    # o_t < p / q  <=>  dot * q < p * k * held, in integers: exact at ties
+    p, q = float(threshold).as_integer_ratio()
     for t in range(n_frames):
         row = winners[t]
-        if held and float(hits[row].sum()) < limit * held:
+        if held and int(hits[row].sum()) * q < p * k * held:
             starts.append(t)
             hits[:] = 0
             held = 0
@@ -83,11 +84,13 @@ def recruit_by_novelty(winners: torch.Tensor | np.ndarray,
     The units are :func:`novelty_starts`'s stretches at the threshold found by bisection
     on ``[0, 2]`` (:data:`BISECTION_STEPS` halvings, stopping early at exactly ``n_units``
     stretches): the largest threshold tried that gives at most ``n_units`` stretches. If
-    that is fewer (the count need not grow monotonically with the threshold, and a route
-    of identical frames is one stretch for every threshold up to 1), the longest stretch
-    is cut in two at its middle (``[a, a + (b - a) // 2)``, ``[a + (b - a) // 2, b)``;
-    the earliest on ties) until there are ``n_units``. With ``n_units == T`` every unit is
-    one frame, exactly as :func:`recruit_units`.
+    that is fewer (the count need not grow monotonically with the threshold, and it can
+    jump: a route of identical frames is one stretch for every threshold up to 1), the
+    longest stretch ``[a, b)`` (the earliest on ties) is cut in two until there are
+    ``n_units``: before the frame ``t`` in ``a+1 .. b-1`` whose code shares the fewest
+    winners with the previous frame's, ``|c_t & c_{t-1}|`` (the sharpest change; ties: the
+    ``t`` nearest ``a + (b - a) // 2``, then the earliest). With ``n_units == T`` every
+    unit is one frame, exactly as :func:`recruit_units`.
 
     Args:
         winners: ``(T, k)`` integer indices of each frame's active L2 units.
@@ -120,16 +123,37 @@ def recruit_by_novelty(winners: torch.Tensor | np.ndarray,
             lo, best = mid, starts
         else:
             hi = mid
-    return _spans_from_starts(_split_longest(best, n_frames, n_units), n_frames)
+    if best.size < n_units:
+        best = _split_longest(best, _shared_with_previous(w), n_units)
+    return _spans_from_starts(best, n_frames)
 
 
-def _split_longest(starts: np.ndarray, n_frames: int, n_units: int) -> np.ndarray:
-    """Cut the longest stretch at its middle (earliest on ties) until there are ``n_units``."""
-    bounds = list(starts.tolist()) + [n_frames]
+def _shared_with_previous(winners: np.ndarray, chunk: int = 1024) -> np.ndarray:
+    """``(T,)`` int64 ``|c_t & c_{t-1}|`` (``shared[0] = k``), in chunks of dense codes."""
+    n_frames, k = winners.shape
+    labels, flat = np.unique(winners, return_inverse=True)
+    idx = flat.reshape(n_frames, k)
+    shared = np.full(n_frames, k, np.int64)
+    for lo in range(1, n_frames, chunk):
+        hi = min(lo + chunk, n_frames)
+        code = np.zeros((hi - lo + 1, labels.size), bool)
+        np.put_along_axis(code, idx[lo - 1:hi], True, axis=1)
+        shared[lo:hi] = (code[1:] & code[:-1]).sum(1)
+    return shared
+
+
+def _split_longest(starts: np.ndarray, shared: np.ndarray, n_units: int) -> np.ndarray:
+    """Cut the longest stretch at its sharpest code change until there are ``n_units``.
+
+    See :func:`recruit_by_novelty`.
+    """
+    bounds = list(starts.tolist()) + [shared.size]
     while len(bounds) - 1 < n_units:
-        lengths = np.diff(bounds)
-        i = int(lengths.argmax())  # first index on ties
-        bounds.insert(i + 1, bounds[i] + int(lengths[i]) // 2)
+        i = int(np.diff(bounds).argmax())  # first index on ties
+        a, b = bounds[i], bounds[i + 1]
+        t = np.arange(a + 1, b)
+        order = np.lexsort((t, np.abs(t - (a + (b - a) // 2)), shared[a + 1:b]))
+        bounds.insert(i + 1, int(t[order[0]]))
     return np.asarray(bounds[:-1], np.int64)
 
 
