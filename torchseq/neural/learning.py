@@ -110,22 +110,38 @@ def recruit_by_novelty(winners: torch.Tensor | np.ndarray,
         raise ValueError("winners must be non-negative unit indices")
     if n_units == n_frames:
         return recruit_units(n_frames, n_units)
-    best = novelty_starts(w, 0.0)  # one stretch
-    lo, hi = 0.0, 2.0  # count(lo) <= N < count(hi) (2.0: every frame its own stretch)
-    for _ in range(BISECTION_STEPS):
+    best, _, _ = novelty_search(w, n_units)
+    if best.size < n_units:
+        best = _split_longest(best, _shared_with_previous(w), n_units)
+    return _spans_from_starts(best, n_frames)
+
+
+def novelty_search(winners: np.ndarray, n_units: int) -> tuple[np.ndarray, float, int]:
+    """The bisection of :func:`recruit_by_novelty`, before any cut.
+
+    Args:
+        winners: ``(T, k)`` integer indices of each frame's active L2 units.
+        n_units: most stretches ``N``.
+
+    Returns:
+        ``(starts, threshold, walks)``: :func:`novelty_starts` at the largest threshold
+        tried that gives at most ``N`` stretches, that threshold, and how many walks over
+        the route the search made.
+    """
+    best, lo, hi, walks = novelty_starts(winners, 0.0), 0.0, 2.0, 1  # one stretch at 0
+    for _ in range(BISECTION_STEPS):  # count(lo) <= N < count(hi): 2.0 gives T stretches
         if best.size == n_units:
             break
         mid = 0.5 * (lo + hi)
         if mid in (lo, hi):
             break
-        starts = novelty_starts(w, mid)
+        starts = novelty_starts(winners, mid)
+        walks += 1
         if starts.size <= n_units:
             lo, best = mid, starts
         else:
             hi = mid
-    if best.size < n_units:
-        best = _split_longest(best, _shared_with_previous(w), n_units)
-    return _spans_from_starts(best, n_frames)
+    return best, lo, walks
 
 
 def _shared_with_previous(winners: np.ndarray, chunk: int = 1024) -> np.ndarray:
