@@ -133,7 +133,8 @@ def test_stretches_of_identical_codes_become_the_units():
 
 def test_bad_winners_and_counts_are_refused():
     w = np.zeros((5, 2), np.int64) + [0, 1]
-    for bad, n in ((w, 0), (w, 6), (w.astype(float), 2), (w[:, :0], 2), (w - 3, 2)):
+    twice = np.zeros((5, 2), np.int64) + [1, 1]
+    for bad, n in ((w, 0), (w, 6), (w.astype(float), 2), (w[:, :0], 2), (w - 3, 2), (twice, 2)):
         with pytest.raises(ValueError):
             recruit_by_novelty(bad, n)
     # sparse labels are compacted, not used to size the sums

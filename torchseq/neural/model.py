@@ -382,9 +382,9 @@ def _winners(codes, k: int) -> torch.Tensor:
     """``(T, k)`` int32 indices of the active L2 units of each binary code, on the CPU."""
     parts = []
     for _, _, c in codes:
-        idx = c.nonzero()[:, 1]  # row-major: each row's k winners in ascending order
-        if idx.numel() != c.shape[0] * k:
+        if bool(((c != 0).sum(1) != k).any()):
             raise NeuralError(f"an L2 code does not have exactly k = {k} winners")
+        idx = c.nonzero()[:, 1]  # row-major: each row's k winners in ascending order
         parts.append(idx.reshape(c.shape[0], k).to("cpu", torch.int32))
     return torch.cat(parts)
 
