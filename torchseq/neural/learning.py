@@ -108,6 +108,8 @@ def recruit_by_novelty(winners: torch.Tensor | np.ndarray,
         raise ValueError(f"need 1 <= n_units <= n_frames, got {n_units} and {n_frames}")
     if w.min() < 0:
         raise ValueError("winners must be non-negative unit indices")
+    if (np.diff(np.sort(w, axis=1), axis=1) == 0).any():
+        raise ValueError("each row of winners must hold distinct unit indices")
     if n_units == n_frames:
         return recruit_units(n_frames, n_units)
     best, _, _ = novelty_search(w, n_units)
