@@ -35,7 +35,6 @@ def recruit_units(n_frames: int, n_units: int) -> tuple[torch.Tensor, torch.Tens
     return unit, torch.stack([start, end], 1)
 
 
-RECRUIT_RULES = ("uniform", "novelty")
 BISECTION_STEPS = 60  # halvings of the threshold interval (float64 has 53 bits)
 
 
