@@ -409,16 +409,18 @@ def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[d
 
 # ---------------------------------------------------------------- long routes (issue 15)
 def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
-                   readout: str = "centre", n_output: int | None = None) -> dict:
+                   readout: str = "centre", n_output: int | None = None,
+                   recruit: str = "uniform") -> dict:
     """A demo route of ``n_reference`` frames (48x64 frames, 4 px per frame, query at 0.8x):
     recall@1 within the demo's +-2 frames, the decisions' |offset|, bytes beside SeqSLAM's."""
     from torchseq.neural.memory import seqslam_bytes
     d = make_demo(n_reference=n_reference, size=(48, 64), step=4.0, dense_ground_truth=False)
     truth = d.query_position
-    row = {"reference frames": n_reference, "query frames": len(truth), "readout": readout}
-    rec, med, p90, fit_s, run_s = [], [], [], [], []
+    row = {"reference frames": n_reference, "query frames": len(truth), "recruit": recruit,
+           "readout": readout}
+    rec, med, p90, fit_s, run_s, longest = [], [], [], [], [], []
     for seed in range(seeds):
-        cfg = replace(NeuralConfig(), seed=seed, readout=readout)
+        cfg = replace(NeuralConfig(), seed=seed, readout=readout, recruit=recruit)
         model = NeuralSeqSLAM(cfg if n_output is None else replace(cfg, n_output=n_output))
         t0 = time.perf_counter()
         with warnings.catch_warnings():  # fit warns about units of several frames
@@ -432,8 +434,10 @@ def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
         rec.append(float(np.mean(err <= d.tolerance)))  # every query is a positive here
         med.append(float(np.median(err)))
         p90.append(float(np.percentile(err, 90)))
+        spans = model.unit_to_reference
+        longest.append(int((spans[:, 1] - spans[:, 0]).max()))
     row["units"] = model.n_units
-    row["frames per unit"] = f"{n_reference / model.n_units:.1f}"
+    row["frames per unit (mean / longest)"] = f"{n_reference / model.n_units:.1f} / {max(longest)}"
     row["neural recall_at_1"] = f"{np.mean(rec):.3f}"
     row["neural median abs offset"] = f"{np.mean(med):.2f}"
     row["neural p90 abs offset"] = f"{np.mean(p90):.2f}"
@@ -453,6 +457,72 @@ def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
         row["SeqSLAM s"] = f"{time.perf_counter() - t0:.1f}"
     print(row, flush=True)
     return row
+
+
+def dwelling_demo(n_reference: int = 600, seed: int = 0):
+    """A demo route whose scenery changes unevenly: the reference camera dwells.
+
+    ``make_demo`` moves the reference camera at one speed; here it alternates stretches of
+    60 frames at 4 px per frame with stretches of 60 frames at 0.5 px per frame (the demo's
+    world, lighting and noise functions, 48x64 frames). The query moves at 3.2 px per frame
+    (the long-route table's 0.8x of 4 px) under the demo's default relighting. Returns
+    ``(reference, query, reference positions, query positions)``, positions in pixels.
+    """
+    from torchseq.demo import make_world, relight, render
+    steps = np.where((np.arange(n_reference) // 60) % 2 == 0, 4.0, 0.5)
+    ref_pos = np.concatenate([[0.0], np.cumsum(steps[:-1])])
+    query_pos = np.arange(0.0, ref_pos[-1] + 1e-9, 3.2)
+    world = make_world(int(np.ceil(ref_pos[-1])) + 64 + 2, 48, seed)
+    rng = np.random.default_rng(seed + 1)
+    ref = relight(render(world, ref_pos, 64), 1.0, 1.0, 0.0, 2.0, rng)
+    query = relight(render(world, query_pos, 64), 0.8, 1.3, 0.15, 6.0, rng)
+    return torch.from_numpy(ref), torch.from_numpy(query), ref_pos, query_pos
+
+
+def recruit_real_rows(data: dict, seeds: int) -> list[dict]:
+    """Uniform against novelty recruitment where units hold 2-3 frames: the corridor and
+    LENS at 55 and 37 units (recall@1 at their ground truth; |offset| against the query
+    index, their same-length traverses) and :func:`dwelling_demo` at 300 and 200 units (a
+    decision is right within 8 px = two 4 px frames of the query's position; |offset| in
+    those 4 px frames)."""
+    cases = {name: (*data[name], (55, 37)) for name in ("corridor", "lens", "lens+-2")
+             if name in data}
+    ref, query, ref_pos, query_pos = dwelling_demo()
+    cases["dwelling demo"] = (ref, query, None, (300, 200))
+    rows = []
+    for name, (ref, query, gt, n_outputs) in cases.items():
+        for n_output in n_outputs:
+            for readout in ("centre", "interpolate"):
+                for recruit in ("uniform", "novelty"):
+                    rec, med = [], []
+                    for seed in range(seeds):
+                        cfg = replace(NeuralConfig(), seed=seed, n_output=n_output,
+                                      readout=readout, recruit=recruit)
+                        model = NeuralSeqSLAM(cfg)
+                        with warnings.catch_warnings():  # units of several frames: fit warns
+                            warnings.simplefilter("ignore")
+                            model.fit(ref, log=False)
+                        res = model.run(query)
+                        got = res.matches.reference.numpy()
+                        if gt is None:  # the dwelling demo: positions in pixels
+                            err = np.abs(ref_pos[got] - query_pos) / 4.0
+                            rec.append(float(np.mean(err <= 2.0)))
+                        else:
+                            err = np.abs(got - np.arange(len(query)))
+                            rec.append(evaluate(res.matches, gt)["recall_at_1"])
+                        med.append(float(np.median(err)))
+                    spans = model.unit_to_reference
+                    rows.append({"data": name, "R": len(ref), "units": model.n_units,
+                                 "readout": readout, "recruit": recruit,
+                                 "recall_at_1 mean / worst": f"{np.mean(rec):.3f} / "
+                                                             f"{np.min(rec):.3f}",
+                                 "median abs offset": f"{np.mean(med):.2f}",
+                                 "longest unit (seed 7)": int((spans[:, 1] - spans[:, 0]).max()),
+                                 "MB (dense / masked)": f"{model.model_bytes() / 1e6:.2f} / "
+                                 f"{model.model_bytes(masked_only=True) / 1e6:.2f}",
+                                 "seeds": seeds})
+                    print(rows[-1], flush=True)
+    return rows
 
 
 # ---------------------------------------------------------------- repeats (issue 15)
@@ -589,6 +659,11 @@ def main(argv=None) -> dict:
                    help="model seeds per long route (one for routes over 5,000 frames)")
     p.add_argument("--long-extra-units", type=int, default=0,
                    help="also run routes longer than this with n_output = this (interpolate)")
+    p.add_argument("--long-recruit", default="uniform,novelty",
+                   help="comma-separated recruit rules of the long-route rows")
+    p.add_argument("--recruit-real", action="store_true",
+                   help="with --long-routes: uniform vs novelty recruitment at 55 and 37 "
+                        "units on the corridor, LENS and a dwelling demo route")
     p.add_argument("--long-seqslam-max", type=int, default=3000,
                    help="longest route classic SeqSLAM also runs on")
     p.add_argument("--relative-offsets", action="store_true",
@@ -669,18 +744,25 @@ def main(argv=None) -> dict:
     if args.long_routes:
         rows = []
         for n in [int(v) for v in args.long_routes.split(",") if v]:
-            for readout in ("centre", "interpolate"):
-                rows.append(long_route_row(n, 1 if n > 5000 else args.long_seeds,
-                                           n <= args.long_seqslam_max and readout == "centre",
-                                           readout))
+            for recruit in args.long_recruit.split(","):
+                for readout in ("centre", "interpolate"):
+                    rows.append(long_route_row(
+                        n, 1 if n > 5000 else args.long_seeds,
+                        n <= args.long_seqslam_max and readout == "centre"
+                        and recruit == "uniform", readout, recruit=recruit))
             if args.long_extra_units and n > args.long_extra_units:
                 rows.append(long_route_row(n, 1 if n > 5000 else args.long_seeds, False,
                                            "interpolate", args.long_extra_units))
         results["long_routes"] = rows
         cols = list(dict.fromkeys(k for r in rows for k in r))
         part = ("### Long demo routes (48x64 frames, query at 0.8x speed, default model; "
-                "SeqSLAM's columns on the centre rows)\n\n"
+                "SeqSLAM's columns on the uniform centre rows)\n\n"
                 + table(rows, cols) + "\n")
+        if args.recruit_real:
+            real = recruit_real_rows(data, args.seeds)
+            results["recruit_real"] = real
+            part += (f"\n### Recruitment on short routes, units of 2-3 frames ({args.seeds} "
+                     "model seeds)\n\n" + table(real, list(real[0])) + "\n")
         md += "\n" + part
         blocks["long"] = part
         _write(args.out, "neural_long_routes", {k: v for k, v in results.items() if k != "ablation"

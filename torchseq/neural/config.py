@@ -12,7 +12,8 @@ class NeuralError(ValueError):
 
 
 # fields added after the first checkpoints were written, with the behaviour those had
-FORMER_DEFAULTS = {"input_steps": 0, "l1_levels": 0, "l3_levels": 0, "readout": "centre"}
+FORMER_DEFAULTS = {"input_steps": 0, "l1_levels": 0, "l3_levels": 0, "readout": "centre",
+                   "recruit": "uniform"}
 MAX_COUNT = 2**24  # hidden, n_output, chunk, ... (a size past this is a corrupt setting)
 MAX_ELEMENTS = 2**31  # the largest weight matrix a config may ask for (8 GiB of float32)
 MAX_FACTOR = 1e6  # ring gain and weights: larger ones overflow float32 activity into inf/NaN
@@ -95,6 +96,11 @@ class NeuralConfig:
             holds one frame, finer when a long route gives units several frames; measured
             worse for queries much faster than the reference, and no integer export for
             units of several frames, so opt-in).
+        recruit: how ``fit`` gives the route's frames to units, each unit a contiguous
+            stretch: ``"uniform"`` (frame ``t`` -> unit ``floor(t N / R)``) or ``"novelty"``
+            (a new unit where the frames' L2 codes stop matching the current unit's mean
+            code, :func:`torchseq.neural.learning.recruit_by_novelty`; exactly ``N`` units,
+            of unequal lengths). The same units while ``R <= n_output``.
         eps: numerical floor of normalisations.
         chunk: frames per batch in ``fit`` and ``run`` (memory bound, not a result change).
         seed: seed of the random masks and L1 weights.
@@ -122,6 +128,7 @@ class NeuralConfig:
     hebbian: str = "centred"
     uniqueness_window: int = 5
     readout: str = "centre"
+    recruit: str = "uniform"
     eps: float = 1e-6
     chunk: int = 256
     seed: int = 0
@@ -185,6 +192,7 @@ class NeuralConfig:
         _check_choice("rectify", self.rectify, (False, True))
         _check_choice("hebbian", self.hebbian, ("mean", "centred"))
         _check_choice("readout", self.readout, ("centre", "interpolate"))
+        _check_choice("recruit", self.recruit, ("uniform", "novelty"))
         _check_int("uniqueness_window", self.uniqueness_window, 0, 2**31 - 1)
         _check_real("eps", self.eps, 0.0, 1.0, lo_open=True)
         _check_int("seed", self.seed, *SEED_RANGE)

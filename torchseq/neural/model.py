@@ -24,7 +24,12 @@ from torchseq.neural.checkpoint import load_model, save_checkpoint
 from torchseq.neural.config import NeuralConfig, NeuralError
 from torchseq.neural.fixed_point import integer_weights
 from torchseq.neural.inference import NeuralInference
-from torchseq.neural.learning import cohort_membership, learn_readout, recruit_units
+from torchseq.neural.learning import (
+    cohort_membership,
+    learn_readout,
+    recruit_by_novelty,
+    recruit_units,
+)
 from torchseq.neural.memory import seqslam_bytes
 from torchseq.neural.progress import Progress, as_progress
 from torchseq.neural.readout import decide
@@ -165,7 +170,9 @@ class NeuralSeqSLAM(nn.Module):
         """Learn a route from one pass over its reference traverse (local rules, no backprop).
 
         Units are recruited along the route in order (unit ``u`` stands for a contiguous
-        stretch of frames, :func:`~torchseq.neural.learning.recruit_units`); L2 -> L3 weights
+        stretch of frames, :func:`~torchseq.neural.learning.recruit_units`, or with
+        ``recruit="novelty"`` :func:`~torchseq.neural.learning.recruit_by_novelty`, which
+        first keeps the route's L2 codes as ``(T, k)`` winner indices); L2 -> L3 weights
         follow the configured Hebbian rule (:func:`~torchseq.neural.learning.hebbian_weights`);
         the ring's shift matrix learns from the order in which units fired.
 
@@ -184,11 +191,16 @@ class NeuralSeqSLAM(nn.Module):
         t_len = reference.shape[0]
         n_units = min(t_len, cfg.n_output)
         self._build_output(n_units)
-        unit_of_frame, spans = recruit_units(t_len, n_units)
         _warn_coarse_units(t_len, n_units, cfg.readout)
         dev = self.l1.weight.device
         codes = ((lo, hi, self.code(self.encode(reference[lo:hi])))
                  for lo, hi in _chunks(t_len, cfg.chunk, as_progress(progress, "fit")))
+        if cfg.recruit == "novelty" and n_units < t_len:
+            winners = _winners(codes, cfg.k)  # (T, k): the codes, kept for the second use
+            unit_of_frame, spans = recruit_by_novelty(winners, n_units)
+            codes = _codes_of(winners, cfg.hidden, cfg.chunk, dev)
+        else:
+            unit_of_frame, spans = recruit_units(t_len, n_units)
         self.l3.weight.copy_(learn_readout(codes, unit_of_frame, spans, self.l3.mask,
                                            cfg.hebbian, cfg.eps, cfg.l3_levels))
         self.ring.learn(unit_of_frame)
@@ -364,6 +376,25 @@ def _warn_coarse_units(n_frames: int, n_units: int, readout: str) -> None:
     warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
                   f"{per_unit:.1f} frames per unit, so readout {readout!r} places are no finer "
                   f"than that; {advice} (docs/neural.md, Long routes)", stacklevel=4)
+
+
+def _winners(codes, k: int) -> torch.Tensor:
+    """``(T, k)`` int32 indices of the active L2 units of each binary code, on the CPU."""
+    parts = []
+    for _, _, c in codes:
+        if bool(((c != 0).sum(1) != k).any()):
+            raise NeuralError(f"an L2 code does not have exactly k = {k} winners")
+        idx = c.nonzero()[:, 1]  # row-major: each row's k winners in ascending order
+        parts.append(idx.reshape(c.shape[0], k).to("cpu", torch.int32))
+    return torch.cat(parts)
+
+
+def _codes_of(winners: torch.Tensor, hidden: int, chunk: int, device):
+    """The binary codes back from :func:`_winners`, as ``(lo, hi, code)`` batches."""
+    for lo in range(0, winners.shape[0], chunk):
+        idx = winners[lo:lo + chunk].to(device, torch.int64)
+        code = torch.zeros(idx.shape[0], hidden, device=device)
+        yield lo, lo + idx.shape[0], code.scatter_(1, idx, 1.0)
 
 
 def _drop_derived(module, state_dict, prefix, local_metadata) -> None:
