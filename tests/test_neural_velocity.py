@@ -208,6 +208,16 @@ def test_exports_refuse_the_adaptive_model(route):
         SpikingSeqSLAM.convert(model, route.reference)
 
 
+def test_export_command_refuses_the_adaptive_checkpoint(route, tmp_path):
+    from torchseq.export import ExportError, export_checkpoint
+
+    fitted(route, ring_velocity="adaptive").save(tmp_path / "m.pt")
+    with pytest.raises(ExportError, match="ring_velocity='adaptive' has no export form"):
+        export_checkpoint(tmp_path / "m.pt", tmp_path / "out", query=route.query,
+                          ground_truth=route.ground_truth)
+    assert not (tmp_path / "out").exists()
+
+
 # ---------------------------------------------------------------- config and checkpoint
 @pytest.mark.parametrize("field, value, match", [
     ("ring_velocity", "auto", "ring_velocity must be one of 'fixed', 'adaptive'"),
