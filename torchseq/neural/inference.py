@@ -23,7 +23,8 @@ Stages and kernels:
             there on) or ``"dense"`` (the 0/1 code times the weights: the exported graph)
 ``ring``    ``"banded"`` (diagonals of a banded shift matrix) or ``"dense"``
 ``scan``    ``"numpy"`` or ``"torch"``: :func:`~torchseq.layers.ring_scan`'s kernel in
-            :meth:`NeuralInference.run`
+            :meth:`NeuralInference.scan`; ``"velocity_loop"``, the adaptive ring's only one
+            (``ring_velocity="adaptive"``: :meth:`NeuralInference.stream`, frame by frame)
 ``decide``  ``"numpy"`` or ``"torch"``
 =========== ============================================================================
 

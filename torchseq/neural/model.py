@@ -134,7 +134,10 @@ class NeuralSeqSLAM(nn.Module):
 
         Args:
             frames: ``(B, H, W)`` (or ``(B, H, W, 3)``) one new frame per stream.
-            state: ring state from the previous step (None: start of the streams).
+            state: ring state from the previous step (None: start of the streams): a
+                :class:`~torchseq.layers.RingState`, or with ``ring_velocity="adaptive"`` a
+                :class:`~torchseq.neural.VelocityState` (activity, speed estimates and the
+                window of recent decisions).
 
         Returns:
             ``(NeuralStep, new state)``.
