@@ -194,6 +194,14 @@ def test_a_relocalisation_jump_is_bounded_and_recovers():
     assert abs(speeds[-20:] - 0.7).max() < 0.05  # recovered
 
 
+@pytest.mark.filterwarnings("ignore:a route of 60 frames on 20 output units")
+def test_tolerance_scales_with_the_frames_per_unit(route):
+    one = VelocityTracker.from_model(fitted(route, ring_velocity="adaptive"))
+    assert one.tolerance == 3.0  # 60 frames on 60 units
+    coarse = fitted(route, ring_velocity="adaptive", n_output=20)  # 3 frames per unit
+    assert VelocityTracker.from_model(coarse).tolerance == 9.0
+
+
 # ---------------------------------------------------------------- exports refuse it
 def test_exports_refuse_the_adaptive_model(route):
     from torchseq.export import ExportError, IntegerFormatError, build_float_onnx, integer_model
