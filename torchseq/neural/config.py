@@ -245,8 +245,9 @@ class NeuralConfig:
 
         With the speed estimated online the ring no longer needs the default's wide kernel
         (lags 0/1/2) to cover other speeds: measured (``experiments/neural_quality.py``,
-        ``docs/neural.md``) better than the default on every data set there, the corridor,
-        LENS and every demo variant (strong appearance change, 0.6x-1.6x speed, repeats).
+        ``docs/neural.md``) better than the default on the corridor, LENS and every demo
+        variant there (strong appearance change, 0.6x-1.6x speed, repeats), equal on the
+        one where both are perfect.
         Opt-in: no export form yet (the integer, ONNX and spiking exports refuse it).
 
         ``overrides`` replace any field.
