@@ -147,6 +147,14 @@ ABLATION = {
     "input 32x64": dict(input_size=(32, 64)),
     "cohorts 4": dict(n_cohorts=4),
     "cohorts 8": dict(n_cohorts=8),
+    # issue 15: the ring's speed estimated online (torchseq/neural/velocity.py)
+    "ring_velocity adaptive": dict(ring_velocity="adaptive"),
+    "adaptive, rate 1 (no smoothing)": dict(ring_velocity="adaptive", velocity_rate=1.0),
+    "adaptive, window 32": dict(ring_velocity="adaptive", velocity_window=32),
+    "adaptive, stay 0.25, spread decay 0.25 (lags 0.25/1/0.25)": dict(
+        ring_velocity="adaptive", ring_stay=0.25, ring_spread_decay=0.25),
+    "adaptive_velocity() (adaptive, spread 1, no stay)": dict(
+        ring_velocity="adaptive", ring_spread=1, ring_stay=0.0),
 }
 
 
@@ -589,7 +597,77 @@ SEED_SWEEP = {
     "55 units, interpolate readout": dict(n_output=55, readout="interpolate"),
     "37 units, centre readout": dict(n_output=37),
     "37 units, interpolate readout": dict(n_output=37, readout="interpolate"),
+    "ring_velocity adaptive": dict(ring_velocity="adaptive"),
+    "adaptive_velocity() (adaptive, spread 1, no stay)": dict(
+        ring_velocity="adaptive", ring_spread=1, ring_stay=0.0),
 }
+
+
+# ---------------------------------------------------------------- adaptive velocity (issue 15)
+VELOCITY_SETTINGS = {
+    "fixed ring (default)": {},
+    "spread 1, no stay (fixed)": dict(ring_spread=1, ring_stay=0.0),
+    "ring_velocity adaptive": dict(ring_velocity="adaptive"),
+    "adaptive_velocity()": dict(ring_velocity="adaptive", ring_spread=1, ring_stay=0.0),
+}
+VELOCITY_SPEEDS = (0.6, 0.8, 1.0, 1.3, 1.6)
+
+
+def velocity_estimate_rows(data: dict, seeds: int) -> list[dict]:
+    """The adaptive models' speed estimate on the real routes (about the reference speed):
+    its distribution over every query frame of ``seeds`` model seeds."""
+    rows = []
+    for label, kw in list(VELOCITY_SETTINGS.items())[2:]:
+        for name in ("corridor", "lens"):
+            if name not in data:
+                continue
+            ref, query, _ = data[name]
+            v = []
+            for seed in range(seeds):
+                model = NeuralSeqSLAM(replace(NeuralConfig(), **kw, seed=seed))
+                model.fit(ref, log=False)
+                state = None
+                for t in range(len(query)):
+                    _, state = model.step(query[t:t + 1], state)
+                    v.append(float(state.velocity[0]))
+            v = np.array(v)
+            rows.append({"setting": label, "data": name, "min": f"{v.min():.2f}",
+                         "5%": f"{np.percentile(v, 5):.2f}", "median": f"{np.median(v):.2f}",
+                         "95%": f"{np.percentile(v, 95):.2f}", "max": f"{v.max():.2f}",
+                         "share within 0.1 of 1": f"{np.mean(np.abs(v - 1) <= 0.1):.2f}"})
+            print(rows[-1], flush=True)
+    return rows
+
+
+def velocity_rows(seeds: int) -> list[dict]:
+    """Demo speeds against the exact query positions, fixed and adaptive rings: recall@1 /
+    exact share / median offset (decision - position), and the adaptive model's speed
+    estimate over the second half of the query (median; the demo's speed is the truth)."""
+    rows = []
+    demos = {speed: make_demo(speed=speed) for speed in VELOCITY_SPEEDS}
+    for label, kw in VELOCITY_SETTINGS.items():
+        row = {"setting": label}
+        for speed, d in demos.items():
+            rec, exact, med, est = [], [], [], []
+            for seed in range(seeds):
+                model = NeuralSeqSLAM(replace(NeuralConfig(), **kw, seed=seed))
+                model.fit(d.reference, log=False)
+                matches = model.run(d.query).matches
+                off = matches.reference.numpy() - np.asarray(d.query_position)
+                rec.append(evaluate(matches, d.ground_truth)["recall_at_1"])
+                exact.append(np.mean(np.round(off) == 0))
+                med.append(np.median(off))
+                if model.config.ring_velocity == "adaptive":
+                    state, v = None, []
+                    for t in range(len(d.query)):
+                        _, state = model.step(d.query[t:t + 1], state)
+                        v.append(float(state.velocity[0]))
+                    est.append(np.median(v[len(v) // 2:]))
+            cell = f"{np.mean(rec):.3f} / {np.mean(exact):.2f} / {np.median(med):+.1f}"
+            row[f"speed {speed}"] = cell + (f" / v {np.mean(est):.2f}" if est else "")
+        rows.append(row)
+        print(row, flush=True)
+    return rows
 SWEEP_DATA = ("corridor", "lens", "lens+-2", "demo", "demo-severe", "demo-severe-1.0x",
               "demo-repeat", "demo-speed0.6", "demo-speed1.6")
 
@@ -672,6 +750,8 @@ def main(argv=None) -> dict:
                    help="false matches to the wrong repeat on make_demo(repeat=2, 3)")
     p.add_argument("--seed-sweep", action="store_true",
                    help="issue 15's settings over --seeds model seeds (mean / worst)")
+    p.add_argument("--velocity", action="store_true",
+                   help="demo speeds with the fixed and adaptive rings (offsets, speed estimate)")
     p.add_argument("--skip-main", action="store_true",
                    help="skip the main table (run only the sections asked for)")
     args = p.parse_args(argv)
@@ -776,6 +856,21 @@ def main(argv=None) -> dict:
         md += "\n" + part
         blocks["seeds"] = part
         _write(args.out, "neural_seed_sweep", {"seed_sweep": rows}, part)
+    if args.velocity:
+        rows = velocity_rows(args.ablation_seeds)
+        estimates = velocity_estimate_rows(data, args.seeds)
+        results["velocity"], results["velocity_estimates"] = rows, estimates
+        part = (f"### Adaptive velocity on the demo speeds (mean over {args.ablation_seeds} "
+                "seeds: recall@1 / exact share / median offset against the exact positions"
+                " / the adaptive speed estimate over the second half)\n\n"
+                + table(rows, list(rows[0])) + "\n\n"
+                + f"### The adaptive speed estimate on the real routes ({args.seeds} seeds, "
+                "every query frame; their speed is about the reference's)\n\n"
+                + table(estimates, list(estimates[0])) + "\n")
+        md += "\n" + part
+        blocks["velocity"] = part
+        _write(args.out, "neural_velocity", {"velocity": rows,
+                                             "velocity_estimates": estimates}, part)
     if args.repeat:
         rows = repeat_rows(seeds=args.seeds)
         results["repeat"] = rows

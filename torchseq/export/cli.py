@@ -153,6 +153,10 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     t0 = time.perf_counter()
     ckpt, out = Path(checkpoint_path), Path(out_dir)
     model = _load_model(ckpt)
+    if getattr(model.config, "ring_velocity", "fixed") != "fixed":  # no export holds it
+        raise ExportError(f"{ckpt}: ring_velocity={model.config.ring_velocity!r} has no "
+                          "export form (integer, ONNX or NIR): export a model with "
+                          "ring_velocity='fixed'")
     rec = recorded_reference(model)
     if query is None:
         frames, own_gt, rec, source, gt_source = _own_reference(model, ckpt)

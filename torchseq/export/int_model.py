@@ -60,6 +60,10 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     if cfg.patch_size and cfg.patch_mode != "zscore":
         raise IntegerFormatError(f"patch_mode {cfg.patch_mode!r} has no integer form "
                                  "(use 'zscore' or patch_size=0)")
+    if getattr(cfg, "ring_velocity", "fixed") != "fixed":  # its ring has no integer twin
+        raise IntegerFormatError(f"ring_velocity={cfg.ring_velocity!r} has no integer form "
+                                 "(the format holds the fixed ring): export a model with "
+                                 "ring_velocity='fixed'")
     readouts = {"centre": READOUT_CENTRE, "interpolate": READOUT_INTERPOLATE}
     readout = getattr(cfg, "readout", "centre")
     if readout not in readouts:

@@ -19,6 +19,7 @@ import numpy as np
 import onnx
 import torch
 
+from torchseq.export.cli import ExportError
 from torchseq.export.int_onnx import run_step_session, write_onnx
 from torchseq.layers import RingState
 from torchseq.neural.inference import NeuralInference
@@ -39,6 +40,10 @@ class StreamingStep(NeuralInference):
     def __init__(self, model) -> None:
         if not model.fitted:
             raise ValueError("the model has not learnt a route yet (fit it first)")
+        if getattr(model.config, "ring_velocity", "fixed") != "fixed":
+            raise ExportError(f"ring_velocity={model.config.ring_velocity!r} has no ONNX form "
+                              "(the graph steps the fixed ring): export a model with "
+                              "ring_velocity='fixed'")
         super().__init__(model, "portable")
         self.input_size = tuple(model.config.input_size)
 

@@ -62,6 +62,30 @@ def ring_step(
     return activity, RingState(activity)
 
 
+def ring_move(activity: torch.Tensor, shift: torch.Tensor,
+              diagonals: torch.Tensor | None = None) -> torch.Tensor:
+    """The shift alone: ``activity @ shift.T`` ``(B, N) -> (B, N)`` (no decay, no evidence).
+
+    The same products as :func:`ring_step` (its two kernels: dense ``F.linear``, or the
+    diagonals of :func:`band_diagonals`), for callers that move the activity more than once
+    per frame (:func:`torchseq.layers.ring_velocity.ring_step_velocity`).
+    """
+    if diagonals is None:
+        return F.linear(activity, shift)
+    numpy = activity.device.type == "cpu" and not activity.requires_grad
+    a = activity.numpy() if numpy else activity
+    moved = _move_banded(a, diagonals.numpy() if numpy else diagonals)
+    return torch.from_numpy(moved) if numpy else moved
+
+
+def _move_banded(a, d):
+    """``moved[:, i] = sum_l d[l, i] a[:, i - l]`` (NumPy arrays or tensors)."""
+    moved = a * d[0]
+    for lag in range(1, d.shape[0]):
+        moved[:, lag:] += d[lag, lag:] * a[:, :-lag]
+    return moved
+
+
 def _ring_step_banded(evidence: torch.Tensor, a: torch.Tensor, diagonals: torch.Tensor,
                       params: RingParams) -> torch.Tensor:
     """Kernel of :func:`ring_step` on diagonals: ``moved[:, i] = sum_l d[l, i] a[:, i - l]``."""
@@ -70,9 +94,7 @@ def _ring_step_banded(evidence: torch.Tensor, a: torch.Tensor, diagonals: torch.
         a, e, d = a.numpy(), evidence.numpy(), diagonals.numpy()
     else:
         e, d = evidence, diagonals
-    moved = a * d[0]
-    for lag in range(1, d.shape[0]):
-        moved[:, lag:] += d[lag, lag:] * a[:, :-lag]
+    moved = _move_banded(a, d)
     out = params.decay * moved + params.gain * e
     return torch.from_numpy(out) if numpy else out
 

@@ -9,6 +9,7 @@ from torchseq.neural.model import (
     NeuralStep,
     seqslam_bytes,
 )
+from torchseq.neural.velocity import VelocityState
 
 __all__ = [
     "NeuralConfig",
@@ -18,5 +19,6 @@ __all__ = [
     "NeuralResult",
     "NeuralSeqSLAM",
     "NeuralStep",
+    "VelocityState",
     "seqslam_bytes",
 ]

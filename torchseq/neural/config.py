@@ -6,6 +6,8 @@ import math
 from dataclasses import asdict, dataclass, fields
 from numbers import Integral, Real
 
+from torchseq.layers.ring_velocity import MAX_VELOCITY
+
 
 class NeuralError(ValueError):
     """Bad input or a bad checkpoint for Neural SeqSLAM."""
@@ -13,7 +15,8 @@ class NeuralError(ValueError):
 
 # fields added after the first checkpoints were written, with the behaviour those had
 FORMER_DEFAULTS = {"input_steps": 0, "l1_levels": 0, "l3_levels": 0, "readout": "centre",
-                   "recruit": "uniform"}
+                   "recruit": "uniform",
+                   "ring_velocity": "fixed"}
 MAX_COUNT = 2**24  # hidden, n_output, chunk, ... (a size past this is a corrupt setting)
 MAX_ELEMENTS = 2**31  # the largest weight matrix a config may ask for (8 GiB of float32)
 MAX_FACTOR = 1e6  # ring gain and weights: larger ones overflow float32 activity into inf/NaN
@@ -101,6 +104,16 @@ class NeuralConfig:
             (a new unit where the frames' L2 codes stop matching the current unit's mean
             code, :func:`torchseq.neural.learning.recruit_by_novelty`; exactly ``N`` units,
             of unequal lengths). The same units while ``R <= n_output``.
+        ring_velocity: ``"fixed"`` (the learnt shift moves the activity as fast as the
+            reference, the seed's ring) or ``"adaptive"`` (each stream estimates its speed
+            from its own decisions and moves the activity by that fraction of the shift,
+            :mod:`torchseq.neural.velocity`; opt-in, no export form).
+        velocity_window: decisions in the adaptive speed fit (``K``).
+        velocity_min: smallest adaptive speed (reference frames per query frame, <= 1).
+        velocity_max: largest adaptive speed (>= 1, at most 8).
+        velocity_tolerance: largest residual (reference frames, per frame of a unit) of a
+            window that is trusted; other windows pull the speed back to 1.
+        velocity_rate: step of the speed estimate towards its target per frame (0, 1].
         eps: numerical floor of normalisations.
         chunk: frames per batch in ``fit`` and ``run`` (memory bound, not a result change).
         seed: seed of the random masks and L1 weights.
@@ -129,6 +142,12 @@ class NeuralConfig:
     uniqueness_window: int = 5
     readout: str = "centre"
     recruit: str = "uniform"
+    ring_velocity: str = "fixed"
+    velocity_window: int = 16
+    velocity_min: float = 0.5
+    velocity_max: float = 2.0
+    velocity_tolerance: float = 3.0
+    velocity_rate: float = 0.2
     eps: float = 1e-6
     chunk: int = 256
     seed: int = 0
@@ -194,6 +213,12 @@ class NeuralConfig:
         _check_choice("readout", self.readout, ("centre", "interpolate"))
         _check_choice("recruit", self.recruit, ("uniform", "novelty"))
         _check_int("uniqueness_window", self.uniqueness_window, 0, 2**31 - 1)
+        _check_choice("ring_velocity", self.ring_velocity, ("fixed", "adaptive"))
+        _check_int("velocity_window", self.velocity_window, 3, 4096)
+        _check_real("velocity_min", self.velocity_min, 0.0, 1.0)
+        _check_real("velocity_max", self.velocity_max, 1.0, MAX_VELOCITY)
+        _check_real("velocity_tolerance", self.velocity_tolerance, 0.0, MAX_COUNT)
+        _check_real("velocity_rate", self.velocity_rate, 0.0, 1.0, lo_open=True)
         _check_real("eps", self.eps, 0.0, 1.0, lo_open=True)
         _check_int("seed", self.seed, *SEED_RANGE)
         for name, n in (("hidden x n_input", self.hidden * h * w),
@@ -221,6 +246,22 @@ class NeuralConfig:
         ``overrides`` replace any field.
         """
         return cls(**{"density_out": 1.0, "ring_decay": 0.96, **overrides})
+
+    @classmethod
+    def adaptive_velocity(cls, **overrides) -> NeuralConfig:
+        """The adaptive ring (``ring_velocity="adaptive"``) with a narrow shift (lag 1 only).
+
+        With the speed estimated online the ring no longer needs the default's wide kernel
+        (lags 0/1/2) to cover other speeds: measured (``experiments/neural_quality.py``,
+        ``docs/neural.md``) better than the default on the corridor, LENS and every demo
+        variant there (strong appearance change, 0.6x-1.6x speed, repeats), equal on the
+        one where both are perfect.
+        Opt-in: no export form yet (the integer, ONNX and spiking exports refuse it).
+
+        ``overrides`` replace any field.
+        """
+        return cls(**{"ring_velocity": "adaptive", "ring_spread": 1, "ring_stay": 0.0,
+                      **overrides})
 
     def to_dict(self) -> dict:
         """Plain dict (JSON- and ``weights_only``-safe)."""

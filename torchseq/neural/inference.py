@@ -23,7 +23,8 @@ Stages and kernels:
             there on) or ``"dense"`` (the 0/1 code times the weights: the exported graph)
 ``ring``    ``"banded"`` (diagonals of a banded shift matrix) or ``"dense"``
 ``scan``    ``"numpy"`` or ``"torch"``: :func:`~torchseq.layers.ring_scan`'s kernel in
-            :meth:`NeuralInference.run`
+            :meth:`NeuralInference.scan`; ``"velocity_loop"``, the adaptive ring's only one
+            (``ring_velocity="adaptive"``: :meth:`NeuralInference.stream`, frame by frame)
 ``decide``  ``"numpy"`` or ``"torch"``
 =========== ============================================================================
 
@@ -51,6 +52,7 @@ from torchseq.neural.config import NeuralError
 from torchseq.neural.fixed_point import factor_power_of_two, factor_rows
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralStep
+from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import block_order, zscore_pixel_major
 
 STAGES = ("input", "l1", "kwta", "l3", "cohorts", "ring", "scan", "decide")
@@ -61,7 +63,7 @@ CHOICES = {
     "l3": ("embedding_bag", "int8_gemm", "int8_gemm_or_embedding_bag", "dense"),
     "cohorts": ("torch", "numpy"),
     "ring": ("banded", "dense"),
-    "scan": ("numpy", "torch"),
+    "scan": ("numpy", "torch", "velocity_loop"),
     "decide": ("numpy", "torch"),
 }
 SMALL_BATCH = 16  # below: the embedding-bag L3 beats the int8 GEMM (bench_neural.py)
@@ -117,6 +119,8 @@ class NeuralInference(nn.Module):
             spans = model.readout_spans
             self.register_buffer("spans", None if spans is None else spans.detach().clone())
             self.decay, self.gain = (float(v) for v in model.ring.params)
+            self.tracker = (VelocityTracker.from_model(model)
+                            if cfg.ring_velocity == "adaptive" else None)
             self.params = model.ring.params
             self.l1_int8 = self.l3_int8 = None
             self._kernels = self._resolve(kernels, cpu, w1, w3)
@@ -149,8 +153,10 @@ class NeuralInference(nn.Module):
         cfg = self.config
         if not self.block_major:
             asked["input"] = "encode"
+        if self.tracker is not None:  # the adaptive ring has one scan kernel
+            asked.setdefault("scan", "velocity_loop")
         if base == "portable":
-            out = {**PORTABLE, **({"input": "encode"} if not self.block_major else {})}
+            out = {**PORTABLE, **({"input": "encode"} if not self.block_major else {}), **asked}
             return self._check(out, cpu)
         if cpu:
             self._build_int8(w1, w3)
@@ -187,6 +193,10 @@ class NeuralInference(nn.Module):
             raise NeuralError("the int8 L3 kernel takes the partition k-WTA's uint8 code")
         if out["l1"] == "int8_gemm" and out["input"] == "encode":
             raise NeuralError("the int8 L1 kernel needs patch_mode 'zscore' with a patch")
+        if (out["scan"] == "velocity_loop") != (self.tracker is not None):
+            raise NeuralError(f"the 'velocity_loop' scan is the adaptive ring's and only "
+                              f"kernel (ring_velocity={self.config.ring_velocity!r}), got "
+                              f"{out['scan']!r}")
         if out["ring"] == "banded" and self.diagonals is None:
             raise NeuralError("the banded ring needs a banded shift matrix (no ring_wrap)")
         return out
@@ -276,9 +286,14 @@ class NeuralInference(nn.Module):
         """One streaming step for ``B`` streams (see :meth:`NeuralSeqSLAM.step`)."""
         with torch.no_grad():
             e = self.evidence(frames)
+            diag = self.diagonals if self._kernels["ring"] == "banded" else None
+            if self.tracker is not None:  # adaptive velocity (neural/velocity.py)
+                activity, reference, confidence, state = adaptive_step(
+                    e, self.tracker.initial(e) if state is None else state,
+                    self.shift.to(e.dtype), self.params, diag, self.decide, self.tracker)
+                return NeuralStep(reference, confidence, activity), state
             if state is None:
                 state = RingState(torch.zeros_like(e))
-            diag = self.diagonals if self._kernels["ring"] == "banded" else None
             activity, state = ring_step(e, state, self.shift.to(e.dtype), self.params, diag)
             reference, confidence = decide(activity, self.unit_centre,
                                            self.config.uniqueness_window, self._kernels["decide"],
@@ -294,6 +309,32 @@ class NeuralInference(nn.Module):
         banded = self._kernels["ring"] == "banded"
         return ring_scan(drive, a0, self.shift, self.decay, self.diagonals if banded else None,
                          power=self.ring_power, kernel=self._kernels["scan"])
+
+    def stream(self, evidence: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The adaptive ring over one stream's evidence ``(T, N)``, frame after frame.
+
+        The ``"velocity_loop"`` scan kernel: each frame's decision feeds the speed estimate
+        of the next, so there is no blocked form; the frames run through :meth:`forward`'s
+        step (:func:`~torchseq.neural.velocity.adaptive_step`) one at a time.
+
+        Returns:
+            ``(activity (T, N), reference (T,) int64, confidence (T,))``.
+        """
+        if self._kernels["scan"] != "velocity_loop":
+            raise NeuralError("stream() is the adaptive ring's scan; this module scans with "
+                              f"{self._kernels['scan']!r}")
+        diag = self.diagonals if self._kernels["ring"] == "banded" else None
+        shift = self.shift.to(evidence.dtype)
+        state = self.tracker.initial(evidence[:1])
+        acts, refs, confs = [], [], []
+        with torch.no_grad():
+            for t in range(evidence.shape[0]):
+                a, r, c, state = adaptive_step(evidence[t:t + 1], state, shift, self.params,
+                                               diag, self.decide, self.tracker)
+                acts.append(a)
+                refs.append(r)
+                confs.append(c)
+        return torch.cat(acts), torch.cat(refs), torch.cat(confs)
 
     def decide(self, activity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(reference, confidence)`` of activity ``(B, N)`` with this module's kernel."""

@@ -34,6 +34,7 @@ from torchseq.neural.memory import seqslam_bytes
 from torchseq.neural.progress import Progress, as_progress
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
+from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import patch_normalise, quantise_input, resize, to_grey, zscore_blocks
 
 __all__ = ["NeuralFitLog", "NeuralResult", "NeuralSeqSLAM", "NeuralStep", "seqslam_bytes"]
@@ -138,7 +139,10 @@ class NeuralSeqSLAM(nn.Module):
 
         Args:
             frames: ``(B, H, W)`` (or ``(B, H, W, 3)``) one new frame per stream.
-            state: ring state from the previous step (None: start of the streams).
+            state: ring state from the previous step (None: start of the streams): a
+                :class:`~torchseq.layers.RingState`, or with ``ring_velocity="adaptive"`` a
+                :class:`~torchseq.neural.VelocityState` (activity, speed estimates and the
+                window of recent decisions).
 
         Returns:
             ``(NeuralStep, new state)``.
@@ -148,14 +152,25 @@ class NeuralSeqSLAM(nn.Module):
         grad mode, without autograd. Nothing else switches paths.
         """
         self._require_fit()
-        if state is not None and (state.activity.dim() != 2
-                                  or state.activity.shape[1] != self.n_units
-                                  or state.activity.shape[0] != frames.shape[0]):
+        adaptive = self.config.ring_velocity == "adaptive"
+        if state is not None and adaptive:
+            VelocityTracker.from_model(self).check(state, frames.shape[0], self.n_units)
+        elif state is not None and (state.activity.dim() != 2
+                                    or state.activity.shape[1] != self.n_units
+                                    or state.activity.shape[0] != frames.shape[0]):
             raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
                               f"{tuple(state.activity.shape)}")
         if self._inference is not None:
             return self._inference(frames, state)
         e = self.evidence(self.code(self.encode(frames)))  # (B, N)
+        if adaptive:  # the ring at each stream's speed estimate (neural/velocity.py)
+            tracker = VelocityTracker.from_model(self)
+            activity, reference, confidence, state = adaptive_step(
+                e, state if state is not None else tracker.initial(e),
+                self.ring.shift.to(e.dtype), self.ring.params, None,
+                lambda a: decide(a, self.unit_centre, self.config.uniqueness_window,
+                                 spans=self.readout_spans), tracker)
+            return NeuralStep(reference, confidence, activity), state
         activity, state = self.ring(e, state)
         reference, confidence = decide(activity, self.unit_centre,
                                        self.config.uniqueness_window, spans=self.readout_spans)
@@ -271,8 +286,11 @@ class NeuralSeqSLAM(nn.Module):
         parts = [module.evidence(query[lo:hi])
                  for lo, hi in _chunks(query.shape[0], self.config.chunk,
                                        as_progress(progress, "run"))]
-        activity = module.scan(torch.cat(parts))  # (T, N)
-        reference, confidence = module.decide(activity)
+        if module.kernels["scan"] == "velocity_loop":  # adaptive: decisions feed the ring
+            activity, reference, confidence = module.stream(torch.cat(parts))
+        else:
+            activity = module.scan(torch.cat(parts))  # (T, N)
+            reference, confidence = module.decide(activity)
         matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
         return NeuralResult(matches, activity.cpu())
 

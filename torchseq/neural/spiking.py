@@ -248,6 +248,10 @@ class SpikingSeqSLAM(nn.Module):
             raise SpikingError(f"the spiking network reads each unit's centre frame; the rate "
                                f"model's readout={mc.readout!r} has no spiking (or NIR) form "
                                f"yet: convert a model with readout='centre'")
+        if getattr(mc, "ring_velocity", "fixed") != "fixed":  # a silently fixed ring otherwise
+            raise SpikingError(f"ring_velocity={mc.ring_velocity!r} has no spiking (or NIR) form "
+                               "(the spiking ring moves at the reference speed): convert a "
+                               "model with ring_velocity='fixed'")
         w1 = model.l1.folded_weight().detach().float().cpu()  # (M, D)
         w3f = model.l3.folded_weight().detach().float().cpu()  # (N, M)
         g = model.cohorts.detach().float().cpu()  # (N, C)
