@@ -23,6 +23,7 @@ import torch
 
 from torchseq import metrics, plots
 from torchseq.atomic import write_json, write_text
+from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
 from torchseq.frontend import (
     EVENT_HELP,
@@ -53,6 +54,7 @@ from torchseq.sources import FrameSelection, load_traverse_sizes
 
 PROG = "torchseq eval"  # set by main() to the name the user ran
 ENGINES = ("seqslam", "neural", "both")
+Notes = WarningLog | list  # where a run's warnings go (a plain list in tests of one step)
 MAX_DEMO_QUERY = 50_000  # demo query frames (96x128 float32 each)
 
 
@@ -275,7 +277,7 @@ def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
     return gt_full[np.ix_(ref.info["indices"], query.info["indices"])]
 
 
-def load_data(cfg: EvalConfig, sizes: dict, notes: list):
+def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
     """Reference and query traverses, ``(R, Q)`` ground truth (or None) and a description."""
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     if cfg.reference is None and cfg.query is None:
@@ -325,7 +327,7 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: list):
     return ref, query, gt, source
 
 
-def run_seqslam(s: Settings, ref, query, device, notes: list):
+def run_seqslam(s: Settings, ref, query, device, notes: Notes):
     """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
     ds = s.seqslam.sequence_length
     if ds > len(query):
@@ -389,7 +391,7 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
             "unless that is the same route")
 
 
-def run_neural(s: Settings, ref, query, device, notes: list, model=None):
+def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
     """Neural SeqSLAM, from a checkpoint (``model``, loaded) or trained on the reference now."""
     from torchseq.neural import NeuralSeqSLAM
 
@@ -453,12 +455,12 @@ def config_dict(s: Settings) -> dict:
             "neural": to_jsonable(s.neural)}
 
 
-def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list) -> dict:
+def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes) -> dict:
     """Write metrics.json, matches.csv, plots and TensorBoard logs; return the metrics."""
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
-               "warnings": notes}
+               "warnings": warning_list(notes)}
     curves = {}
     for name, r in results.items():
         summary[name] = engine_metrics(r, gt, s.run.target_precision)
@@ -519,7 +521,7 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
             tb.add_pr_curve(f"{name}/pr_curve", labels, pred.float())
 
 
-def run_engines(s: Settings, ref, query, device, notes: list, model=None) -> dict:
+def run_engines(s: Settings, ref, query, device, notes: Notes, model=None) -> dict:
     """Every engine the run asks for, by name (``model``: a loaded checkpoint)."""
     names = ["seqslam", "neural"] if s.run.engine == "both" else [s.run.engine]
     return {name: run_seqslam(s, ref, query, device, notes) if name == "seqslam" else
@@ -527,7 +529,7 @@ def run_engines(s: Settings, ref, query, device, notes: list, model=None) -> dic
 
 
 def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: list[str],
-          ref, query, gt, source, device, out: Path, notes: list, model=None) -> int:
+          ref, query, gt, source, device, out: Path, notes: Notes, model=None) -> int:
     """Run every grid point; write sweep.csv (one row per setting and engine) and sweep.json."""
     rows = []
     for point, flags in zip(points, grid):
@@ -547,7 +549,8 @@ def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: 
     w.writeheader()
     w.writerows(rows)
     write_text(out / "sweep.csv", buf.getvalue())
-    write_json(out / "sweep.json", {"inputs": source, "rows": rows, "warnings": notes})
+    write_json(out / "sweep.json", {"inputs": source, "rows": rows,
+                                     "warnings": warning_list(notes)})
     write_text(out / "config.json", config_text({**config_dict(base), "sweep": specs}) + "\n")
     for row in rows:
         r1 = "n/a" if row["recall_at_1"] is None else f"{row['recall_at_1']:.3f}"
@@ -566,6 +569,14 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     global PROG
     PROG = prog or PROG
     s, points, grid, specs = parse_args(argv)
+    notes = WarningLog(PROG)  # the library's warnings and the front end's, once each
+    with notes.capture():
+        return run(s, points, grid, specs, notes)
+
+
+def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[str],
+        notes: WarningLog) -> int:
+    """One eval run (or sweep) of checked settings; its warnings go to ``notes``."""
     cfg = s.run
     device = resolve_device(cfg.device)
     event_frame_options(cfg)  # checked before any work
@@ -577,7 +588,6 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     model = None
     if cfg.checkpoint and cfg.engine in ("neural", "both"):
         model = load_model(cfg.checkpoint, device)
-    notes: list[str] = []
     ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes)
     if grid:
         return sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)

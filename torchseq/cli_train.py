@@ -18,7 +18,8 @@ from pathlib import Path
 import torch
 
 from torchseq import plots
-from torchseq.atomic import write_text
+from torchseq.atomic import write_json, write_text
+from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
 from torchseq.frontend import (
     EVENT_HELP,
@@ -158,6 +159,13 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     global PROG
     PROG = prog or PROG
     cfg, ncfg = parse_args(argv)
+    notes = WarningLog(PROG)  # the library's warnings, once each, also in train.json
+    with notes.capture():
+        return train(cfg, ncfg, notes)
+
+
+def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog) -> int:
+    """One training run of checked settings (and its export); warnings go to ``notes``."""
     device = resolve_device(cfg.device)
     events = event_frame_options(cfg)
     check_event_flags_apply(cfg, {"--reference": cfg.reference})
@@ -189,6 +197,9 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     model.save(out / "model.pt", extra={"train_config": to_jsonable(cfg),
                                         "reference": reference})
     write_text(out / "config.json", config_text({"train": cfg, "model": ncfg}) + "\n")
+    summary = {"reference": reference, "fit_seconds": seconds,
+               "model_bytes": int(model.model_bytes()), "n_units": int(model.n_units)}
+    write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
     log_training(cfg, ncfg, model, log, out)
     print(f"trained on {len(frames)} reference frames in {seconds:.2f} s "
           f"({1e3 * seconds / len(frames):.2f} ms/frame); model {model.model_bytes()} bytes; "
@@ -201,10 +212,12 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
                                frame_size=parse_size(cfg.export_frame_size))
         for line in summary_lines(out / "export"):
             print(f"export: {line}")
-        if not ok:
-            print(f"{PROG}: export validation failed, see {out / 'export' / 'validation.json'}",
-                  file=sys.stderr)
-            return 1
+        summary["export_passed"] = bool(ok)
+    write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
+    if cfg.export and not ok:
+        print(f"{PROG}: export validation failed, see {out / 'export' / 'validation.json'}",
+              file=sys.stderr)
+        return 1
     return 0
 
 

@@ -433,8 +433,15 @@ def run_main(main: Callable[[list[str] | None], int], prog: str,
         return 130
 
 
-def warn(prog: str, message: str, sink: list | None = None) -> None:
-    """Print ``prog: warning: message`` on stderr (and keep it in ``sink`` for the report)."""
+def warn(prog: str, message: str, sink=None) -> None:
+    """Print ``prog: warning: message`` on stderr (and keep it in ``sink`` for the report).
+
+    ``sink``: a list, or a run's :class:`~torchseq.cli_warnings.WarningLog` (which prints a
+    repeated warning once and counts it).
+    """
+    if hasattr(sink, "add"):
+        sink.add(message)
+        return
     print(f"{prog}: warning: {message}", file=sys.stderr)
     if sink is not None:
         sink.append(message)
