@@ -489,3 +489,56 @@ def test_time_unit_flag_reads_epoch_seconds_csv(tmp_path, capsys):
     assert code == 2 and "time_unit" in err and "do not apply" in err
     code, err = run_inprocess("eval", capsys, "--time-unit", "h")
     assert code == 2 and "--time-unit must be s, ms, us or ns" in err
+
+
+def test_evt3_kernel_flag_reaches_the_decoder(tmp_path, capsys, monkeypatch):
+    import torchseq.events.prophesee as prophesee
+
+    raw = shared_data("events", "evt3_sample.raw")
+    kernels = []
+    real = prophesee.decode_evt3
+
+    def spy(words, state, time_mode="spec", kernel=None):
+        kernels.append(kernel)
+        return real(words, state, time_mode, kernel)
+
+    monkeypatch.setattr(prophesee, "decode_evt3", spy)
+    # auto picks the fast kernel for any size here, so an explicit numpy is told apart
+    monkeypatch.setattr(prophesee, "EVT3_NUMBA_MIN_BYTES", 0)
+    common = ["--engine", "seqslam", "--reference", str(raw), "--query", str(raw),
+              "--window-ms", "0.5", "--frame-size", "16", "--image-size", "16", "--ds", "4",
+              "--patch-size", "4", "--tolerance", "1", "--no-tensorboard"]
+    counts = {}
+    choices = ["auto", "numpy"] + (["numba"] if importlib.util.find_spec("numba") else [])
+    for kernel in choices:
+        kernels.clear()
+        out = tmp_path / kernel
+        code, err = run_inprocess("eval", capsys, *common, "--evt3-kernel", kernel,
+                                  "--out", str(out))
+        assert code == 0, err
+        assert kernels and set(kernels) == {prophesee.EVT3_KERNEL if kernel == "auto"
+                                            else kernel}
+        counts[kernel] = json.loads((out / "metrics.json").read_text())["seqslam"]
+        assert json.loads((out / "config.json").read_text())["evt3_kernel"] == kernel
+    assert all(c["n_queries"] == counts["auto"]["n_queries"] and
+               c["recall_at_1"] == counts["auto"]["recall_at_1"] for c in counts.values())
+    code, err = run_inprocess("eval", capsys, *common, "--evt3-kernel", "fast")
+    assert code == 2 and "--evt3-kernel must be auto, numpy or numba, got 'fast'" in err
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    code, err = run_inprocess("eval", capsys, "--reference", str(aedat), "--query", str(aedat),
+                              "--evt3-kernel", "numpy", "--out", str(tmp_path / "a"))
+    assert code == 2 and "EVT 3 kernel applies to .raw files only" in err
+    code, err = run_inprocess("train", capsys, "--evt3-kernel", "numpy",
+                              "--out", str(tmp_path / "t"))
+    assert code == 2 and "--evt3-kernel applies to event files only" in err
+
+
+def test_evt3_kernel_numba_without_numba_is_refused(monkeypatch):
+    from torchseq.cli_eval import parse_args
+    from torchseq.frontend import UsageError, event_frame_options
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "numba" else real(name, *a))
+    with pytest.raises(UsageError, match="--evt3-kernel numba needs numba"):
+        event_frame_options(parse_args(["--evt3-kernel", "numba"])[0].run)

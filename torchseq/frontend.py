@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import json
 import math
 import re
@@ -190,6 +191,7 @@ def parse_anchor(text: str | int) -> str | int:
 
 
 EVENT_MODES = ("count", "signed", "two-channel", "binary")
+EVT3_KERNEL_CHOICES = ("auto", "numpy", "numba")  # auto: the readers' choice by file size
 MAX_CROP_MS = 1e12  # about 31 years of sensor time
 MAX_REFRACTORY_US = 2 ** 40
 
@@ -216,8 +218,8 @@ def event_options(window_ms: float, event_count: int | None,
                   sensor_size: str | None = None, mode: str = "count",
                   evt3_time: str = "spec", truncated: str = "error", t_start: float = 0.0,
                   duration: float | None = None, hot_pixel: float | None = None,
-                  refractory_us: int | None = None, time_unit: str | None = None
-                  ) -> EventFrameOptions:
+                  refractory_us: int | None = None, time_unit: str | None = None,
+                  evt3_kernel: str = "auto") -> EventFrameOptions:
     """Check and bundle the event-accumulation flags.
 
     ``--event-mode two-channel`` (or ``two_channel``) puts the OFF and ON counts side by side
@@ -228,6 +230,12 @@ def event_options(window_ms: float, event_count: int | None,
         raise UsageError(f"--evt3-time must be spec or carry, got {evt3_time!r}")
     if truncated not in ("error", "drop"):
         raise UsageError(f"--truncated must be error or drop, got {truncated!r}")
+    if evt3_kernel not in EVT3_KERNEL_CHOICES:
+        raise UsageError(f"--evt3-kernel must be {', '.join(EVT3_KERNEL_CHOICES[:-1])} or "
+                         f"{EVT3_KERNEL_CHOICES[-1]}, got {evt3_kernel!r}")
+    if evt3_kernel == "numba" and importlib.util.find_spec("numba") is None:
+        raise UsageError("--evt3-kernel numba needs numba: pip install torchseq[fast] (or "
+                         "--evt3-kernel numpy: the same events)")
     if time_unit is not None and time_unit not in UNITS_PER_US:  # the readers' units
         raise UsageError(f"--time-unit must be s, ms, us or ns, got {time_unit!r}")
     if str(mode).replace("_", "-") not in EVENT_MODES:
@@ -251,7 +259,8 @@ def event_options(window_ms: float, event_count: int | None,
                              mode=str(mode).replace("-", "_"), evt3_time=evt3_time,
                              truncated=truncated, start_ms=float(t_start),
                              duration_ms=duration, hot_pixel=hot_pixel,
-                             refractory_us=refractory_us, time_unit=time_unit)
+                             refractory_us=refractory_us, time_unit=time_unit,
+                             evt3_kernel=None if evt3_kernel == "auto" else evt3_kernel)
 
 
 @dataclasses.dataclass
@@ -268,6 +277,7 @@ class EventFlags:
     sensor_size: str | None = None
     event_mode: str = "count"
     evt3_time: str = "spec"
+    evt3_kernel: str = "auto"
     truncated: str = "error"
     t_start: float = 0.0
     duration: float | None = None
@@ -293,6 +303,8 @@ EVENT_HELP = {
                  "pixel (default: off)",
     "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
     "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "evt3_kernel": "Prophesee EVT 3 .raw files: decoder, auto (numba from 128 MiB when "
+                   "installed, else numpy), numpy or numba; the same events either way",
     "time_unit": "CSV, HDF5 and Parquet event files: the time column's unit, s, ms, us or ns "
                  "(default: integers are us, fractions follow the float-time rule)",
     "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
@@ -305,7 +317,7 @@ def event_frame_options(cfg: EventFlags) -> EventFrameOptions:
     return event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
                          cfg.window_anchor, cfg.sensor_size, cfg.event_mode, cfg.evt3_time,
                          cfg.truncated, cfg.t_start, cfg.duration, cfg.hot_pixel,
-                         cfg.refractory_us, cfg.time_unit)
+                         cfg.refractory_us, cfg.time_unit, cfg.evt3_kernel)
 
 
 def event_flags_set(cfg: EventFlags) -> list[str]:
