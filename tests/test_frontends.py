@@ -542,3 +542,26 @@ def test_evt3_kernel_numba_without_numba_is_refused(monkeypatch):
                         lambda name, *a: None if name == "numba" else real(name, *a))
     with pytest.raises(UsageError, match="--evt3-kernel numba needs numba"):
         event_frame_options(parse_args(["--evt3-kernel", "numba"])[0].run)
+
+
+def test_checkpoint_of_other_event_settings_or_selection_is_said(tmp_path, capsys):
+    # same recording, same frame count and size: only the frames' making differs
+    aedat = str(shared_data("events", "alex_walking_again.aedat"))
+    events = ["--frame-size", "16", "--max-frames", "60"]
+    assert run_inprocess("train", capsys, "--reference", aedat, *events, "--hidden", "128",
+                         "--n-output", "60", "--no-tensorboard",
+                         "--out", str(tmp_path / "t"))[0] == 0
+    common = ["--engine", "neural", "--checkpoint", str(tmp_path / "t" / "model.pt"),
+              "--reference", aedat, "--query", aedat, "--tolerance", "2", "--no-tensorboard"]
+    code, err = run_inprocess("eval", capsys, *common, *events, "--evt3-kernel", "auto",
+                              "--out", str(tmp_path / "same"))
+    assert code == 0 and "does not match" not in err, err
+    code, err = run_inprocess("eval", capsys, *common, *events, "--event-mode", "signed",
+                              "--out", str(tmp_path / "mode"))
+    assert code == 0 and "does not match this reference (its event frame settings differ " \
+        "(mode 'count' -> 'signed'))" in err, err
+    m = json.loads((tmp_path / "mode" / "metrics.json").read_text())
+    assert any("mode 'count' -> 'signed'" in w for w in m["warnings"])
+    code, err = run_inprocess("eval", capsys, *common, *events, "--start", "50",
+                              "--out", str(tmp_path / "start"))
+    assert code == 0 and "its frame selection differs (start 0 -> 50)" in err, err

@@ -355,12 +355,25 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
 
 
 def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
-    """What identifies a reference traverse: where it came from, frames, frame size."""
+    """What identifies a reference traverse: source, frames, frame size, selection, events."""
     if cfg.reference is None:
         source = {"source": "demo", "demo_frames": cfg.demo_frames, "demo_seed": cfg.seed}
     else:
-        source = {"source": str(Path(cfg.reference).resolve())}
+        source = {"source": str(Path(cfg.reference).resolve()), "select": to_jsonable(
+            frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames))}
+        if ref.info.get("events"):
+            source["events"] = to_jsonable(event_frame_options(cfg))
     return {**source, "n_frames": len(ref), "frame_size": list(ref.info["frame_size"])}
+
+
+# event settings that change no frame (the same events either way, or a complete file read)
+SAME_FRAMES = {"evt3_kernel", "truncated"}
+
+
+def _setting_changes(learnt: dict, now: dict) -> str:
+    """``"mode 'count' -> 'signed', ..."`` for the settings both dicts hold that differ."""
+    return ", ".join(f"{k} {learnt[k]!r} -> {now[k]!r}" for k in now
+                     if k in learnt and k not in SAME_FRAMES and learnt[k] != now[k])
 
 
 def checkpoint_mismatch(model, this: dict) -> str | None:
@@ -382,6 +395,12 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
             fs = learnt["frame_size"]
             problems.append(f"its frames were {fs[0]}x{fs[1]}, these are "
                             f"{this['frame_size'][0]}x{this['frame_size'][1]}")
+        for key, what in (("events", "event frame settings differ"),
+                          ("select", "frame selection differs")):
+            if isinstance(learnt.get(key), dict) and isinstance(this.get(key), dict):
+                changed = _setting_changes(learnt[key], this[key])
+                if changed:
+                    problems.append(f"its {what} ({changed})")
     elif not problems:
         return None  # an API-saved model: the frame count is all there is to check
     if not problems:
