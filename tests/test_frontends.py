@@ -565,3 +565,16 @@ def test_checkpoint_of_other_event_settings_or_selection_is_said(tmp_path, capsy
     code, err = run_inprocess("eval", capsys, *common, *events, "--start", "50",
                               "--out", str(tmp_path / "start"))
     assert code == 0 and "its frame selection differs (start 0 -> 50)" in err, err
+
+
+def test_place_resolution_warning_follows_the_readout(tmp_path, capsys):
+    # the interpolating readout reads places within a unit: 3 frames per unit are fine there
+    common = ["--engine", "neural", "--demo-frames", "60", "--neural-hidden", "128",
+              "--neural-readout", "interpolate", "--no-tensorboard"]
+    code, err = run_inprocess("eval", capsys, *common, "--neural-n-output", "20",
+                              "--out", str(tmp_path / "fine"))
+    assert code == 0 and "unit stands for" not in err and "unit centres" not in err, err
+    code, err = run_inprocess("eval", capsys, *common, "--neural-n-output", "6",
+                              "--out", str(tmp_path / "coarse"))
+    assert code == 0 and "one unit stands for about 10.0 frames (too coarse for the " \
+        "interpolating readout; raise --neural-n-output" in err, err

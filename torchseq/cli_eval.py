@@ -413,6 +413,7 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
 def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
     """Neural SeqSLAM, from a checkpoint (``model``, loaded) or trained on the reference now."""
     from torchseq.neural import NeuralSeqSLAM
+    from torchseq.neural.model import COARSE_UNIT_FRAMES
 
     cfg = s.run
     start = time.perf_counter()
@@ -427,10 +428,13 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
     fit_seconds = time.perf_counter() - start
     n_ref = int(model.unit_to_reference[-1, 1])
     per_unit = n_ref / model.n_units
-    if per_unit > 1:
+    readout = model.config.readout
+    if per_unit > (COARSE_UNIT_FRAMES if readout == "interpolate" else 1):
+        how = ("matches are unit centres" if readout == "centre" else
+               "too coarse for the interpolating readout")
         warn(PROG, f"neural: {n_ref} reference frames on {model.n_units} output units, one "
-             f"unit stands for about {per_unit:.1f} frames (matches are unit centres; "
-             f"raise --neural-n-output for a finer place resolution)", notes)
+             f"unit stands for about {per_unit:.1f} frames ({how}; raise --neural-n-output "
+             f"for a finer place resolution)", notes)
     t0 = time.perf_counter()
     result = model.run(query.at(size), progress=cfg.progress)
     run_seconds = time.perf_counter() - t0
