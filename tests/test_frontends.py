@@ -365,6 +365,7 @@ def test_event_crop_mode_and_filters_reach_the_traverse(tmp_path, capsys, monkey
     (["--t-start", "-5"], "--t-start must be in"),
     (["--hot-pixel", "0"], "--hot-pixel must be"),
     (["--refractory-us", "-1"], "--refractory-us must be"),
+    (["--event-count", "500", "--window-ms", "5"], "--window-ms 5 has no effect with --event"),
 ])
 @pytest.mark.parametrize("script", ["eval", "train"])
 def test_event_flags_are_checked_before_any_work(tmp_path, capsys, args, message, script):

@@ -172,6 +172,7 @@ def config_from_args(config_cls: type, args: argparse.Namespace, prefix: str = "
     return config_cls(**values)
 
 
+DEFAULT_WINDOW_MS = 10.0  # --window-ms when not given
 MAX_WINDOW_MS = 3.6e9  # 1000 hours: longer windows are surely a mistake
 MAX_EVENT_COUNT = 2 ** 40
 
@@ -244,6 +245,9 @@ def event_options(window_ms: float, event_count: int | None,
         raise UsageError(f"--window-ms must be in (0, {MAX_WINDOW_MS:g}] ms, got {window_ms}")
     if event_count is not None and not 0 < event_count <= MAX_EVENT_COUNT:
         raise UsageError(f"--event-count must be in 1..{MAX_EVENT_COUNT}, got {event_count}")
+    if event_count is not None and window_ms != DEFAULT_WINDOW_MS:
+        raise UsageError(f"--window-ms {window_ms:g} has no effect with --event-count (frames "
+                         f"of {event_count} events each, whatever their time span); drop one")
     if not (math.isfinite(t_start) and 0 <= t_start <= MAX_CROP_MS):
         raise UsageError(f"--t-start must be in 0..{MAX_CROP_MS:g} ms, got {t_start}")
     if duration is not None and not (math.isfinite(duration) and 0 < duration <= MAX_CROP_MS):
@@ -270,7 +274,7 @@ class EventFlags:
     :func:`event_frame_options` checks and bundles them.
     """
 
-    window_ms: float = 10.0
+    window_ms: float = DEFAULT_WINDOW_MS
     event_count: int | None = None
     frame_size: str | None = None
     window_anchor: str = "first"
@@ -287,7 +291,7 @@ class EventFlags:
 
 
 EVENT_HELP = {
-    "window_ms": "event files: accumulation window in milliseconds",
+    "window_ms": "event files: accumulation window in milliseconds (not with --event-count)",
     "event_count": "event files: events per frame instead of a time window",
     "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
     "window_anchor": "event files: where the first window starts: 'first' (first event), "
