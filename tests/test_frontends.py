@@ -579,3 +579,30 @@ def test_place_resolution_warning_follows_the_readout(tmp_path, capsys):
                               "--out", str(tmp_path / "coarse"))
     assert code == 0 and "one unit stands for about 10.0 frames (too coarse for the " \
         "interpolating readout; raise --neural-n-output" in err, err
+
+
+def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, monkeypatch):
+    # the export read an --export-query event file with default settings (10 ms windows at
+    # the full 128x128) although the model learnt 20 ms windows pooled to 16x16
+    import torchseq.export.cli as export_cli
+
+    seen = {}
+
+    def spy(ckpt, out, query=None, **kwargs):
+        seen["query"] = query
+        return True
+
+    monkeypatch.setattr(export_cli, "export_checkpoint", spy)
+    monkeypatch.setattr(export_cli, "summary_lines", lambda out: [])
+    aedat = str(shared_data("events", "alex_walking_again.aedat"))
+    code, err = run_inprocess("train", capsys, "--reference", aedat, "--frame-size", "16",
+                              "--window-ms", "20", "--event-mode", "signed", "--max-frames",
+                              "60", "--hidden", "64", "--n-output", "60", "--no-tensorboard",
+                              "--export", "--export-query", aedat, "--out", str(tmp_path / "t"))
+    assert code == 0, err
+    from torchseq.sources import EventFrameOptions, load_traverse
+
+    made = load_traverse(aedat, events=EventFrameOptions(window_ms=20, frame_size=(16, 16),
+                                                         mode="signed"), progress=False)
+    assert tuple(seen["query"].shape) == (345, 16, 16)  # 6.89 s of 20 ms windows, whole file
+    assert np.array_equal(np.asarray(seen["query"]), np.asarray(made))

@@ -42,7 +42,7 @@ from torchseq.frontend import (
     to_jsonable,
 )
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
-from torchseq.sources import FrameSelection, load_traverse_sizes
+from torchseq.sources import FrameSelection, is_event_file, load_traverse, load_traverse_sizes
 
 PROG = "torchseq train"  # set by main() to the name the user ran
 
@@ -149,6 +149,26 @@ def log_training(cfg: TrainConfig, ncfg: NeuralConfig, model: NeuralSeqSLAM,
         tb.add_scalar("train/model_bytes", model.model_bytes())
 
 
+def export_query(cfg: TrainConfig, events):
+    """``--export-query`` for the export: an event file becomes frames made as the reference's.
+
+    The export reads a path with default event settings; the model learnt frames made with
+    this run's (window, frame size, mode, filters), so an event query is read here with them.
+    """
+    path = cfg.export_query
+    if path is None or not Path(path).is_file():
+        return path  # the export names a missing query itself
+    try:
+        if not is_event_file(path):
+            return path
+        frames = load_traverse(path, events=events, progress=cfg.progress)
+    except (ValueError, OSError) as err:
+        raise UsageError(f"--export-query {path}: {str(err).splitlines()[0]}") from err
+    print(f"export: validation query {path}: {len(frames)} event frames made with the "
+          f"reference's event settings")
+    return frames
+
+
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """Entry point; returns the exit code (errors raise, see :func:`torchseq.frontend.run_main`).
 
@@ -168,7 +188,9 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog) -> int:
     """One training run of checked settings (and its export); warnings go to ``notes``."""
     device = resolve_device(cfg.device)
     events = event_frame_options(cfg)
-    check_event_flags_apply(cfg, {"--reference": cfg.reference})
+    check_event_flags_apply(cfg, {"--reference": cfg.reference,
+                                  **({"--export-query": cfg.export_query}
+                                     if cfg.export and cfg.export_query else {})})
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "train", cfg.overwrite)
     if cfg.reference is None:
@@ -207,7 +229,8 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog) -> int:
     if cfg.export:
         from torchseq.export.cli import export_checkpoint, summary_lines
 
-        ok = export_checkpoint(out / "model.pt", out / "export", query=cfg.export_query,
+        ok = export_checkpoint(out / "model.pt", out / "export",
+                               query=export_query(cfg, events),
                                ground_truth=cfg.export_ground_truth,
                                frame_size=parse_size(cfg.export_frame_size))
         for line in summary_lines(out / "export"):
