@@ -410,7 +410,10 @@ def test_event_flags_without_event_files_are_refused(tmp_path, capsys, script):
     for i, given in enumerate(inputs):
         for flags, named in ((["--window-ms", "5"], "--window-ms applies"),
                              (["--event-mode", "signed", "--hot-pixel", "3"],
-                              "--event-mode, --hot-pixel apply")):
+                              "--event-mode, --hot-pixel apply"),
+                             # given at their default values, the user still meant them
+                             (["--window-ms", "10", "--event-mode=count"],
+                              "--window-ms, --event-mode apply")):
             out = tmp_path / f"o{i}"
             code, err = run_inprocess(script, capsys, *given, *flags, "--out", str(out))
             assert code == 2 and named in err and "no input is one" in err, err

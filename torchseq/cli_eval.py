@@ -26,6 +26,7 @@ from torchseq.atomic import write_json, write_text
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
 from torchseq.frontend import (
+    EVENT_FIELDS,
     EVENT_HELP,
     EventFlags,
     Parser,
@@ -39,6 +40,7 @@ from torchseq.frontend import (
     config_text,
     event_frame_options,
     frame_selection,
+    given_flags,
     load_model,
     resolve_device,
     run_folder,
@@ -143,6 +145,7 @@ class Settings:
     run: EvalConfig
     seqslam: SeqSLAMConfig
     neural: NeuralConfig
+    given: frozenset = frozenset()  # event fields the command line gave, whatever their value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -220,8 +223,11 @@ def parse_args(argv: list[str] | None
         config_file_defaults(parser, pre.config, {"seqslam": "", "neural": "neural_"})
     args = parser.parse_args(argv)
     base = settings_from(args)
+    base.given = given_flags(parser, argv, EVENT_FIELDS)
     grid = sweep_grid(args.sweep, parser)
-    points = [settings_from(parser.parse_args(argv + extra)) for extra in grid]
+    points = [dataclasses.replace(settings_from(parser.parse_args(argv + extra)),
+                                  given=given_flags(parser, argv + extra, EVENT_FIELDS))
+              for extra in grid]
     return base, points, grid, list(args.sweep)
 
 
@@ -604,7 +610,8 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
     device = resolve_device(cfg.device)
     event_frame_options(cfg)  # checked before any work
     for point in (s, *points):  # event flags with no event file would be silently ignored
-        check_event_flags_apply(point.run, {"--reference": cfg.reference, "--query": cfg.query})
+        check_event_flags_apply(point.run, {"--reference": cfg.reference, "--query": cfg.query},
+                                point.given)
     frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "eval", cfg.overwrite)
     torch.manual_seed(cfg.seed)

@@ -22,6 +22,7 @@ from torchseq.atomic import write_json, write_text
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
 from torchseq.frontend import (
+    EVENT_FIELDS,
     EVENT_HELP,
     EventFlags,
     Parser,
@@ -35,6 +36,7 @@ from torchseq.frontend import (
     config_text,
     event_frame_options,
     frame_selection,
+    given_flags,
     parse_size,
     resolve_device,
     run_folder,
@@ -178,19 +180,26 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """
     global PROG
     PROG = prog or PROG
+    argv = list(sys.argv[1:] if argv is None else argv)
     cfg, ncfg = parse_args(argv)
+    given = given_flags(build_parser(), argv, EVENT_FIELDS)  # event flags typed, any value
     notes = WarningLog(PROG)  # the library's warnings, once each, also in train.json
     with notes.capture():
-        return train(cfg, ncfg, notes)
+        return train(cfg, ncfg, notes, given)
 
 
-def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog) -> int:
-    """One training run of checked settings (and its export); warnings go to ``notes``."""
+def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
+          given: frozenset = frozenset()) -> int:
+    """One training run of checked settings (and its export); warnings go to ``notes``.
+
+    ``given``: the event fields the command line gave, whatever their value.
+    """
     device = resolve_device(cfg.device)
     events = event_frame_options(cfg)
     check_event_flags_apply(cfg, {"--reference": cfg.reference,
                                   **({"--export-query": cfg.export_query}
-                                     if cfg.export and cfg.export_query else {})})
+                                     if cfg.export and cfg.export_query else {})},
+                            given)
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "train", cfg.overwrite)
     if cfg.reference is None:

@@ -324,11 +324,35 @@ def event_frame_options(cfg: EventFlags) -> EventFrameOptions:
                          cfg.refractory_us, cfg.time_unit, cfg.evt3_kernel)
 
 
-def event_flags_set(cfg: EventFlags) -> list[str]:
-    """The event flags given values other than their defaults, as ``--flag`` names."""
+def event_flags_set(cfg: EventFlags, given: frozenset[str] = frozenset()) -> list[str]:
+    """The event flags given values other than their defaults, or named in ``given``.
+
+    Args:
+        cfg: the run's event flags.
+        given: field names the command line gave (:func:`given_flags`), whatever their value.
+
+    Returns:
+        ``--flag`` names, in the fields' order.
+    """
     default = EventFlags()
     return [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(EventFlags)
-            if getattr(cfg, f.name) != getattr(default, f.name)]
+            if f.name in given or getattr(cfg, f.name) != getattr(default, f.name)]
+
+
+def given_flags(parser: argparse.ArgumentParser, argv: list[str],
+                dests: set[str]) -> frozenset[str]:
+    """Which of ``dests`` the command line ``argv`` gives (abbreviated or not, any value).
+
+    argparse fills in a default only where the namespace lacks the name, so names set
+    beforehand to a marker that survives parsing were not given.
+    """
+    unset = object()
+    namespace = argparse.Namespace(**{d: unset for d in dests})
+    parser.parse_args(argv, namespace)
+    return frozenset(d for d in dests if getattr(namespace, d) is not unset)
+
+
+EVENT_FIELDS = {f.name for f in dataclasses.fields(EventFlags)}
 
 
 def _may_hold_events(source: str | None) -> bool:
@@ -350,18 +374,20 @@ def _may_hold_events(source: str | None) -> bool:
         return True
 
 
-def check_event_flags_apply(cfg: EventFlags, sources: dict[str, str | None]) -> None:
+def check_event_flags_apply(cfg: EventFlags, sources: dict[str, str | None],
+                            given: frozenset[str] = frozenset()) -> None:
     """Refuse event flags when no input is an event file (they would be silently ignored).
 
     Args:
         cfg: the run's event flags.
         sources: ``{"--reference": path or None (demo), ...}``, every input they could
             apply to.
+        given: event fields the command line gave (also at their default value).
 
     Raises:
         UsageError: an event flag was set and no input is an event file.
     """
-    given = event_flags_set(cfg)
+    given = event_flags_set(cfg, given)
     if given and not any(_may_hold_events(s) for s in sources.values()):
         what = ", ".join(f"{k} {'demo' if v is None else v}" for k, v in sources.items())
         raise UsageError(f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to "
