@@ -26,11 +26,11 @@ def test_reader_warning_is_one_counted_line_and_in_metrics(tmp_path, capsys):
     lines = err.strip().splitlines()
     assert "UserWarning" not in err and "warnings.warn" not in err
     assert [line for line in lines if "no sensor size" in line] == [
-        f"eval.py: warning: {npy}: {said} (pass sensor_size= to set it)",
+        f"eval.py: warning: {npy}: {said} (--sensor-size WxH sets it)",
         f"eval.py: warning: 2 times in all: "
-        f"{(f'{npy}: {said} (pass sensor_size= to set it)')[:77]}..."]
+        f"{(f'{npy}: {said} (--sensor-size WxH sets it)')[:77]}..."]
     m = json.loads((out / "metrics.json").read_text())
-    assert m["warnings"] == [f"{npy}: {said} (pass sensor_size= to set it) (2 times)"]
+    assert m["warnings"] == [f"{npy}: {said} (--sensor-size WxH sets it) (2 times)"]
 
 
 def test_fit_warning_is_in_train_json(tmp_path, capsys):
@@ -88,3 +88,20 @@ def test_user_warning_filters_are_kept(monkeypatch):
         warnings.simplefilter("error")  # as python -W error sets it up
         with pytest.raises(UserWarning, match="fatal here"), WarningLog("prog").capture():
             warnings.warn("fatal here")
+
+
+def test_truncated_recording_hint_and_warning_name_the_flag(tmp_path, capsys):
+    # the real AEDAT 4 sample cut inside a packet: the reader's hint names --truncated, and
+    # the repair's warning lands in metrics.json
+    cut = tmp_path / "cut.aedat4"
+    cut.write_bytes(shared_data("events", "sample.aedat4").read_bytes()[:150_000])
+    common = ["--engine", "seqslam", "--reference", str(cut), "--query", str(cut),
+              "--tolerance", "2", "--ds", "4", "--no-tensorboard"]
+    code, err = run_inprocess("eval", capsys, *common, "--out", str(tmp_path / "a"))
+    assert code == 2 and "cut short; pass --truncated drop to ignore it" in err, err
+    code, err = run_inprocess("eval", capsys, *common, "--truncated", "drop",
+                              "--out", str(tmp_path / "b"))
+    assert code == 0, err
+    m = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    assert m["warnings"] == [f"{cut}: truncated, the packet at byte 146309 is cut short, "
+                             f"dropped (2 times)"]

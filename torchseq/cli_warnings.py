@@ -22,6 +22,22 @@ TAKEN = (UserWarning, RuntimeWarning, FutureWarning)
 SHORT = 80  # characters of a repeated warning quoted in the closing count
 
 
+# the library's hints name its keyword arguments; a command-line user sets flags instead
+FLAG_TERMS = (("pass sensor_size= to set it", "--sensor-size WxH sets it"),
+              ("pass sensor_size=", "pass --sensor-size WxH"),
+              ("pass truncated='drop'", "pass --truncated drop"),
+              ("anchor='first' starts at the first event",
+               "--window-anchor first starts at the first event"),
+              ("declare the unit", "declare the unit (--time-unit)"))
+
+
+def cli_terms(text: str) -> str:
+    """A library message with its keyword-argument hints said as command-line flags."""
+    for api, flag in FLAG_TERMS:
+        text = text.replace(api, flag)
+    return text
+
+
 def one_line(message: object) -> str:
     """A warning's text on one line (newlines and runs of spaces become single spaces)."""
     return " ".join(str(message).split())
@@ -78,7 +94,7 @@ class WarningLog:
                     shown(message, category, filename, lineno, file, line)
                     return
                 name = "" if category is UserWarning else f"{category.__name__}: "
-                self.add(f"{name}{message}")
+                self.add(f"{name}{cli_terms(str(message))}")
 
             warnings.showwarning = show
             try:

@@ -467,8 +467,10 @@ def run_main(main: Callable[[list[str] | None], int], prog: str,
     try:
         return main(argv)
     except (ValueError, OSError, RuntimeError) as err:
+        from torchseq.cli_warnings import cli_terms
+
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
-        print(f"{prog}: error: {message}", file=sys.stderr)
+        print(f"{prog}: error: {cli_terms(message)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
