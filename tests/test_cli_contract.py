@@ -131,6 +131,8 @@ def train_cases(d):
         (["--reference", str(d / "huge_frames.npy")], "huge_frames.npy"),
         (["--window-ms", "-5"], "--window-ms"),
         (["--export-frame-size", "axb"], "size"),
+        (["--export-query", "q.npy", "--export-frame-size", "48x64"],
+         "--export-query, --export-frame-size set up the export, which runs only with --export"),
     ]
 
 

@@ -196,6 +196,12 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
     """
     device = resolve_device(cfg.device)
     events = event_frame_options(cfg)
+    orphans = [f"--{k.replace('_', '-')}" for k in ("export_query", "export_ground_truth",
+                                                     "export_frame_size")
+               if getattr(cfg, k) is not None]
+    if orphans and not cfg.export:  # they would be silently ignored
+        raise UsageError(f"{', '.join(orphans)} set{'s' if len(orphans) == 1 else ''} up the "
+                         f"export, which runs only with --export; add it or drop them")
     check_event_flags_apply(cfg, {"--reference": cfg.reference,
                                   **({"--export-query": cfg.export_query}
                                      if cfg.export and cfg.export_query else {})},
