@@ -116,6 +116,16 @@ def eval_cases(d):
         (["--sweep", "ds=10,abc"], "--ds"),
         (["--window-anchor", "sometime"], "--window-anchor"),
         (["--checkpoint", str(d / "good.pt"), "--neural-hidden", "128"], "--neural-"),
+        # settings the run would silently ignore
+        (["--engine", "seqslam", "--neural-hidden", "128"],
+         "--neural-hidden has no effect with --engine seqslam"),
+        (["--engine", "seqslam", "--checkpoint", str(d / "good.pt")],
+         "--checkpoint has no effect with --engine seqslam"),
+        (["--engine", "neural", "--ds", "20", "--preset", "events"],
+         "--ds, --preset have no effect with --engine neural"),
+        ([*data, "--demo-frames", "50"], "--demo-frames shapes the built-in demo route"),
+        (["--sweep", "engine=both,seqslam", "--neural-n-output", "50"],
+         "--neural-n-output has no effect with --engine seqslam"),
     ]
 
 

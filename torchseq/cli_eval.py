@@ -190,7 +190,36 @@ def settings_from(args: argparse.Namespace) -> Settings:
     if cfg.checkpoint and dataclasses.replace(ncfg, seed=0) != NeuralConfig(seed=0):
         raise UsageError("--neural-* settings have no effect with --checkpoint (the "
                          "checkpoint carries its own config); drop one of them")
+    check_unused(cfg, changed_flags(config_from_args(SeqSLAMConfig, args), SeqSLAMConfig()),
+                 changed_flags(dataclasses.replace(ncfg, seed=0), NeuralConfig(seed=0),
+                               "neural_"))
     return Settings(cfg, scfg, ncfg)
+
+
+def changed_flags(config, default, prefix: str = "") -> list[str]:
+    """The ``--flag`` names of the fields of ``config`` that differ from ``default``."""
+    return [f"--{(prefix + f.name).replace('_', '-')}" for f in dataclasses.fields(config)
+            if getattr(config, f.name) != getattr(default, f.name)]
+
+
+def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[str]) -> None:
+    """Refuse settings this run would silently ignore (an engine it does not run, the demo)."""
+    unused = []
+    if cfg.engine == "neural":
+        unused += seqslam_flags + (["--preset"] if cfg.preset is not None else [])
+    if cfg.engine == "seqslam":
+        unused += neural_flags + (["--checkpoint"] if cfg.checkpoint else [])
+    if unused:
+        raise UsageError(f"{', '.join(unused)} ha{'s' if len(unused) == 1 else 've'} no effect "
+                         f"with --engine {cfg.engine}; drop "
+                         f"{'it' if len(unused) == 1 else 'them'} or run --engine both")
+    default = EvalConfig()
+    demo = [f"--{k.replace('_', '-')}" for k in ("demo_frames", "demo_speed")
+            if getattr(cfg, k) != getattr(default, k)]
+    if demo and cfg.reference is not None:
+        raise UsageError(f"{', '.join(demo)} shape{'s' if len(demo) == 1 else ''} the built-in "
+                         f"demo route, not --reference/--query; drop "
+                         f"{'it' if len(demo) == 1 else 'them'}")
 
 
 def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False
