@@ -124,6 +124,7 @@ def eval_cases(d):
         (["--engine", "neural", "--ds", "20", "--preset", "events"],
          "--ds, --preset have no effect with --engine neural"),
         ([*data, "--demo-frames", "50"], "--demo-frames shapes the built-in demo route"),
+        ([*data, "--target-precision", "0.9"], "this run has none (--ground-truth or"),
         (["--sweep", "engine=both,seqslam", "--neural-n-output", "50"],
          "--neural-n-output has no effect with --engine seqslam"),
     ]

@@ -216,6 +216,11 @@ def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[s
     default = EvalConfig()
     demo = [f"--{k.replace('_', '-')}" for k in ("demo_frames", "demo_speed")
             if getattr(cfg, k) != getattr(default, k)]
+    no_truth = cfg.reference is not None and cfg.ground_truth is None and cfg.tolerance is None
+    if no_truth and cfg.target_precision != default.target_precision:
+        raise UsageError("--target-precision picks an operating point from the ground truth, "
+                         "and this run has none (--ground-truth or --tolerance); drop it or "
+                         "give one")
     if demo and cfg.reference is not None:
         raise UsageError(f"{', '.join(demo)} shape{'s' if len(demo) == 1 else ''} the built-in "
                          f"demo route, not --reference/--query; drop "
