@@ -117,8 +117,8 @@ def eval_cases(d):
         (["--window-anchor", "sometime"], "--window-anchor"),
         (["--checkpoint", str(d / "good.pt"), "--neural-hidden", "128"], "--neural-"),
         # settings the run would silently ignore
-        (["--engine", "seqslam", "--neural-hidden", "128"],
-         "--neural-hidden has no effect with --engine seqslam"),
+        (["--engine", "seqslam", "--neural-hidden", "128", "--neural-seed", "3"],
+         "--neural-hidden, --neural-seed have no effect with --engine seqslam"),
         (["--engine", "seqslam", "--checkpoint", str(d / "good.pt")],
          "--checkpoint has no effect with --engine seqslam"),
         (["--engine", "neural", "--ds", "20", "--preset", "events"],

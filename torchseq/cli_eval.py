@@ -182,6 +182,8 @@ def settings_from(args: argparse.Namespace) -> Settings:
     if cfg.preset is not None:
         two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
         scfg = seqslam_preset(cfg.preset, scfg, two_channel)
+    # a neural seed of its own (a replayed config.json holds the run's --seed there)
+    neural_seed_given = args.neural_seed is not None and args.neural_seed != cfg.seed
     if args.neural_seed is None:
         args.neural_seed = cfg.seed
     ncfg = config_from_args(NeuralConfig, args, prefix="neural_")
@@ -192,7 +194,7 @@ def settings_from(args: argparse.Namespace) -> Settings:
                          "checkpoint carries its own config); drop one of them")
     check_unused(cfg, changed_flags(config_from_args(SeqSLAMConfig, args), SeqSLAMConfig()),
                  changed_flags(dataclasses.replace(ncfg, seed=0), NeuralConfig(seed=0),
-                               "neural_"))
+                               "neural_") + ["--neural-seed"] * neural_seed_given)
     return Settings(cfg, scfg, ncfg)
 
 
