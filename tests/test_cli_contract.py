@@ -116,6 +116,7 @@ def eval_cases(d):
         (["--sweep", "ds=10,abc"], "--ds"),
         (["--window-anchor", "sometime"], "--window-anchor"),
         (["--checkpoint", str(d / "good.pt"), "--neural-hidden", "128"], "--neural-"),
+        (["--checkpoint", str(d / "good.pt"), "--neural-seed", "7"], "--neural-"),
         # settings the run would silently ignore
         (["--engine", "seqslam", "--neural-hidden", "128", "--neural-seed", "3"],
          "--neural-hidden, --neural-seed have no effect with --engine seqslam"),

@@ -189,7 +189,8 @@ def settings_from(args: argparse.Namespace) -> Settings:
     ncfg = config_from_args(NeuralConfig, args, prefix="neural_")
     check_neural(ncfg, "neural_")
     ncfg.validate()
-    if cfg.checkpoint and dataclasses.replace(ncfg, seed=0) != NeuralConfig(seed=0):
+    if cfg.checkpoint and (neural_seed_given or
+                           dataclasses.replace(ncfg, seed=0) != NeuralConfig(seed=0)):
         raise UsageError("--neural-* settings have no effect with --checkpoint (the "
                          "checkpoint carries its own config); drop one of them")
     check_unused(cfg, changed_flags(config_from_args(SeqSLAMConfig, args), SeqSLAMConfig()),
