@@ -103,7 +103,7 @@ def test_eval_help_explains_every_flag(capsys):
     out = capsys.readouterr().out
     for flag in ("--reference", "--query", "--ground-truth", "--tolerance", "--engine", "--ds",
                  "--vmin", "--vmax", "--speed-ratio", "--metric", "--out", "--window-ms",
-                 "--event-count", "--frame-size", "--checkpoint"):
+                 "--event-count", "--frame-size", "--checkpoint", "--evt3-kernel"):
         assert flag in out
 
 
