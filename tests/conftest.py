@@ -1,4 +1,6 @@
+import contextlib
 import os
+import warnings
 from pathlib import Path
 
 import pytest
@@ -23,3 +25,18 @@ def shared_data(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"real data not found at {path} (the ../shared/data folder is absent)")
     return path
+
+
+COARSE_UNITS = r"a route of \d+ frames on \d+ output units"  # NeuralSeqSLAM.fit's warning
+
+
+@contextlib.contextmanager
+def coarse_units_expected():
+    """Block whose fit is known to give units of several frames (small test models).
+
+    Only fit's coarse-units warning is filtered, only inside the block: other warnings, and
+    this one anywhere else, still reach pytest's summary.
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=COARSE_UNITS, category=UserWarning)
+        yield

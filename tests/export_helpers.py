@@ -3,6 +3,7 @@
 from functools import lru_cache
 
 import torch
+from conftest import coarse_units_expected
 
 from torchseq.demo import make_demo
 from torchseq.export.int_model import choose_pool, device_frames, integer_model
@@ -18,7 +19,8 @@ def small_setup(seed: int = 1, hidden: int = 1024, n_output: int = 40, n_referen
     demo = make_demo(n_reference=n_reference, size=(48, 64), seed=seed)
     torch.manual_seed(0)
     model = NeuralSeqSLAM(NeuralConfig(hidden=hidden, n_output=n_output, readout=readout))
-    model.fit(demo.reference, log=False)
+    with coarse_units_expected():  # a small model: units of several frames
+        model.fit(demo.reference, log=False)
     pool = choose_pool(tuple(demo.query.shape[1:]), model.config.input_size)
     frames = device_frames(demo.query, model.config.input_size, pool)
     return model, demo, pool, frames, integer_model(model, pool)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import coarse_units_expected
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -67,7 +68,8 @@ def files(tmp_path_factory):
     huge_npy(d / "huge_frames.npy", (10 ** 12, 64, 64))
     huge_npy(d / "huge_gt.npy", (30, 10 ** 13), "|u1")
     model = NeuralSeqSLAM(NeuralConfig(hidden=64, n_output=10))
-    model.fit(torch.from_numpy(frames).float())
+    with coarse_units_expected():  # a small model: units of several frames
+        model.fit(torch.from_numpy(frames).float())
     model.save(d / "good.pt")
     blob = torch.load(d / "good.pt", weights_only=True)
     blob["config"]["hidden"] = "64"
@@ -114,6 +116,18 @@ def eval_cases(d):
         (["--sweep", "ds=10,abc"], "--ds"),
         (["--window-anchor", "sometime"], "--window-anchor"),
         (["--checkpoint", str(d / "good.pt"), "--neural-hidden", "128"], "--neural-"),
+        (["--checkpoint", str(d / "good.pt"), "--neural-seed", "7"], "--neural-"),
+        # settings the run would silently ignore
+        (["--engine", "seqslam", "--neural-hidden", "128", "--neural-seed", "3"],
+         "--neural-hidden, --neural-seed have no effect with --engine seqslam"),
+        (["--engine", "seqslam", "--checkpoint", str(d / "good.pt")],
+         "--checkpoint has no effect with --engine seqslam"),
+        (["--engine", "neural", "--ds", "20", "--preset", "events"],
+         "--ds, --preset have no effect with --engine neural"),
+        ([*data, "--demo-frames", "50"], "--demo-frames shapes the built-in demo route"),
+        ([*data, "--target-precision", "0.9"], "this run has none (--ground-truth or"),
+        (["--sweep", "engine=both,seqslam", "--neural-n-output", "50"],
+         "--neural-n-output has no effect with --engine seqslam"),
     ]
 
 
@@ -129,6 +143,8 @@ def train_cases(d):
         (["--reference", str(d / "huge_frames.npy")], "huge_frames.npy"),
         (["--window-ms", "-5"], "--window-ms"),
         (["--export-frame-size", "axb"], "size"),
+        (["--export-query", "q.npy", "--export-frame-size", "48x64"],
+         "--export-query, --export-frame-size set up the export, which runs only with --export"),
     ]
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.conftest import coarse_units_expected
 from tests.test_spiking import demo_setup, tiny
 from torchseq.export.hardware_budget import LIMITS, budget, check
 from torchseq.export.nir_export import FORMAT, NIRExportError, read_nir, to_nir, write_nir
@@ -419,7 +420,8 @@ def test_cohorts_and_a_wrapped_ring_export_and_run_alike(tmp_path):
     demo = make_demo(n_reference=36, size=(48, 64), seed=5)
     model = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=18,
                                        n_cohorts=3, ring_wrap=True))
-    model.fit(demo.reference, log=False)
+    with coarse_units_expected():  # a small model: units of several frames
+        model.fit(demo.reference, log=False)
     sp = SpikingSeqSLAM.convert(model, demo.reference, SpikingConfig(levels=8))
     g = model.cohorts
     assert g.shape[1] == 3 and len(sp.calibration["sigma"]) == 3

@@ -103,7 +103,7 @@ def test_eval_help_explains_every_flag(capsys):
     out = capsys.readouterr().out
     for flag in ("--reference", "--query", "--ground-truth", "--tolerance", "--engine", "--ds",
                  "--vmin", "--vmax", "--speed-ratio", "--metric", "--out", "--window-ms",
-                 "--event-count", "--frame-size", "--checkpoint"):
+                 "--event-count", "--frame-size", "--checkpoint", "--evt3-kernel"):
         assert flag in out
 
 
@@ -365,6 +365,7 @@ def test_event_crop_mode_and_filters_reach_the_traverse(tmp_path, capsys, monkey
     (["--t-start", "-5"], "--t-start must be in"),
     (["--hot-pixel", "0"], "--hot-pixel must be"),
     (["--refractory-us", "-1"], "--refractory-us must be"),
+    (["--event-count", "500", "--window-ms", "5"], "--window-ms 5 has no effect with --event"),
 ])
 @pytest.mark.parametrize("script", ["eval", "train"])
 def test_event_flags_are_checked_before_any_work(tmp_path, capsys, args, message, script):
@@ -409,7 +410,10 @@ def test_event_flags_without_event_files_are_refused(tmp_path, capsys, script):
     for i, given in enumerate(inputs):
         for flags, named in ((["--window-ms", "5"], "--window-ms applies"),
                              (["--event-mode", "signed", "--hot-pixel", "3"],
-                              "--event-mode, --hot-pixel apply")):
+                              "--event-mode, --hot-pixel apply"),
+                             # given at their default values, the user still meant them
+                             (["--window-ms", "10", "--event-mode=count"],
+                              "--window-ms, --event-mode apply")):
             out = tmp_path / f"o{i}"
             code, err = run_inprocess(script, capsys, *given, *flags, "--out", str(out))
             assert code == 2 and named in err and "no input is one" in err, err
@@ -489,3 +493,135 @@ def test_time_unit_flag_reads_epoch_seconds_csv(tmp_path, capsys):
     assert code == 2 and "time_unit" in err and "do not apply" in err
     code, err = run_inprocess("eval", capsys, "--time-unit", "h")
     assert code == 2 and "--time-unit must be s, ms, us or ns" in err
+
+
+def test_evt3_kernel_flag_reaches_the_decoder(tmp_path, capsys, monkeypatch):
+    import torchseq.events.prophesee as prophesee
+
+    raw = shared_data("events", "evt3_sample.raw")
+    kernels = []
+    real = prophesee.decode_evt3
+
+    def spy(words, state, time_mode="spec", kernel=None):
+        kernels.append(kernel)
+        return real(words, state, time_mode, kernel)
+
+    monkeypatch.setattr(prophesee, "decode_evt3", spy)
+    # auto picks the fast kernel for any size here, so an explicit numpy is told apart
+    monkeypatch.setattr(prophesee, "EVT3_NUMBA_MIN_BYTES", 0)
+    common = ["--engine", "seqslam", "--reference", str(raw), "--query", str(raw),
+              "--window-ms", "0.5", "--frame-size", "16", "--image-size", "16", "--ds", "4",
+              "--patch-size", "4", "--tolerance", "1", "--no-tensorboard"]
+    counts = {}
+    choices = ["auto", "numpy"] + (["numba"] if importlib.util.find_spec("numba") else [])
+    for kernel in choices:
+        kernels.clear()
+        out = tmp_path / kernel
+        code, err = run_inprocess("eval", capsys, *common, "--evt3-kernel", kernel,
+                                  "--out", str(out))
+        assert code == 0, err
+        assert kernels and set(kernels) == {prophesee.EVT3_KERNEL if kernel == "auto"
+                                            else kernel}
+        counts[kernel] = json.loads((out / "metrics.json").read_text())["seqslam"]
+        assert json.loads((out / "config.json").read_text())["evt3_kernel"] == kernel
+    assert all(c["n_queries"] == counts["auto"]["n_queries"] and
+               c["recall_at_1"] == counts["auto"]["recall_at_1"] for c in counts.values())
+    code, err = run_inprocess("eval", capsys, *common, "--evt3-kernel", "fast")
+    assert code == 2 and "--evt3-kernel must be auto, numpy or numba, got 'fast'" in err
+    aedat = shared_data("events", "alex_walking_again.aedat")
+    code, err = run_inprocess("eval", capsys, "--reference", str(aedat), "--query", str(aedat),
+                              "--evt3-kernel", "numpy", "--out", str(tmp_path / "a"))
+    assert code == 2 and "EVT 3 kernel applies to .raw files only" in err
+    code, err = run_inprocess("train", capsys, "--evt3-kernel", "numpy",
+                              "--out", str(tmp_path / "t"))
+    assert code == 2 and "--evt3-kernel applies to event files only" in err
+
+
+def test_evt3_kernel_numba_without_numba_is_refused(monkeypatch):
+    from torchseq.cli_eval import parse_args
+    from torchseq.frontend import UsageError, event_frame_options
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "numba" else real(name, *a))
+    with pytest.raises(UsageError, match="--evt3-kernel numba needs numba"):
+        event_frame_options(parse_args(["--evt3-kernel", "numba"])[0].run)
+
+
+def test_checkpoint_of_other_event_settings_or_selection_is_said(tmp_path, capsys):
+    # same recording, same frame count and size: only the frames' making differs
+    aedat = str(shared_data("events", "alex_walking_again.aedat"))
+    events = ["--frame-size", "16", "--max-frames", "60"]
+    assert run_inprocess("train", capsys, "--reference", aedat, *events, "--hidden", "128",
+                         "--n-output", "60", "--no-tensorboard",
+                         "--out", str(tmp_path / "t"))[0] == 0
+    common = ["--engine", "neural", "--checkpoint", str(tmp_path / "t" / "model.pt"),
+              "--reference", aedat, "--query", aedat, "--tolerance", "2", "--no-tensorboard"]
+    code, err = run_inprocess("eval", capsys, *common, *events, "--evt3-kernel", "auto",
+                              "--out", str(tmp_path / "same"))
+    assert code == 0 and "does not match" not in err, err
+    code, err = run_inprocess("eval", capsys, *common, *events, "--event-mode", "signed",
+                              "--out", str(tmp_path / "mode"))
+    assert code == 0 and "does not match this reference (its event frame settings differ " \
+        "(mode 'count' -> 'signed'))" in err, err
+    m = json.loads((tmp_path / "mode" / "metrics.json").read_text())
+    assert any("mode 'count' -> 'signed'" in w for w in m["warnings"])
+    code, err = run_inprocess("eval", capsys, *common, *events, "--start", "50",
+                              "--out", str(tmp_path / "start"))
+    assert code == 0 and "its frame selection differs (start 0 -> 50)" in err, err
+
+
+def test_place_resolution_warning_follows_the_readout(tmp_path, capsys):
+    # the interpolating readout reads places within a unit: 3 frames per unit are fine there
+    common = ["--engine", "neural", "--demo-frames", "60", "--neural-hidden", "128",
+              "--neural-readout", "interpolate", "--no-tensorboard"]
+    code, err = run_inprocess("eval", capsys, *common, "--neural-n-output", "20",
+                              "--out", str(tmp_path / "fine"))
+    assert code == 0 and "unit stands for" not in err and "unit centres" not in err, err
+    code, err = run_inprocess("eval", capsys, *common, "--neural-n-output", "6",
+                              "--out", str(tmp_path / "coarse"))
+    assert code == 0 and "one unit stands for about 10.0 frames (too coarse for the " \
+        "interpolating readout; raise --neural-n-output" in err, err
+
+
+def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, monkeypatch):
+    # the export read an --export-query event file with default settings (10 ms windows at
+    # the full 128x128) although the model learnt 20 ms windows pooled to 16x16
+    import torchseq.export.cli as export_cli
+
+    seen = {}
+
+    def spy(ckpt, out, query=None, **kwargs):
+        seen["query"] = query
+        return True
+
+    monkeypatch.setattr(export_cli, "export_checkpoint", spy)
+    monkeypatch.setattr(export_cli, "summary_lines", lambda out: [])
+    aedat = str(shared_data("events", "alex_walking_again.aedat"))
+    code, err = run_inprocess("train", capsys, "--reference", aedat, "--frame-size", "16",
+                              "--window-ms", "20", "--event-mode", "signed", "--max-frames",
+                              "60", "--hidden", "64", "--n-output", "60", "--no-tensorboard",
+                              "--export", "--export-query", aedat, "--out", str(tmp_path / "t"))
+    assert code == 0, err
+    from torchseq.sources import EventFrameOptions, load_traverse
+
+    made = load_traverse(aedat, events=EventFrameOptions(window_ms=20, frame_size=(16, 16),
+                                                         mode="signed"), progress=False)
+    assert tuple(seen["query"].shape) == (345, 16, 16)  # 6.89 s of 20 ms windows, whole file
+    assert np.array_equal(np.asarray(seen["query"]), np.asarray(made))
+
+
+def test_events_preset_on_a_real_two_channel_recording_keeps_the_halves(tmp_path, capsys):
+    aedat = str(shared_data("events", "alex_walking_again.aedat"))
+    out = tmp_path / "o"
+    code, err = run_inprocess("eval", capsys, "--engine", "seqslam", "--preset", "events",
+                              "--event-mode", "two-channel", "--frame-size", "16",
+                              "--reference", aedat, "--query", aedat, "--tolerance", "2",
+                              "--no-tensorboard", "--out", str(out))
+    assert code == 0, err
+    m = json.loads((out / "metrics.json").read_text())
+    # OFF | ON halves of 16x16 each: the preset's images are 16x32, nothing resized
+    assert m["inputs"]["reference_frame_size"] == [16, 32]
+    assert m["seqslam"]["parameters"]["image_size"] == [16, 32]
+    assert m["seqslam"]["parameters"]["ds"] == 100 and m["warnings"] == []
+    assert m["seqslam"]["recall_at_1"] > 0.8  # measured 0.855 (replay, 100-frame sequences)

@@ -16,6 +16,7 @@ import zipfile
 
 import pytest
 import torch
+from conftest import coarse_units_expected
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -30,7 +31,8 @@ PROPERTY = settings(deadline=None, database=None, suppress_health_check=list(Hea
 def saved(tmp_path_factory):
     demo = make_demo(n_reference=40, size=(48, 64), seed=3)
     model = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=20))
-    model.fit(demo.reference, log=False)
+    with coarse_units_expected():  # a small model: units of several frames
+        model.fit(demo.reference, log=False)
     path = tmp_path_factory.mktemp("ckpt") / "model.pt"
     model.save(path, extra={"route": "demo", "frames": 40})
     blob = torch.load(path, weights_only=True)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import shared_data
+from tests.conftest import coarse_units_expected, shared_data
 from torchseq.demo import make_demo
 from torchseq.layers import kwta
 from torchseq.metrics import recall_at_k
@@ -20,7 +20,8 @@ def tiny():
     """A tiny model (small enough for a pure-Python loop) on a 40-frame demo route."""
     demo = make_demo(n_reference=40, size=(48, 64), seed=3)
     model = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=20))
-    model.fit(demo.reference, log=False)
+    with coarse_units_expected():  # a small model: units of several frames
+        model.fit(demo.reference, log=False)
     spiking = SpikingSeqSLAM.convert(model, demo.reference, SpikingConfig(levels=6))
     return model, demo, spiking
 

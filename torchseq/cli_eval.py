@@ -23,8 +23,10 @@ import torch
 
 from torchseq import metrics, plots
 from torchseq.atomic import write_json, write_text
+from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
 from torchseq.frontend import (
+    EVENT_FIELDS,
     EVENT_HELP,
     EventFlags,
     Parser,
@@ -38,6 +40,7 @@ from torchseq.frontend import (
     config_text,
     event_frame_options,
     frame_selection,
+    given_flags,
     load_model,
     resolve_device,
     run_folder,
@@ -53,6 +56,7 @@ from torchseq.sources import FrameSelection, load_traverse_sizes
 
 PROG = "torchseq eval"  # set by main() to the name the user ran
 ENGINES = ("seqslam", "neural", "both")
+Notes = WarningLog | list  # where a run's warnings go (a plain list in tests of one step)
 MAX_DEMO_QUERY = 50_000  # demo query frames (96x128 float32 each)
 
 
@@ -141,6 +145,7 @@ class Settings:
     run: EvalConfig
     seqslam: SeqSLAMConfig
     neural: NeuralConfig
+    given: frozenset = frozenset()  # event fields the command line gave, whatever their value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -177,15 +182,52 @@ def settings_from(args: argparse.Namespace) -> Settings:
     if cfg.preset is not None:
         two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
         scfg = seqslam_preset(cfg.preset, scfg, two_channel)
+    # a neural seed of its own (a replayed config.json holds the run's --seed there)
+    neural_seed_given = args.neural_seed is not None and args.neural_seed != cfg.seed
     if args.neural_seed is None:
         args.neural_seed = cfg.seed
     ncfg = config_from_args(NeuralConfig, args, prefix="neural_")
     check_neural(ncfg, "neural_")
     ncfg.validate()
-    if cfg.checkpoint and dataclasses.replace(ncfg, seed=0) != NeuralConfig(seed=0):
+    if cfg.checkpoint and (neural_seed_given or
+                           dataclasses.replace(ncfg, seed=0) != NeuralConfig(seed=0)):
         raise UsageError("--neural-* settings have no effect with --checkpoint (the "
                          "checkpoint carries its own config); drop one of them")
+    check_unused(cfg, changed_flags(config_from_args(SeqSLAMConfig, args), SeqSLAMConfig()),
+                 changed_flags(dataclasses.replace(ncfg, seed=0), NeuralConfig(seed=0),
+                               "neural_") + ["--neural-seed"] * neural_seed_given)
     return Settings(cfg, scfg, ncfg)
+
+
+def changed_flags(config, default, prefix: str = "") -> list[str]:
+    """The ``--flag`` names of the fields of ``config`` that differ from ``default``."""
+    return [f"--{(prefix + f.name).replace('_', '-')}" for f in dataclasses.fields(config)
+            if getattr(config, f.name) != getattr(default, f.name)]
+
+
+def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[str]) -> None:
+    """Refuse settings this run would silently ignore (an engine it does not run, the demo)."""
+    unused = []
+    if cfg.engine == "neural":
+        unused += seqslam_flags + (["--preset"] if cfg.preset is not None else [])
+    if cfg.engine == "seqslam":
+        unused += neural_flags + (["--checkpoint"] if cfg.checkpoint else [])
+    if unused:
+        raise UsageError(f"{', '.join(unused)} ha{'s' if len(unused) == 1 else 've'} no effect "
+                         f"with --engine {cfg.engine}; drop "
+                         f"{'it' if len(unused) == 1 else 'them'} or run --engine both")
+    default = EvalConfig()
+    demo = [f"--{k.replace('_', '-')}" for k in ("demo_frames", "demo_speed")
+            if getattr(cfg, k) != getattr(default, k)]
+    no_truth = cfg.reference is not None and cfg.ground_truth is None and cfg.tolerance is None
+    if no_truth and cfg.target_precision != default.target_precision:
+        raise UsageError("--target-precision picks an operating point from the ground truth, "
+                         "and this run has none (--ground-truth or --tolerance); drop it or "
+                         "give one")
+    if demo and cfg.reference is not None:
+        raise UsageError(f"{', '.join(demo)} shape{'s' if len(demo) == 1 else ''} the built-in "
+                         f"demo route, not --reference/--query; drop "
+                         f"{'it' if len(demo) == 1 else 'them'}")
 
 
 def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False
@@ -218,8 +260,11 @@ def parse_args(argv: list[str] | None
         config_file_defaults(parser, pre.config, {"seqslam": "", "neural": "neural_"})
     args = parser.parse_args(argv)
     base = settings_from(args)
+    base.given = given_flags(parser, argv, EVENT_FIELDS)
     grid = sweep_grid(args.sweep, parser)
-    points = [settings_from(parser.parse_args(argv + extra)) for extra in grid]
+    points = [dataclasses.replace(settings_from(parser.parse_args(argv + extra)),
+                                  given=given_flags(parser, argv + extra, EVENT_FIELDS))
+              for extra in grid]
     return base, points, grid, list(args.sweep)
 
 
@@ -275,7 +320,7 @@ def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
     return gt_full[np.ix_(ref.info["indices"], query.info["indices"])]
 
 
-def load_data(cfg: EvalConfig, sizes: dict, notes: list):
+def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
     """Reference and query traverses, ``(R, Q)`` ground truth (or None) and a description."""
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     if cfg.reference is None and cfg.query is None:
@@ -325,7 +370,7 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: list):
     return ref, query, gt, source
 
 
-def run_seqslam(s: Settings, ref, query, device, notes: list):
+def run_seqslam(s: Settings, ref, query, device, notes: Notes):
     """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
     ds = s.seqslam.sequence_length
     if ds > len(query):
@@ -353,12 +398,25 @@ def run_seqslam(s: Settings, ref, query, device, notes: list):
 
 
 def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
-    """What identifies a reference traverse: where it came from, frames, frame size."""
+    """What identifies a reference traverse: source, frames, frame size, selection, events."""
     if cfg.reference is None:
         source = {"source": "demo", "demo_frames": cfg.demo_frames, "demo_seed": cfg.seed}
     else:
-        source = {"source": str(Path(cfg.reference).resolve())}
+        source = {"source": str(Path(cfg.reference).resolve()), "select": to_jsonable(
+            frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames))}
+        if ref.info.get("events"):
+            source["events"] = to_jsonable(event_frame_options(cfg))
     return {**source, "n_frames": len(ref), "frame_size": list(ref.info["frame_size"])}
+
+
+# event settings that change no frame (the same events either way, or a complete file read)
+SAME_FRAMES = {"evt3_kernel", "truncated"}
+
+
+def _setting_changes(learnt: dict, now: dict) -> str:
+    """``"mode 'count' -> 'signed', ..."`` for the settings both dicts hold that differ."""
+    return ", ".join(f"{k} {learnt[k]!r} -> {now[k]!r}" for k in now
+                     if k in learnt and k not in SAME_FRAMES and learnt[k] != now[k])
 
 
 def checkpoint_mismatch(model, this: dict) -> str | None:
@@ -380,6 +438,12 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
             fs = learnt["frame_size"]
             problems.append(f"its frames were {fs[0]}x{fs[1]}, these are "
                             f"{this['frame_size'][0]}x{this['frame_size'][1]}")
+        for key, what in (("events", "event frame settings differ"),
+                          ("select", "frame selection differs")):
+            if isinstance(learnt.get(key), dict) and isinstance(this.get(key), dict):
+                changed = _setting_changes(learnt[key], this[key])
+                if changed:
+                    problems.append(f"its {what} ({changed})")
     elif not problems:
         return None  # an API-saved model: the frame count is all there is to check
     if not problems:
@@ -389,9 +453,10 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
             "unless that is the same route")
 
 
-def run_neural(s: Settings, ref, query, device, notes: list, model=None):
+def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
     """Neural SeqSLAM, from a checkpoint (``model``, loaded) or trained on the reference now."""
     from torchseq.neural import NeuralSeqSLAM
+    from torchseq.neural.model import COARSE_UNIT_FRAMES
 
     cfg = s.run
     start = time.perf_counter()
@@ -406,10 +471,13 @@ def run_neural(s: Settings, ref, query, device, notes: list, model=None):
     fit_seconds = time.perf_counter() - start
     n_ref = int(model.unit_to_reference[-1, 1])
     per_unit = n_ref / model.n_units
-    if per_unit > 1:
+    readout = model.config.readout
+    if per_unit > (COARSE_UNIT_FRAMES if readout == "interpolate" else 1):
+        how = ("matches are unit centres" if readout == "centre" else
+               "too coarse for the interpolating readout")
         warn(PROG, f"neural: {n_ref} reference frames on {model.n_units} output units, one "
-             f"unit stands for about {per_unit:.1f} frames (matches are unit centres; "
-             f"raise --neural-n-output for a finer place resolution)", notes)
+             f"unit stands for about {per_unit:.1f} frames ({how}; raise --neural-n-output "
+             f"for a finer place resolution)", notes)
     t0 = time.perf_counter()
     result = model.run(query.at(size), progress=cfg.progress)
     run_seconds = time.perf_counter() - t0
@@ -453,12 +521,12 @@ def config_dict(s: Settings) -> dict:
             "neural": to_jsonable(s.neural)}
 
 
-def report(s: Settings, ref, query, gt, source, results, out: Path, notes: list) -> dict:
+def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes) -> dict:
     """Write metrics.json, matches.csv, plots and TensorBoard logs; return the metrics."""
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
-               "warnings": notes}
+               "warnings": warning_list(notes)}
     curves = {}
     for name, r in results.items():
         summary[name] = engine_metrics(r, gt, s.run.target_precision)
@@ -519,7 +587,7 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
             tb.add_pr_curve(f"{name}/pr_curve", labels, pred.float())
 
 
-def run_engines(s: Settings, ref, query, device, notes: list, model=None) -> dict:
+def run_engines(s: Settings, ref, query, device, notes: Notes, model=None) -> dict:
     """Every engine the run asks for, by name (``model``: a loaded checkpoint)."""
     names = ["seqslam", "neural"] if s.run.engine == "both" else [s.run.engine]
     return {name: run_seqslam(s, ref, query, device, notes) if name == "seqslam" else
@@ -527,7 +595,7 @@ def run_engines(s: Settings, ref, query, device, notes: list, model=None) -> dic
 
 
 def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: list[str],
-          ref, query, gt, source, device, out: Path, notes: list, model=None) -> int:
+          ref, query, gt, source, device, out: Path, notes: Notes, model=None) -> int:
     """Run every grid point; write sweep.csv (one row per setting and engine) and sweep.json."""
     rows = []
     for point, flags in zip(points, grid):
@@ -547,7 +615,8 @@ def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: 
     w.writeheader()
     w.writerows(rows)
     write_text(out / "sweep.csv", buf.getvalue())
-    write_json(out / "sweep.json", {"inputs": source, "rows": rows, "warnings": notes})
+    write_json(out / "sweep.json", {"inputs": source, "rows": rows,
+                                     "warnings": warning_list(notes)})
     write_text(out / "config.json", config_text({**config_dict(base), "sweep": specs}) + "\n")
     for row in rows:
         r1 = "n/a" if row["recall_at_1"] is None else f"{row['recall_at_1']:.3f}"
@@ -566,18 +635,26 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     global PROG
     PROG = prog or PROG
     s, points, grid, specs = parse_args(argv)
+    notes = WarningLog(PROG)  # the library's warnings and the front end's, once each
+    with notes.capture():
+        return run(s, points, grid, specs, notes)
+
+
+def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[str],
+        notes: WarningLog) -> int:
+    """One eval run (or sweep) of checked settings; its warnings go to ``notes``."""
     cfg = s.run
     device = resolve_device(cfg.device)
     event_frame_options(cfg)  # checked before any work
     for point in (s, *points):  # event flags with no event file would be silently ignored
-        check_event_flags_apply(point.run, {"--reference": cfg.reference, "--query": cfg.query})
+        check_event_flags_apply(point.run, {"--reference": cfg.reference, "--query": cfg.query},
+                                point.given)
     frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "eval", cfg.overwrite)
     torch.manual_seed(cfg.seed)
     model = None
     if cfg.checkpoint and cfg.engine in ("neural", "both"):
         model = load_model(cfg.checkpoint, device)
-    notes: list[str] = []
     ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes)
     if grid:
         return sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)

@@ -18,9 +18,11 @@ from pathlib import Path
 import torch
 
 from torchseq import plots
-from torchseq.atomic import write_text
+from torchseq.atomic import write_json, write_text
+from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
 from torchseq.frontend import (
+    EVENT_FIELDS,
     EVENT_HELP,
     EventFlags,
     Parser,
@@ -34,6 +36,7 @@ from torchseq.frontend import (
     config_text,
     event_frame_options,
     frame_selection,
+    given_flags,
     parse_size,
     resolve_device,
     run_folder,
@@ -41,7 +44,7 @@ from torchseq.frontend import (
     to_jsonable,
 )
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
-from torchseq.sources import FrameSelection, load_traverse_sizes
+from torchseq.sources import FrameSelection, is_event_file, load_traverse, load_traverse_sizes
 
 PROG = "torchseq train"  # set by main() to the name the user ran
 
@@ -148,6 +151,26 @@ def log_training(cfg: TrainConfig, ncfg: NeuralConfig, model: NeuralSeqSLAM,
         tb.add_scalar("train/model_bytes", model.model_bytes())
 
 
+def export_query(cfg: TrainConfig, events):
+    """``--export-query`` for the export: an event file becomes frames made as the reference's.
+
+    The export reads a path with default event settings; the model learnt frames made with
+    this run's (window, frame size, mode, filters), so an event query is read here with them.
+    """
+    path = cfg.export_query
+    if path is None or not Path(path).is_file():
+        return path  # the export names a missing query itself
+    try:
+        if not is_event_file(path):
+            return path
+        frames = load_traverse(path, events=events, progress=cfg.progress)
+    except (ValueError, OSError) as err:
+        raise UsageError(f"--export-query {path}: {str(err).splitlines()[0]}") from err
+    print(f"export: validation query {path}: {len(frames)} event frames made with the "
+          f"reference's event settings")
+    return frames
+
+
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """Entry point; returns the exit code (errors raise, see :func:`torchseq.frontend.run_main`).
 
@@ -157,10 +180,32 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """
     global PROG
     PROG = prog or PROG
+    argv = list(sys.argv[1:] if argv is None else argv)
     cfg, ncfg = parse_args(argv)
+    given = given_flags(build_parser(), argv, EVENT_FIELDS)  # event flags typed, any value
+    notes = WarningLog(PROG)  # the library's warnings, once each, also in train.json
+    with notes.capture():
+        return train(cfg, ncfg, notes, given)
+
+
+def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
+          given: frozenset = frozenset()) -> int:
+    """One training run of checked settings (and its export); warnings go to ``notes``.
+
+    ``given``: the event fields the command line gave, whatever their value.
+    """
     device = resolve_device(cfg.device)
     events = event_frame_options(cfg)
-    check_event_flags_apply(cfg, {"--reference": cfg.reference})
+    orphans = [f"--{k.replace('_', '-')}" for k in ("export_query", "export_ground_truth",
+                                                     "export_frame_size")
+               if getattr(cfg, k) is not None]
+    if orphans and not cfg.export:  # they would be silently ignored
+        raise UsageError(f"{', '.join(orphans)} set{'s' if len(orphans) == 1 else ''} up the "
+                         f"export, which runs only with --export; add it or drop them")
+    check_event_flags_apply(cfg, {"--reference": cfg.reference,
+                                  **({"--export-query": cfg.export_query}
+                                     if cfg.export and cfg.export_query else {})},
+                            given)
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "train", cfg.overwrite)
     if cfg.reference is None:
@@ -189,6 +234,9 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     model.save(out / "model.pt", extra={"train_config": to_jsonable(cfg),
                                         "reference": reference})
     write_text(out / "config.json", config_text({"train": cfg, "model": ncfg}) + "\n")
+    summary = {"reference": reference, "fit_seconds": seconds,
+               "model_bytes": int(model.model_bytes()), "n_units": int(model.n_units)}
+    write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
     log_training(cfg, ncfg, model, log, out)
     print(f"trained on {len(frames)} reference frames in {seconds:.2f} s "
           f"({1e3 * seconds / len(frames):.2f} ms/frame); model {model.model_bytes()} bytes; "
@@ -196,15 +244,18 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if cfg.export:
         from torchseq.export.cli import export_checkpoint, summary_lines
 
-        ok = export_checkpoint(out / "model.pt", out / "export", query=cfg.export_query,
+        ok = export_checkpoint(out / "model.pt", out / "export",
+                               query=export_query(cfg, events),
                                ground_truth=cfg.export_ground_truth,
                                frame_size=parse_size(cfg.export_frame_size))
         for line in summary_lines(out / "export"):
             print(f"export: {line}")
-        if not ok:
-            print(f"{PROG}: export validation failed, see {out / 'export' / 'validation.json'}",
-                  file=sys.stderr)
-            return 1
+        summary["export_passed"] = bool(ok)
+    write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
+    if cfg.export and not ok:
+        print(f"{PROG}: export validation failed, see {out / 'export' / 'validation.json'}",
+              file=sys.stderr)
+        return 1
     return 0
 
 

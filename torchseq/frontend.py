@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import json
 import math
 import re
@@ -171,6 +172,7 @@ def config_from_args(config_cls: type, args: argparse.Namespace, prefix: str = "
     return config_cls(**values)
 
 
+DEFAULT_WINDOW_MS = 10.0  # --window-ms when not given
 MAX_WINDOW_MS = 3.6e9  # 1000 hours: longer windows are surely a mistake
 MAX_EVENT_COUNT = 2 ** 40
 
@@ -190,6 +192,7 @@ def parse_anchor(text: str | int) -> str | int:
 
 
 EVENT_MODES = ("count", "signed", "two-channel", "binary")
+EVT3_KERNEL_CHOICES = ("auto", "numpy", "numba")  # auto: the readers' choice by file size
 MAX_CROP_MS = 1e12  # about 31 years of sensor time
 MAX_REFRACTORY_US = 2 ** 40
 
@@ -216,8 +219,8 @@ def event_options(window_ms: float, event_count: int | None,
                   sensor_size: str | None = None, mode: str = "count",
                   evt3_time: str = "spec", truncated: str = "error", t_start: float = 0.0,
                   duration: float | None = None, hot_pixel: float | None = None,
-                  refractory_us: int | None = None, time_unit: str | None = None
-                  ) -> EventFrameOptions:
+                  refractory_us: int | None = None, time_unit: str | None = None,
+                  evt3_kernel: str = "auto") -> EventFrameOptions:
     """Check and bundle the event-accumulation flags.
 
     ``--event-mode two-channel`` (or ``two_channel``) puts the OFF and ON counts side by side
@@ -228,6 +231,12 @@ def event_options(window_ms: float, event_count: int | None,
         raise UsageError(f"--evt3-time must be spec or carry, got {evt3_time!r}")
     if truncated not in ("error", "drop"):
         raise UsageError(f"--truncated must be error or drop, got {truncated!r}")
+    if evt3_kernel not in EVT3_KERNEL_CHOICES:
+        raise UsageError(f"--evt3-kernel must be {', '.join(EVT3_KERNEL_CHOICES[:-1])} or "
+                         f"{EVT3_KERNEL_CHOICES[-1]}, got {evt3_kernel!r}")
+    if evt3_kernel == "numba" and importlib.util.find_spec("numba") is None:
+        raise UsageError("--evt3-kernel numba needs numba: pip install torchseq[fast] (or "
+                         "--evt3-kernel numpy: the same events)")
     if time_unit is not None and time_unit not in UNITS_PER_US:  # the readers' units
         raise UsageError(f"--time-unit must be s, ms, us or ns, got {time_unit!r}")
     if str(mode).replace("_", "-") not in EVENT_MODES:
@@ -236,6 +245,9 @@ def event_options(window_ms: float, event_count: int | None,
         raise UsageError(f"--window-ms must be in (0, {MAX_WINDOW_MS:g}] ms, got {window_ms}")
     if event_count is not None and not 0 < event_count <= MAX_EVENT_COUNT:
         raise UsageError(f"--event-count must be in 1..{MAX_EVENT_COUNT}, got {event_count}")
+    if event_count is not None and window_ms != DEFAULT_WINDOW_MS:
+        raise UsageError(f"--window-ms {window_ms:g} has no effect with --event-count (frames "
+                         f"of {event_count} events each, whatever their time span); drop one")
     if not (math.isfinite(t_start) and 0 <= t_start <= MAX_CROP_MS):
         raise UsageError(f"--t-start must be in 0..{MAX_CROP_MS:g} ms, got {t_start}")
     if duration is not None and not (math.isfinite(duration) and 0 < duration <= MAX_CROP_MS):
@@ -251,7 +263,8 @@ def event_options(window_ms: float, event_count: int | None,
                              mode=str(mode).replace("-", "_"), evt3_time=evt3_time,
                              truncated=truncated, start_ms=float(t_start),
                              duration_ms=duration, hot_pixel=hot_pixel,
-                             refractory_us=refractory_us, time_unit=time_unit)
+                             refractory_us=refractory_us, time_unit=time_unit,
+                             evt3_kernel=None if evt3_kernel == "auto" else evt3_kernel)
 
 
 @dataclasses.dataclass
@@ -261,13 +274,14 @@ class EventFlags:
     :func:`event_frame_options` checks and bundles them.
     """
 
-    window_ms: float = 10.0
+    window_ms: float = DEFAULT_WINDOW_MS
     event_count: int | None = None
     frame_size: str | None = None
     window_anchor: str = "first"
     sensor_size: str | None = None
     event_mode: str = "count"
     evt3_time: str = "spec"
+    evt3_kernel: str = "auto"
     truncated: str = "error"
     t_start: float = 0.0
     duration: float | None = None
@@ -277,7 +291,7 @@ class EventFlags:
 
 
 EVENT_HELP = {
-    "window_ms": "event files: accumulation window in milliseconds",
+    "window_ms": "event files: accumulation window in milliseconds (not with --event-count)",
     "event_count": "event files: events per frame instead of a time window",
     "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
     "window_anchor": "event files: where the first window starts: 'first' (first event), "
@@ -293,6 +307,8 @@ EVENT_HELP = {
                  "pixel (default: off)",
     "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
     "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "evt3_kernel": "Prophesee EVT 3 .raw files: decoder, auto (numba from 128 MiB when "
+                   "installed, else numpy), numpy or numba; the same events either way",
     "time_unit": "CSV, HDF5 and Parquet event files: the time column's unit, s, ms, us or ns "
                  "(default: integers are us, fractions follow the float-time rule)",
     "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
@@ -305,14 +321,38 @@ def event_frame_options(cfg: EventFlags) -> EventFrameOptions:
     return event_options(cfg.window_ms, cfg.event_count, parse_size(cfg.frame_size),
                          cfg.window_anchor, cfg.sensor_size, cfg.event_mode, cfg.evt3_time,
                          cfg.truncated, cfg.t_start, cfg.duration, cfg.hot_pixel,
-                         cfg.refractory_us, cfg.time_unit)
+                         cfg.refractory_us, cfg.time_unit, cfg.evt3_kernel)
 
 
-def event_flags_set(cfg: EventFlags) -> list[str]:
-    """The event flags given values other than their defaults, as ``--flag`` names."""
+def event_flags_set(cfg: EventFlags, given: frozenset[str] = frozenset()) -> list[str]:
+    """The event flags given values other than their defaults, or named in ``given``.
+
+    Args:
+        cfg: the run's event flags.
+        given: field names the command line gave (:func:`given_flags`), whatever their value.
+
+    Returns:
+        ``--flag`` names, in the fields' order.
+    """
     default = EventFlags()
     return [f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(EventFlags)
-            if getattr(cfg, f.name) != getattr(default, f.name)]
+            if f.name in given or getattr(cfg, f.name) != getattr(default, f.name)]
+
+
+def given_flags(parser: argparse.ArgumentParser, argv: list[str],
+                dests: set[str]) -> frozenset[str]:
+    """Which of ``dests`` the command line ``argv`` gives (abbreviated or not, any value).
+
+    argparse fills in a default only where the namespace lacks the name, so names set
+    beforehand to a marker that survives parsing were not given.
+    """
+    unset = object()
+    namespace = argparse.Namespace(**{d: unset for d in dests})
+    parser.parse_args(argv, namespace)
+    return frozenset(d for d in dests if getattr(namespace, d) is not unset)
+
+
+EVENT_FIELDS = {f.name for f in dataclasses.fields(EventFlags)}
 
 
 def _may_hold_events(source: str | None) -> bool:
@@ -334,18 +374,20 @@ def _may_hold_events(source: str | None) -> bool:
         return True
 
 
-def check_event_flags_apply(cfg: EventFlags, sources: dict[str, str | None]) -> None:
+def check_event_flags_apply(cfg: EventFlags, sources: dict[str, str | None],
+                            given: frozenset[str] = frozenset()) -> None:
     """Refuse event flags when no input is an event file (they would be silently ignored).
 
     Args:
         cfg: the run's event flags.
         sources: ``{"--reference": path or None (demo), ...}``, every input they could
             apply to.
+        given: event fields the command line gave (also at their default value).
 
     Raises:
         UsageError: an event flag was set and no input is an event file.
     """
-    given = event_flags_set(cfg)
+    given = event_flags_set(cfg, given)
     if given and not any(_may_hold_events(s) for s in sources.values()):
         what = ", ".join(f"{k} {'demo' if v is None else v}" for k, v in sources.items())
         raise UsageError(f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to "
@@ -425,16 +467,25 @@ def run_main(main: Callable[[list[str] | None], int], prog: str,
     try:
         return main(argv)
     except (ValueError, OSError, RuntimeError) as err:
+        from torchseq.cli_warnings import cli_terms
+
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
-        print(f"{prog}: error: {message}", file=sys.stderr)
+        print(f"{prog}: error: {cli_terms(message)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
 
 
-def warn(prog: str, message: str, sink: list | None = None) -> None:
-    """Print ``prog: warning: message`` on stderr (and keep it in ``sink`` for the report)."""
+def warn(prog: str, message: str, sink=None) -> None:
+    """Print ``prog: warning: message`` on stderr (and keep it in ``sink`` for the report).
+
+    ``sink``: a list, or a run's :class:`~torchseq.cli_warnings.WarningLog` (which prints a
+    repeated warning once and counts it).
+    """
+    if hasattr(sink, "add"):
+        sink.add(message)
+        return
     print(f"{prog}: warning: {message}", file=sys.stderr)
     if sink is not None:
         sink.append(message)

@@ -64,6 +64,9 @@ class EventFrameOptions:
         time_unit: the time column's unit in CSV, HDF5 and Parquet files (``"s"``, ``"ms"``,
             ``"us"``, ``"ns"``); None: integers are microseconds, fractions follow the
             float-time rule (:mod:`torchseq.events.times`).
+        evt3_kernel: the EVT 3 ``.raw`` decoder, ``"numba"`` or ``"numpy"`` (the same
+            events); None: chosen by the file's size
+            (:func:`torchseq.events.prophesee.default_evt3_kernel`).
     """
 
     window_ms: float = 10.0
@@ -79,6 +82,7 @@ class EventFrameOptions:
     hot_pixel: float | None = None
     refractory_us: int | None = None
     time_unit: str | None = None
+    evt3_kernel: str | None = None
 
     def __post_init__(self) -> None:
         if self.sensor_size is not None:  # tonic's (W, H, P): the polarity count is not a size
@@ -403,6 +407,10 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
         if suffix != ".raw":
             raise TraverseError(f"{path}: the EVT 3 time rule applies to .raw files only")
         kwargs["evt3_time"] = opts.evt3_time
+    if opts.evt3_kernel is not None:
+        if suffix != ".raw":
+            raise TraverseError(f"{path}: the EVT 3 kernel applies to .raw files only")
+        kwargs["evt3_kernel"] = opts.evt3_kernel
     if opts.truncated != "error":
         if suffix not in (".aedat", ".aedat4", ".raw"):
             raise TraverseError(f"{path}: 'truncated' applies to .aedat, .aedat4 and .raw")
