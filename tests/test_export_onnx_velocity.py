@@ -168,3 +168,19 @@ def test_export_fails_when_the_graph_disagrees(setup, tmp_path, monkeypatch):
     assert not export_checkpoint(tmp_path / "m.pt", tmp_path / "out", routes[0.8].query,
                                  nir=False)
     assert summary_lines(tmp_path / "out")[-1] == "FAIL: float_onnx_agreement"
+
+
+def test_export_on_the_checkpoints_own_reference(tmp_path):
+    """``train --export``'s path: no query, the demo route recorded in the checkpoint."""
+    demo = make_demo(n_reference=60, seed=1)
+    model = NeuralSeqSLAM(NeuralConfig.adaptive_velocity(hidden=512, n_output=60))
+    model.fit(demo.reference, log=False)
+    model.save(tmp_path / "m.pt", extra={"reference": {"source": "demo", "demo_frames": 60,
+                                                       "demo_seed": 1}})
+    assert export_checkpoint(tmp_path / "m.pt", tmp_path / "out")
+    lines = summary_lines(tmp_path / "out")
+    assert lines[0].startswith("validated on the checkpoint's own reference: demo route")
+    assert f"integer: skipped ({SKIPPED})" in lines and lines[-1] == "PASS"
+    assert not any(line.startswith("device input") for line in lines)  # no integer device
+    report = json.loads((tmp_path / "out" / "validation.json").read_text())
+    assert report["recall_at_1"]["float_onnx"] == report["recall_at_1"]["pytorch"]
