@@ -28,10 +28,10 @@ def ring_step_velocity(evidence: torch.Tensor, activity: torch.Tensor, shift: to
                        top: int | None = None) -> torch.Tensor:
     """One ring step of ``B`` streams, each at its own speed ``velocity[b]``.
 
-    The powers ``S^k a``, ``k = 0..top``, are selected per stream with 0/1 masks (``S^n a``
-    and ``S^(n + 1) a``: the one non-zero term of each sum, so the same value as indexing)
-    and mixed: no branch reads the velocities once ``top`` is given, so the step traces
-    into a graph (the float ONNX export of the adaptive model).
+    The powers ``S^k a``, ``k = 0..top``, are weighted per stream by ``1 - f`` at ``k = n``,
+    ``f`` at ``k = n + 1`` and 0 elsewhere, and summed (two non-zero terms: the same value
+    as indexing the two powers and mixing them): no branch reads the velocities once ``top``
+    is given, so the step traces into a graph (the float ONNX export of the adaptive model).
 
     Args:
         evidence: ``(B, N)`` feed-forward evidence of the new frame.
@@ -65,13 +65,14 @@ def ring_step_velocity(evidence: torch.Tensor, activity: torch.Tensor, shift: to
     frac = (v - n).to(activity.dtype)[:, None]  # (B, 1)
     if top is None:
         top = int(n.max()) + (1 if bool((frac > 0).any()) else 0)
-    n = n.to(activity.device)
-    power = activity  # S^k a for k = 0..top
-    low = (n == 0).to(activity.dtype)[:, None] * power  # S^n a
-    high = torch.zeros_like(activity)  # S^(n + 1) a; stays 0 where n = top (then f = 0)
-    for k in range(1, top + 1):
-        power = ring_move(power, shift, diagonals)
-        low = low + (n == k).to(activity.dtype)[:, None] * power
-        high = high + (n == k - 1).to(activity.dtype)[:, None] * power
-    moved = (1 - frac) * low + frac * high
+    powers = [activity]  # S^k a for k = 0..top
+    for _ in range(top):
+        powers.append(ring_move(powers[-1], shift, diagonals))
+    k = torch.arange(top + 1, dtype=torch.float64, device=activity.device)
+    n = n.to(activity.device)[:, None]  # (B, 1)
+    zero = torch.zeros_like(frac)
+    # (B, top + 1): 1 - f at k = n, f at k = n + 1 (none where n = top: then f = 0), else 0
+    weight = torch.where(n == k, 1 - frac, zero) + torch.where(n + 1 == k, frac, zero)
+    # two non-zero terms per row: the sum is (1 - f) S^n a + f S^(n + 1) a in any order
+    moved = (weight[:, :, None] * torch.stack(powers, dim=1)).sum(dim=1)
     return params.decay * moved + params.gain * evidence
