@@ -13,7 +13,7 @@ An adaptive-velocity model (``ring_velocity="adaptive"``) steps its whole
 ``velocity`` (float64), ``positions`` (float64) and ``count`` (int64), returned as
 ``new_state``, ``new_velocity``, ``new_positions``, ``new_count``. The graph is traced from
 :func:`~torchseq.neural.velocity.adaptive_step` itself (its ``ceil(velocity_max)`` shift
-products mixed with masks, the slope and the clamp as tensor operations), so the eager
+products summed with per-stream weights, the slope and the clamp as tensor operations), so the eager
 model and the graph run the same code.
 """
 

@@ -16,9 +16,9 @@ by ``P_v`` (:func:`~torchseq.layers.ring_velocity.ring_step_velocity`).
 
 One frame of the adaptive model (:func:`adaptive_step`): ring at the previous estimate, read
 out the place, push it into the window, update the estimate. Every step computes the
-``ceil(velocity_max)`` shift products and selects with masks, and the estimator is tensor
-operations only (no branch reads a value): the same code traces into the float ONNX graph
-(:class:`torchseq.export.onnx_float.StreamingStep`).
+``ceil(velocity_max)`` shift products and sums them weighted (``1 - f``, ``f``, zeros), and
+the estimator is tensor operations only (no branch reads a value): the same code traces
+into the float ONNX graph (:class:`torchseq.export.onnx_float.StreamingStep`).
 """
 
 from __future__ import annotations
