@@ -203,27 +203,16 @@ def test_tolerance_scales_with_the_frames_per_unit(route):
 
 
 # ---------------------------------------------------------------- exports refuse it
-def test_exports_refuse_the_adaptive_model(route):
-    from torchseq.export import ExportError, IntegerFormatError, build_float_onnx, integer_model
+def test_integer_and_spiking_forms_refuse_the_adaptive_model(route):
+    """(The float ONNX graph holds it: tests/test_export_onnx_velocity.py.)"""
+    from torchseq.export import IntegerFormatError, integer_model
     from torchseq.neural.spiking import SpikingError, SpikingSeqSLAM
 
     model = fitted(route, ring_velocity="adaptive")
     with pytest.raises(IntegerFormatError, match="ring_velocity='adaptive'"):
         integer_model(model)
-    with pytest.raises(ExportError, match="ring_velocity='adaptive'"):
-        build_float_onnx(model)
     with pytest.raises(SpikingError, match="ring_velocity='adaptive'"):  # NIR is built from it
         SpikingSeqSLAM.convert(model, route.reference)
-
-
-def test_export_command_refuses_the_adaptive_checkpoint(route, tmp_path):
-    from torchseq.export import ExportError, export_checkpoint
-
-    fitted(route, ring_velocity="adaptive").save(tmp_path / "m.pt")
-    with pytest.raises(ExportError, match="ring_velocity='adaptive' has no export form"):
-        export_checkpoint(tmp_path / "m.pt", tmp_path / "out", query=route.query,
-                          ground_truth=route.ground_truth)
-    assert not (tmp_path / "out").exists()
 
 
 # ---------------------------------------------------------------- config and checkpoint

@@ -7,6 +7,9 @@ By default the export is validated on the checkpoint's own reference (recorded b
 ``train.py``), replayed as the query; the integer device's camera frame size is
 ``--frame-size`` (default: the reference's frame size), never the validation data's.
 The ONNX files carry the device contract in their ``metadata_props`` (``torchseq.*``).
+An adaptive-velocity checkpoint (``ring_velocity="adaptive"``) gets the float and quantised
+ONNX graphs only; the integer files and NIR are reported as skipped (no integer or spiking
+form), in ``validation.json`` and on the console.
 """
 
 from __future__ import annotations
@@ -148,15 +151,18 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
             and no query given.
     """
     from torchseq.export.contract import contract, write_contract
-    from torchseq.export.validate import FLOAT_ONNX, INT_ONNX, QUANT_ONNX, export_and_validate
+    from torchseq.export.validate import (
+        FLOAT_ONNX,
+        INT_ONNX,
+        NO_INTEGER_FORM,
+        QUANT_ONNX,
+        export_and_validate,
+        integer_form,
+    )
 
     t0 = time.perf_counter()
     ckpt, out = Path(checkpoint_path), Path(out_dir)
     model = _load_model(ckpt)
-    if getattr(model.config, "ring_velocity", "fixed") != "fixed":  # no export holds it
-        raise ExportError(f"{ckpt}: ring_velocity={model.config.ring_velocity!r} has no "
-                          "export form (integer, ONNX or NIR): export a model with "
-                          "ring_velocity='fixed'")
     rec = recorded_reference(model)
     if query is None:
         frames, own_gt, rec, source, gt_source = _own_reference(model, ckpt)
@@ -196,15 +202,23 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
               "query_source": source, "ground_truth_source": gt_source,
               "device_frame_size_source": size_source}
     report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size))
+    if not integer_form(model):  # no integer device, so no device frame size
+        del report["device_frame_size_source"]
     threshold = _suggested_threshold(model, frames, ground_truth)
     report["suggested_confidence_threshold"] = threshold
-    for name, kind in ((FLOAT_ONNX, "float"), (QUANT_ONNX, "float"), (INT_ONNX, "integer")):
-        write_contract(out / name, contract(kind, model, report, threshold))
+    graphs = ((FLOAT_ONNX, "float"), (QUANT_ONNX, "float"), (INT_ONNX, "integer"))
+    for name, kind in graphs if integer_form(model) else graphs[:2]:
+        props = contract(kind, model, report, threshold)
+        if not integer_form(model):
+            props.update(_velocity_contract(model))
+        write_contract(out / name, props)
         report["files_bytes"][name] = (out / name).stat().st_size
     from torchseq.export.nir_validate import calibration_frames, export_nir
 
     readout = getattr(model.config, "readout", "centre")
-    if nir and readout != "centre":  # SpikingSeqSLAM.convert refuses it (no spiking form)
+    if nir and not integer_form(model):  # SpikingSeqSLAM.convert refuses it
+        report["nir"] = {"skipped": NO_INTEGER_FORM}
+    elif nir and readout != "centre":  # SpikingSeqSLAM.convert refuses it (no spiking form)
         report["nir"] = {"skipped": f"readout={readout!r} has no spiking (NIR) form; the "
                                     "ONNX and integer files hold it"}
     elif nir:
@@ -221,15 +235,27 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     return bool(report["passed"])
 
 
+def _velocity_contract(model) -> dict[str, str]:
+    """The float graph's extra inputs of an adaptive-velocity model (contract metadata)."""
+    n, k = int(model.n_units), int(model.config.velocity_window)
+    return {"torchseq.initial_state": (
+        f"state zeros float32 (B, {n}), velocity ones float64 (B,), positions zeros float64 "
+        f"(B, {k}), count zeros int64 (B,); feed new_state, new_velocity, new_positions, "
+        f"new_count back")}
+
+
 def summary_lines(out_dir) -> list[str]:
     """The lines the command prints from ``validation.json``: figures, then PASS or FAIL."""
     report = json.loads((Path(out_dir) / "validation.json").read_text())
-    lines = [f"validated on {report['query_source']}",
-             f"device input: uint8 {'x'.join(map(str, report['device_frame_size']))} "
-             f"(from {report['device_frame_size_source']})"]
+    lines = [f"validated on {report['query_source']}"]
+    if "device_frame_size" in report:  # the integer device's input (none when skipped)
+        lines.append(f"device input: uint8 {'x'.join(map(str, report['device_frame_size']))} "
+                     f"(from {report['device_frame_size_source']})")
     for key, value in report.items():
         if key.endswith("_agreement") or key.endswith("_error") or key == "recall_at_1":
             lines.append(f"{key}: {value}")
+    if "skipped" in report.get("integer", {}):
+        lines.append(f"integer: skipped ({report['integer']['skipped']})")
     nir = report.get("nir") or {}
     if "skipped" in nir:
         lines.append(f"nir: skipped ({nir['skipped']})")

@@ -39,6 +39,12 @@ MIN_AGREEMENT = 0.99
 # demo: 0.975-0.996); far below, the frames are not grey levels 0..255 at all (event frames
 # of window means: 0.001) and the integer files cannot reproduce the model on them.
 MIN_UINT8_AGREEMENT = 0.9
+NO_INTEGER_FORM = "no integer/spiking form of ring_velocity='adaptive'"
+
+
+def integer_form(model) -> bool:
+    """Whether the model has the integer (and spiking) forms: not the adaptive ring."""
+    return getattr(model.config, "ring_velocity", "fixed") == "fixed"
 
 
 def quantise_onnx(model: onnx.ModelProto) -> onnx.ModelProto:
@@ -74,6 +80,10 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
                         frame_size: tuple[int, int] | None = None) -> dict:
     """Write the four exported files and measure every variant on ``query``.
 
+    An adaptive-velocity model (``ring_velocity="adaptive"``) has only the float and
+    quantised ONNX graphs: the integer files are not written and ``report["integer"]`` says
+    ``{"skipped": ...}``.
+
     Args:
         model: a fitted :class:`torchseq.neural.NeuralSeqSLAM`.
         out_dir: folder for ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``,
@@ -94,18 +104,18 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
     size = tuple(model.config.input_size)
     camera = grey if frame_size is None else resize(grey, tuple(frame_size))
     pool = choose_pool(tuple(camera.shape[1:3]), size)
+    has_int = integer_form(model)
     # build and write
     float_onnx = build_float_onnx(model)
     quant = quantise_onnx(float_onnx)
-    int_model = integer_model(model, pool)
     files = {FLOAT_ONNX: write_onnx(float_onnx, out / FLOAT_ONNX),
-             QUANT_ONNX: write_onnx(quant, out / QUANT_ONNX),
-             INT_FILE: write_integer_model(out / INT_FILE, int_model)}
-    stored = read_integer_model(out / INT_FILE)  # validate what was written
-    int_onnx = build_integer_onnx(stored)
-    files[INT_ONNX] = write_onnx(int_onnx, out / INT_ONNX)
+             QUANT_ONNX: write_onnx(quant, out / QUANT_ONNX)}
+    if has_int:
+        files[INT_FILE] = write_integer_model(out / INT_FILE, integer_model(model, pool))
+        stored = read_integer_model(out / INT_FILE)  # validate what was written
+        files[INT_ONNX] = write_onnx(build_integer_onnx(stored), out / INT_ONNX)
     checker = {}
-    for name in (FLOAT_ONNX, QUANT_ONNX, INT_ONNX):
+    for name in (FLOAT_ONNX, QUANT_ONNX, INT_ONNX)[:3 if has_int else 2]:
         try:
             onnx.checker.check_model(str(out / name), full_check=True)
             checker[name] = True
@@ -119,6 +129,29 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
     small = resize(grey, size).numpy()
     ref_f, conf_f, act_f = run_float_onnx(session(out / FLOAT_ONNX), small)
     ref_q, _, act_q = run_float_onnx(session(out / QUANT_ONNX), small)
+    float_report = {
+        "n_query": int(grey.shape[0]),
+        "query_frame_size": list(grey.shape[1:3]),
+        "input_size": list(size),
+        "n_units": int(model.n_units),
+        "files_bytes": files,
+        "float_onnx_max_abs_error": float(np.abs(act_f - act_pt).max()),
+        "float_onnx_confidence_max_abs_error": float(np.abs(conf_f - conf_pt).max()),
+        "float_onnx_agreement": agreement(ref_f, ref_pt),
+        "quant_onnx_max_abs_error": float(np.abs(act_q - act_pt).max()),
+        "quant_onnx_agreement": agreement(ref_q, ref_pt),
+    }
+    if not has_int:
+        report = {**float_report, "integer": {"skipped": NO_INTEGER_FORM},
+                  "onnx_checker": checker, "warnings": []}
+        if ground_truth is not None:
+            gt = np.asarray(ground_truth, dtype=bool)
+            report["recall_at_1"] = {name: recall_at_k(r, gt) for name, r in (
+                ("pytorch", ref_pt), ("float_onnx", ref_f), ("quant_onnx", ref_q))}
+        report["checks"] = {"float_onnx_agreement": report["float_onnx_agreement"]
+                            >= MIN_AGREEMENT, "onnx_checker": all(checker.values())}
+        report["passed"] = all(report["checks"].values())
+        return report
     frames_u8 = device_frames(camera, size, pool)
     result_u8 = model.run(torch.from_numpy(frames_u8).to(torch.float32))
     ref_u8, act_u8 = result_u8.matches.reference.numpy(), result_u8.activity.numpy()
@@ -128,18 +161,9 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
     bit_exact = bool(np.array_equal(ref_n, ref_o) and np.array_equal(conf_n, conf_o)
                      and np.array_equal(act_n, act_o) and act_n.dtype == act_o.dtype)
     report = {
-        "n_query": int(grey.shape[0]),
-        "query_frame_size": list(grey.shape[1:3]),
+        **float_report,
         "device_frame_size": list(frames_u8.shape[1:3]),
-        "input_size": list(size),
         "integer_pool": list(pool),
-        "n_units": int(model.n_units),
-        "files_bytes": files,
-        "float_onnx_max_abs_error": float(np.abs(act_f - act_pt).max()),
-        "float_onnx_confidence_max_abs_error": float(np.abs(conf_f - conf_pt).max()),
-        "float_onnx_agreement": agreement(ref_f, ref_pt),
-        "quant_onnx_max_abs_error": float(np.abs(act_q - act_pt).max()),
-        "quant_onnx_agreement": agreement(ref_q, ref_pt),
         "integer_agreement": agreement(ref_n, ref_u8),
         "integer_onnx_agreement": agreement(ref_o, ref_u8),
         "integer_raw_input_agreement": agreement(ref_n, ref_pt),

@@ -24,35 +24,55 @@ MAX_VELOCITY = 8.0  # at most 9 shift products per frame: a bound on the work a 
 
 def ring_step_velocity(evidence: torch.Tensor, activity: torch.Tensor, shift: torch.Tensor,
                        params: RingParams, velocity: torch.Tensor,
-                       diagonals: torch.Tensor | None = None) -> torch.Tensor:
+                       diagonals: torch.Tensor | None = None,
+                       top: int | None = None) -> torch.Tensor:
     """One ring step of ``B`` streams, each at its own speed ``velocity[b]``.
+
+    The powers ``S^k a``, ``k = 0..top``, are weighted per stream by ``1 - f`` at ``k = n``,
+    ``f`` at ``k = n + 1`` and 0 elsewhere, and summed (two non-zero terms: the same value
+    as indexing the two powers and mixing them): no branch reads the velocities once ``top``
+    is given, so the step traces into a graph (the float ONNX export of the adaptive model).
 
     Args:
         evidence: ``(B, N)`` feed-forward evidence of the new frame.
         activity: ``(B, N)`` activity after the previous step.
         shift: ``(N, N)`` ``S[next, current]``.
         params: :class:`~torchseq.layers.RingParams` (decay, gain).
-        velocity: ``(B,)`` speeds in ``[0, MAX_VELOCITY]`` (1: the reference's).
+        velocity: ``(B,)`` speeds in ``[0, top]`` (``[0, MAX_VELOCITY]`` without ``top``;
+            1: the reference's).
         diagonals: ``(L + 1, N)`` from :func:`~torchseq.layers.ring.band_diagonals` (the
             banded kernel of :func:`~torchseq.layers.ring.ring_move`); None: dense.
+        top: shift products to compute (at most ``MAX_VELOCITY``), a bound on every speed
+            known before the step (the adaptive model's ``ceil(velocity_max)``); None: the
+            fewest these velocities need (read off their values: no graph form).
 
     Returns:
         ``(B, N)`` the new activity.
+
+    Raises:
+        ValueError: a velocity outside ``[0, top]`` (checked in eager runs; a traced graph
+            takes the speeds it returned itself).
     """
     v = velocity.to(torch.float64)
-    if v.shape != (activity.shape[0],) or not bool(((v >= 0) & (v <= MAX_VELOCITY)).all()):
-        raise ValueError(f"velocity must be ({activity.shape[0]},) in [0, {MAX_VELOCITY:g}], "
+    bound = MAX_VELOCITY if top is None else float(top)
+    if top is not None and not 0 <= top <= MAX_VELOCITY:
+        raise ValueError(f"top must be in 0..{MAX_VELOCITY:g}, got {top}")
+    if v.shape != (activity.shape[0],) or (
+            not torch.jit.is_tracing() and not bool(((v >= 0) & (v <= bound)).all())):
+        raise ValueError(f"velocity must be ({activity.shape[0]},) in [0, {bound:g}], "
                          f"got {tuple(velocity.shape)}")
     n = torch.floor(v)
     frac = (v - n).to(activity.dtype)[:, None]  # (B, 1)
-    n = n.to(torch.int64)
-    top = int(n.max()) + (1 if bool((frac > 0).any()) else 0)
+    if top is None:
+        top = int(n.max()) + (1 if bool((frac > 0).any()) else 0)
     powers = [activity]  # S^k a for k = 0..top
     for _ in range(top):
         powers.append(ring_move(powers[-1], shift, diagonals))
-    stack = torch.stack(powers + [powers[-1]])  # (top + 2, B, N); the extra copy has f = 0
-    rows = torch.arange(activity.shape[0], device=activity.device)
-    low, high = stack[n.to(activity.device), rows], stack[(n + 1).to(activity.device), rows]
-    moved = (1 - frac) * low + frac * high
+    k = torch.arange(top + 1, dtype=torch.float64, device=activity.device)
+    n = n.to(activity.device)[:, None]  # (B, 1)
+    zero = torch.zeros_like(frac)
+    # (B, top + 1): 1 - f at k = n, f at k = n + 1 (none where n = top: then f = 0), else 0
+    weight = torch.where(n == k, 1 - frac, zero) + torch.where(n + 1 == k, frac, zero)
+    # two non-zero terms per row: the sum is (1 - f) S^n a + f S^(n + 1) a in any order
+    moved = (weight[:, :, None] * torch.stack(powers, dim=1)).sum(dim=1)
     return params.decay * moved + params.gain * evidence
-

@@ -107,7 +107,7 @@ class NeuralConfig:
         ring_velocity: ``"fixed"`` (the learnt shift moves the activity as fast as the
             reference, the seed's ring) or ``"adaptive"`` (each stream estimates its speed
             from its own decisions and moves the activity by that fraction of the shift,
-            :mod:`torchseq.neural.velocity`; opt-in, no export form).
+            :mod:`torchseq.neural.velocity`; opt-in, float ONNX export only).
         velocity_window: decisions in the adaptive speed fit (``K``).
         velocity_min: smallest adaptive speed (reference frames per query frame, <= 1).
         velocity_max: largest adaptive speed (>= 1, at most 8).

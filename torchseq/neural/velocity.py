@@ -15,11 +15,15 @@ velocity_max]``. Until ``K`` decisions are in, ``v = 1``. The ring of the next f
 by ``P_v`` (:func:`~torchseq.layers.ring_velocity.ring_step_velocity`).
 
 One frame of the adaptive model (:func:`adaptive_step`): ring at the previous estimate, read
-out the place, push it into the window, update the estimate.
+out the place, push it into the window, update the estimate. Every step computes the
+``ceil(velocity_max)`` shift products and sums them weighted (``1 - f``, ``f``, zeros), and
+the estimator is tensor operations only (no branch reads a value): the same code traces
+into the float ONNX graph (:class:`torchseq.export.onnx_float.StreamingStep`).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
@@ -102,7 +106,7 @@ class VelocityTracker:
         k = self.window
         t = torch.arange(k, dtype=torch.float64, device=p.device) - (k - 1) / 2.0
         centred = p - p.mean(dim=1, keepdim=True)
-        slope = (centred * t).sum(dim=1) / float((t * t).sum())
+        slope = (centred * t).sum(dim=1) / (k * (k * k - 1) / 12.0)  # sum t^2, exact
         resid = (centred - slope[:, None] * t).abs().amax(dim=1)
         trusted = (count >= k) & (resid <= self.tolerance)
         target = torch.where(trusted, slope, torch.ones_like(slope))
@@ -130,6 +134,7 @@ def adaptive_step(evidence: torch.Tensor, state: VelocityState, shift: torch.Ten
         ``(activity (B, N), reference (B,), confidence (B,), new state)``.
     """
     activity = ring_step_velocity(evidence, state.activity, shift, params,
-                                  state.velocity.to(evidence.device), diagonals)
+                                  state.velocity.to(evidence.device), diagonals,
+                                  top=math.ceil(tracker.v_max))
     reference, confidence = read(activity)
     return activity, reference, confidence, tracker.update(state, reference, activity)
