@@ -525,7 +525,7 @@ def run_folder(out: str | None, kind: str, overwrite: bool) -> Path:
 
 
 def config_file_defaults(parser: argparse.ArgumentParser, path: str,
-                         sections: dict[str, str]) -> None:
+                         sections: dict[str, str]) -> frozenset[str]:
     """Make a run's saved ``config.json`` the parser's defaults (flags still override it).
 
     Args:
@@ -535,6 +535,9 @@ def config_file_defaults(parser: argparse.ArgumentParser, path: str,
             (``{"neural": "neural_"}``); ``""`` keeps field names as they are.
 
     Values go through the same flag types as the command line (finite numbers, sizes).
+
+    Returns:
+        The dests the file gave.
     """
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
@@ -570,6 +573,7 @@ def config_file_defaults(parser: argparse.ArgumentParser, path: str,
         else:
             raise UsageError(f"--config {path}: bad value for {dest}: {value!r}")
     parser.set_defaults(**defaults)
+    return frozenset(defaults)
 
 
 def sweep_grid(specs: list[str], parser: argparse.ArgumentParser) -> list[list[str]]:
