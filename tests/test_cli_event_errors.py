@@ -1,0 +1,47 @@
+"""Event-file errors of the command lines say why: a start past the end of a recording names
+the recording's time span and the requested start."""
+
+import numpy as np
+import pytest
+from conftest import shared_data
+
+from torchseq import cli_eval
+from torchseq.events import EventFormatError, accumulate
+from torchseq.frontend import run_main
+
+SPAN = "the recording spans 11718656..11727457 us (8.801 ms)"  # evt3_sample.raw's events
+
+
+def eval_error(tmp_path, capsys, *args):
+    raw = shared_data("events", "evt3_sample.raw")
+    code = run_main(cli_eval.main, "eval.py", [
+        "--engine", "seqslam", "--reference", str(raw), "--query", str(raw), "--no-progress",
+        "--no-tensorboard", "--out", str(tmp_path / "o"), *args])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    return err[0]
+
+
+def test_window_anchor_past_the_end_names_the_span_and_the_anchor(tmp_path, capsys):
+    err = eval_error(tmp_path, capsys, "--window-anchor", "11800000")
+    assert "the windows start at 11800000 us (the anchor), after the last event" in err
+    assert SPAN in err
+
+
+def test_t_start_past_the_end_names_the_span_and_the_start(tmp_path, capsys):
+    err = eval_error(tmp_path, capsys, "--t-start", "100")
+    assert "no events in the time crop [11818656, end) us" in err
+    assert "it starts 100 ms after the window origin, 11718656 us" in err and SPAN in err
+    err = eval_error(tmp_path, capsys, "--window-anchor", "zero", "--t-start", "20000")
+    assert "[20000000, end) us (it starts 20000 ms after the window origin, 0 us)" in err
+    assert SPAN in err
+
+
+@pytest.mark.parametrize("order", [[0, 1, 2], [2, 0, 1]])
+def test_accumulate_names_the_span_in_or_out_of_time_order(order):
+    t = np.array([1000, 2500, 4000])[order]
+    events = np.zeros(3, dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")])
+    events["t"] = t
+    with pytest.raises(EventFormatError,
+                       match=r"start at 9000 us .*spans 1000\.\.4000 us \(3 ms\)"):
+        accumulate(events, window_us=100, anchor=9000, sensor_size=(4, 4))
