@@ -306,9 +306,11 @@ EVENT_HELP = {
     "hot_pixel": "event files: drop pixels firing more than this many times the median active "
                  "pixel (default: off)",
     "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
-    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md; "
+                 "carry is refused for EVT 2.0 files)",
     "evt3_kernel": "Prophesee EVT 3 .raw files: decoder, auto (numba from 128 MiB when "
-                   "installed, else numpy), numpy or numba; the same events either way",
+                   "installed, else numpy), numpy or numba; the same events either way (numpy "
+                   "and numba are refused for EVT 2.0 files)",
     "time_unit": "CSV, HDF5 and Parquet event files: the time column's unit, s, ms, us or ns "
                  "(default: integers are us, fractions follow the float-time rule)",
     "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
