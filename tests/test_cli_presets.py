@@ -140,3 +140,21 @@ def test_a_sweep_over_presets_builds_each():
 def test_bad_preset_in_apply_is_a_usage_error():
     with pytest.raises(UsageError, match="--neural-preset must be one of"):
         apply_preset(NeuralConfig(), "nope", typed=())
+
+
+@pytest.mark.parametrize("script", ["eval", "train"])
+def test_the_scripts_take_the_preset_and_say_typed_flags_win(script, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / f"{script}.py"
+    spec = importlib.util.spec_from_file_location(f"{script}_preset_script", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    with pytest.raises(SystemExit):
+        module.main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--neural-preset" in text and "you type are applied on top of it and win" in text
+    assert "20% L2 -> L3 mask, 5% winners" in text
+    code = run_main(module.main, f"{script}.py", ["--neural-preset", "x"])
+    assert code == 2 and "--neural-preset must be one of" in capsys.readouterr().err
