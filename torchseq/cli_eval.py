@@ -23,6 +23,7 @@ import torch
 
 from torchseq import metrics, plots
 from torchseq.atomic import write_json, write_text
+from torchseq.cli_presets import apply_preset, preset_config, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
 from torchseq.frontend import (
@@ -72,6 +73,7 @@ class EvalConfig(EventFlags):
     engine: str = "both"
     checkpoint: str | None = None
     preset: str | None = None
+    neural_preset: str | None = None
     out: str | None = None
     overwrite: bool = False
     target_precision: float = 0.99
@@ -104,6 +106,7 @@ HELP = {
     "preset": "SeqSLAM preset: openseqslam (OpenSeqSLAM 2013 exactly: uint8 preprocessing, "
               "flat blocks -> 0, start + ds/2) or events (ds 100, 16x16, --speed-ratio); "
               "SeqSLAM flags given with a non-default value override it",
+    "neural_preset": preset_help("the --neural-* flags"),
     "out": "output folder of this run (default: a new runs/eval-<UTC time>)",
     "overwrite": "replace a previous run's --out folder instead of refusing",
     "target_precision": "metrics.json operating point: the confidence threshold that reaches "
@@ -167,9 +170,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def settings_from(args: argparse.Namespace) -> Settings:
-    """Parsed flags -> checked :class:`Settings` (ranges first, then each config's rules)."""
+def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
+                  replayed: frozenset[str] = frozenset(), recorded: str | None = None
+                  ) -> Settings:
+    """Parsed flags -> checked :class:`Settings` (ranges first, then each config's rules).
+
+    Args:
+        args: the parsed flags.
+        typed: NeuralConfig fields whose ``--neural-*`` flag the command line gave.
+        replayed: NeuralConfig fields a ``--config`` file gave.
+        recorded: the ``--neural-preset`` that file recorded.
+    """
     cfg = config_from_args(EvalConfig, args)
+    if cfg.neural_preset is not None:
+        cfg.neural_preset = preset_name(cfg.neural_preset)
     check_ranges(cfg, LIMITS)
     if cfg.engine not in ENGINES:
         raise UsageError(f"--engine must be one of {', '.join(ENGINES)}, got {cfg.engine!r}")
@@ -186,16 +200,22 @@ def settings_from(args: argparse.Namespace) -> Settings:
     neural_seed_given = args.neural_seed is not None and args.neural_seed != cfg.seed
     if args.neural_seed is None:
         args.neural_seed = cfg.seed
-    ncfg = config_from_args(NeuralConfig, args, prefix="neural_")
+    ncfg = apply_preset(config_from_args(NeuralConfig, args, prefix="neural_"),
+                        cfg.neural_preset, typed, replayed, recorded)
     check_neural(ncfg, "neural_")
     ncfg.validate()
+    if cfg.checkpoint and cfg.neural_preset is not None:
+        raise UsageError("--neural-preset has no effect with --checkpoint (the checkpoint "
+                         "carries its own config); drop one of them")
     if cfg.checkpoint and (neural_seed_given or
                            dataclasses.replace(ncfg, seed=0) != NeuralConfig(seed=0)):
         raise UsageError("--neural-* settings have no effect with --checkpoint (the "
                          "checkpoint carries its own config); drop one of them")
+    preset = dataclasses.replace(preset_config(cfg.neural_preset), seed=0)
     check_unused(cfg, changed_flags(config_from_args(SeqSLAMConfig, args), SeqSLAMConfig()),
-                 changed_flags(dataclasses.replace(ncfg, seed=0), NeuralConfig(seed=0),
-                               "neural_") + ["--neural-seed"] * neural_seed_given)
+                 ["--neural-preset"] * (cfg.neural_preset is not None)
+                 + changed_flags(dataclasses.replace(ncfg, seed=0), preset, "neural_")
+                 + ["--neural-seed"] * neural_seed_given)
     return Settings(cfg, scfg, ncfg)
 
 
@@ -256,15 +276,23 @@ def parse_args(argv: list[str] | None
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     pre, _ = parser.parse_known_args(argv)
+    replayed = frozenset()
     if pre.config:
-        config_file_defaults(parser, pre.config, {"seqslam": "", "neural": "neural_"})
+        replayed = config_file_defaults(parser, pre.config, {"seqslam": "", "neural": "neural_"})
+    neural = {"neural_" + f.name: f.name for f in dataclasses.fields(NeuralConfig)}
+    replayed = frozenset(neural[d] for d in replayed if d in neural)
+    recorded = parser.get_default("neural_preset")
+
+    def settings(flags: list[str]) -> Settings:
+        typed = frozenset(neural[d] for d in given_flags(parser, flags, set(neural)))
+        return dataclasses.replace(
+            settings_from(parser.parse_args(flags), typed, replayed, recorded),
+            given=given_flags(parser, flags, EVENT_FIELDS))
+
+    base = settings(argv)
     args = parser.parse_args(argv)
-    base = settings_from(args)
-    base.given = given_flags(parser, argv, EVENT_FIELDS)
     grid = sweep_grid(args.sweep, parser)
-    points = [dataclasses.replace(settings_from(parser.parse_args(argv + extra)),
-                                  given=given_flags(parser, argv + extra, EVENT_FIELDS))
-              for extra in grid]
+    points = [settings(argv + extra) for extra in grid]
     return base, points, grid, list(args.sweep)
 
 
@@ -483,8 +511,9 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
     run_seconds = time.perf_counter() - t0
     k = min(10, model.n_units)
     ranked = model.unit_centre.cpu()[result.activity.topk(k, dim=1).indices]
+    preset = None if cfg.checkpoint else preset_name(cfg.neural_preset)
     return {"matches": result.matches, "ranked": ranked, "activity": result.activity,
-            "seconds": run_seconds, "fit_seconds": fit_seconds,
+            "seconds": run_seconds, "fit_seconds": fit_seconds, "preset": preset,
             "parameters": to_jsonable(model.config), "model_bytes": int(model.model_bytes()),
             "frames_per_unit": per_unit}
 
@@ -511,7 +540,7 @@ def engine_metrics(r: dict, gt, target_precision: float) -> dict:
         m = metrics.evaluate(r["matches"], gt, r["ranked"])
         m["operating_point"] = metrics.operating_point(r["matches"], gt, target_precision)
     m.update({k: r[k] for k in ("seconds", "fit_seconds", "model_bytes", "frames_per_unit",
-                                "parameters") if k in r})
+                                "preset", "parameters") if k in r})
     return m
 
 

@@ -10,6 +10,7 @@ to ``OUT/export``, validated as ``python -m torchseq.export`` does.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from dataclasses import dataclass
@@ -19,6 +20,7 @@ import torch
 
 from torchseq import plots
 from torchseq.atomic import write_json, write_text
+from torchseq.cli_presets import apply_preset, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
 from torchseq.frontend import (
@@ -54,6 +56,7 @@ class TrainConfig(EventFlags):
     """What a training run depends on besides the model's own :class:`NeuralConfig`."""
 
     reference: str | None = None
+    neural_preset: str | None = None
     out: str | None = None
     overwrite: bool = False
     start: int = 0
@@ -74,6 +77,7 @@ class TrainConfig(EventFlags):
 HELP = {
     "reference": "reference traverse: image folder, video, frame array (.npy/.npz) or event file; "
                  "default: the built-in demo route",
+    "neural_preset": preset_help("the model (NeuralConfig) flags"),
     "out": "output folder of this run (default: a new runs/train-<UTC time>)",
     "overwrite": "replace a previous run's --out folder instead of refusing",
     "demo_frames": "demo: reference frames",
@@ -109,15 +113,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_args(argv: list[str] | None) -> tuple[TrainConfig, NeuralConfig]:
     """Flags -> (:class:`TrainConfig`, :class:`NeuralConfig`), every number range-checked."""
+    argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     pre, _ = parser.parse_known_args(argv)
+    replayed = frozenset()
     if pre.config:
-        config_file_defaults(parser, pre.config, {"train": "", "model": ""})
+        replayed = config_file_defaults(parser, pre.config, {"train": "", "model": ""})
     args = parser.parse_args(argv)
     cfg = config_from_args(TrainConfig, args)
     check_ranges(cfg, LIMITS)
     parse_size(cfg.export_frame_size)
-    ncfg = config_from_args(NeuralConfig, args)
+    if cfg.neural_preset is not None:
+        cfg.neural_preset = preset_name(cfg.neural_preset)
+    neural = {f.name for f in dataclasses.fields(NeuralConfig)}
+    ncfg = apply_preset(config_from_args(NeuralConfig, args), cfg.neural_preset,
+                        given_flags(parser, argv, neural), replayed & neural,
+                        parser.get_default("neural_preset"))
     check_neural(ncfg)
     return cfg, ncfg.validate()
 
@@ -234,7 +245,8 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
     model.save(out / "model.pt", extra={"train_config": to_jsonable(cfg),
                                         "reference": reference})
     write_text(out / "config.json", config_text({"train": cfg, "model": ncfg}) + "\n")
-    summary = {"reference": reference, "fit_seconds": seconds,
+    summary = {"reference": reference, "neural_preset": preset_name(cfg.neural_preset),
+               "fit_seconds": seconds,
                "model_bytes": int(model.model_bytes()), "n_units": int(model.n_units)}
     write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
     log_training(cfg, ncfg, model, log, out)

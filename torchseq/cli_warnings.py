@@ -28,7 +28,10 @@ FLAG_TERMS = (("pass sensor_size= to set it", "--sensor-size WxH sets it"),
               ("pass truncated='drop'", "pass --truncated drop"),
               ("anchor='first' starts at the first event",
                "--window-anchor first starts at the first event"),
-              ("declare the unit", "declare the unit (--time-unit)"))
+              ("declare the unit", "declare the unit (--time-unit)"),
+              ("evt3_time='carry'", "--evt3-time carry"),
+              ("evt3_kernel='numpy'", "--evt3-kernel numpy"),
+              ("evt3_kernel='numba'", "--evt3-kernel numba"))
 
 
 def cli_terms(text: str) -> str:

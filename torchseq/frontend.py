@@ -306,9 +306,11 @@ EVENT_HELP = {
     "hot_pixel": "event files: drop pixels firing more than this many times the median active "
                  "pixel (default: off)",
     "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
-    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md)",
+    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md; "
+                 "carry is refused for EVT 2.0 files)",
     "evt3_kernel": "Prophesee EVT 3 .raw files: decoder, auto (numba from 128 MiB when "
-                   "installed, else numpy), numpy or numba; the same events either way",
+                   "installed, else numpy), numpy or numba; the same events either way (numpy "
+                   "and numba are refused for EVT 2.0 files)",
     "time_unit": "CSV, HDF5 and Parquet event files: the time column's unit, s, ms, us or ns "
                  "(default: integers are us, fractions follow the float-time rule)",
     "truncated": "event files cut short (.aedat, .aedat4, .raw): error, or drop the last "
@@ -525,7 +527,7 @@ def run_folder(out: str | None, kind: str, overwrite: bool) -> Path:
 
 
 def config_file_defaults(parser: argparse.ArgumentParser, path: str,
-                         sections: dict[str, str]) -> None:
+                         sections: dict[str, str]) -> frozenset[str]:
     """Make a run's saved ``config.json`` the parser's defaults (flags still override it).
 
     Args:
@@ -535,6 +537,9 @@ def config_file_defaults(parser: argparse.ArgumentParser, path: str,
             (``{"neural": "neural_"}``); ``""`` keeps field names as they are.
 
     Values go through the same flag types as the command line (finite numbers, sizes).
+
+    Returns:
+        The dests the file gave.
     """
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
@@ -570,6 +575,7 @@ def config_file_defaults(parser: argparse.ArgumentParser, path: str,
         else:
             raise UsageError(f"--config {path}: bad value for {dest}: {value!r}")
     parser.set_defaults(**defaults)
+    return frozenset(defaults)
 
 
 def sweep_grid(specs: list[str], parser: argparse.ArgumentParser) -> list[list[str]]:

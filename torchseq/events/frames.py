@@ -25,7 +25,12 @@ import torch
 import torch.nn.functional as F
 
 from torchseq.events.filters import check_events_present, hot_pixel_mask, refractory_mask
-from torchseq.events.stream import EventStream, as_event_array, infer_sensor_size
+from torchseq.events.stream import (
+    EventFormatError,
+    EventStream,
+    as_event_array,
+    infer_sensor_size,
+)
 
 MODES = ("signed", "two_channel", "binary", "count")
 MAX_FRAME_ELEMENTS = 2**32  # bound on T * C * H * W of one accumulation (16 GiB float32)
@@ -169,8 +174,13 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
     origin = t_first if isinstance(anchor, str) and anchor == "first" else window_origin(
         t, anchor)
     if origin > t_first:  # events before the anchor are dropped
+        t_last = int(t[-1]) if ordered else int(t.max())
         events = events[np.searchsorted(t, origin):] if ordered else events[t >= origin]
-        check_events_present(events)
+        if len(events) == 0:
+            raise EventFormatError(
+                f"no events to accumulate into frames: the windows start at {origin} us (the "
+                f"anchor), after the last event; the recording spans {t_first}..{t_last} us "
+                f"({(t_last - t_first) / 1000:g} ms)")
     _check_fields(events, w, h)
     keep = None
     if hot_pixel is not None:

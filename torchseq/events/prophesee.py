@@ -333,6 +333,8 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
             raise file_error(path, 0, str(err)) from None
         if size is None:
             raise file_error(path, 0, "header gives no sensor geometry; pass sensor_size=")
+        if fmt == "evt2":
+            _refuse_evt3_options(path, evt3_time, evt3_kernel)
         if fmt == "evt3":
             dtype = np.dtype("<u2")
             def decode(words, state):
@@ -344,6 +346,17 @@ def iter_raw(path: str | Path, chunk_events: int = 1 << 20,
         state: dict = {}
         for offset, words in iter_records(f, path, dtype, body, chunk_events, truncated, "word"):
             yield Chunk(decode(words, state), size, offset)
+
+
+def _refuse_evt3_options(path: Path, evt3_time: str, evt3_kernel: str | None) -> None:
+    """Raise for EVT 3.0 options given for an EVT 2.0 file (they would be silently unused)."""
+    given = ([f"evt3_time={evt3_time!r}"] if evt3_time != "spec" else []) + (
+        [f"evt3_kernel={evt3_kernel!r}"] if evt3_kernel is not None else [])
+    if given:
+        one = len(given) == 1
+        raise file_error(path, None, f"the header says EVT 2.0, and {' and '.join(given)} "
+                         f"appl{'ies' if one else 'y'} to EVT 3.0 files only; drop "
+                         f"{'it' if one else 'them'}")
 
 
 def _runs(new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -114,14 +114,16 @@ def crop_events(stream: EventStream, anchor: str | int, start_ms: float,
     t = stream.events["t"]
     if len(t) == 0:
         raise EventFormatError(f"{name}: no events")
-    begin = window_origin(t, anchor) + int(round(start_ms * 1000))
+    origin = window_origin(t, anchor)
+    begin = origin + int(round(start_ms * 1000))
     end = None if duration_ms is None else begin + max(1, int(round(duration_ms * 1000)))
     lo = int(np.searchsorted(t, begin, side="left"))
     hi = len(t) if end is None else int(np.searchsorted(t, end, side="left"))
     if hi <= lo:
         span = f"[{begin}, {'end' if end is None else end}) us"
         raise EventFormatError(
-            f"{name}: no events in the time crop {span}; the recording spans "
+            f"{name}: no events in the time crop {span} (it starts {start_ms:g} ms after "
+            f"the window origin, {origin} us); the recording spans "
             f"{int(t[0])}..{int(t[-1])} us ({(int(t[-1]) - int(t[0])) / 1000:g} ms)")
     return EventStream(stream.events[lo:hi], stream.sensor_size), begin
 

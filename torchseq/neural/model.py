@@ -34,7 +34,7 @@ from torchseq.neural.memory import seqslam_bytes
 from torchseq.neural.progress import Progress, as_progress
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
-from torchseq.neural.velocity import VelocityTracker, adaptive_step
+from torchseq.neural.velocity import VelocityState, VelocityTracker, adaptive_step
 from torchseq.preprocess import patch_normalise, quantise_input, resize, to_grey, zscore_blocks
 
 __all__ = ["NeuralFitLog", "NeuralResult", "NeuralSeqSLAM", "NeuralStep", "seqslam_bytes"]
@@ -140,9 +140,11 @@ class NeuralSeqSLAM(nn.Module):
         Args:
             frames: ``(B, H, W)`` (or ``(B, H, W, 3)``) one new frame per stream.
             state: ring state from the previous step (None: start of the streams): a
-                :class:`~torchseq.layers.RingState`, or with ``ring_velocity="adaptive"`` a
-                :class:`~torchseq.neural.VelocityState` (activity, speed estimates and the
-                window of recent decisions).
+                :class:`~torchseq.layers.RingState` (a
+                :class:`~torchseq.neural.VelocityState` is taken too: its ``activity``), or
+                with ``ring_velocity="adaptive"`` a :class:`~torchseq.neural.VelocityState`
+                (activity, speed estimates and the window of recent decisions); another type
+                is a :class:`NeuralError`.
 
         Returns:
             ``(NeuralStep, new state)``.
@@ -155,11 +157,11 @@ class NeuralSeqSLAM(nn.Module):
         adaptive = self.config.ring_velocity == "adaptive"
         if state is not None and adaptive:
             VelocityTracker.from_model(self).check(state, frames.shape[0], self.n_units)
-        elif state is not None and (state.activity.dim() != 2
-                                    or state.activity.shape[1] != self.n_units
-                                    or state.activity.shape[0] != frames.shape[0]):
-            raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
-                              f"{tuple(state.activity.shape)}")
+        elif state is not None:
+            state = _ring_state(state)
+            if tuple(state.activity.shape) != (frames.shape[0], self.n_units):
+                raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
+                                  f"{tuple(state.activity.shape)}")
         if self._inference is not None:
             return self._inference(frames, state)
         e = self.evidence(self.code(self.encode(frames)))  # (B, N)
@@ -422,6 +424,17 @@ def _drop_derived(module, state_dict, prefix, local_metadata) -> None:
     """
     for key in [k for k in state_dict if k.startswith(prefix + "_inference.")]:
         del state_dict[key]
+
+
+def _ring_state(state) -> RingState:
+    """A fixed-velocity model's state: a RingState, or a VelocityState's activity."""
+    if isinstance(state, VelocityState):
+        return RingState(state.activity)
+    if not isinstance(state, RingState) or not isinstance(state.activity, torch.Tensor):
+        raise NeuralError(f"a fixed-velocity model steps with a RingState (or a VelocityState, "
+                          f"whose activity it reads; None at the start), got "
+                          f"{type(state).__name__}")
+    return state
 
 
 def _chunks(n: int, size: int, progress: Progress | None = None):
