@@ -21,7 +21,7 @@ import json
 import sys
 import time
 import warnings
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -294,10 +294,17 @@ REFINE = {"ring argmax (default)": (0.0, None), "a + 0.3 z within +-1 unit": (0.
           "a + 0.1 z": (0.1, None)}
 
 
+def preset_changes(cfg: NeuralConfig) -> dict:
+    """The fields where ``cfg`` differs from the default ``NeuralConfig()``."""
+    base = NeuralConfig()
+    return {f.name: getattr(cfg, f.name) for f in fields(cfg)
+            if getattr(cfg, f.name) != getattr(base, f.name)}
+
+
 LONG_RINGS = {  # the rings of the long-route and several-frames tables (--long-velocity)
     "fixed": {},
     "ring_velocity adaptive": dict(ring_velocity="adaptive"),
-    "adaptive_velocity()": dict(ring_velocity="adaptive", ring_spread=1, ring_stay=0.0),
+    "adaptive_velocity()": preset_changes(NeuralConfig.adaptive_velocity()),
 }
 
 
