@@ -8,9 +8,10 @@ Writes ``neural_quality.json`` and ``neural_quality.md`` (a Markdown table) unde
 prints the table. ``--offsets``, ``--long-routes 500,3000,20000`` and ``--repeat`` add the
 offset histograms, the long-route table and the wrong-repeat counts (issue 15), each also
 written to its own ``neural_<section>.json``/``.md`` and its block of docs/neural.md;
-``--skip-main`` runs only those. With ``--ablation`` it also runs the ablation over the
-model's settings and the harder demo variants (appearance change, speed, repetitive
-scenery). Every section rewrites its tables in docs/neural.md (unless ``--no-docs``).
+``--skip-main`` runs only those; ``--long-velocity`` adds the adaptive rings to the
+long-route and units-of-several-frames tables. With ``--ablation`` it also runs the
+ablation over the model's settings and the harder demo variants (appearance change, speed,
+repetitive scenery). Every section rewrites its tables in docs/neural.md (unless ``--no-docs``).
 Classic SeqSLAM (``torchseq.seqslam``, default settings) runs beside it on the same data.
 """
 
