@@ -8,9 +8,10 @@ Writes ``neural_quality.json`` and ``neural_quality.md`` (a Markdown table) unde
 prints the table. ``--offsets``, ``--long-routes 500,3000,20000`` and ``--repeat`` add the
 offset histograms, the long-route table and the wrong-repeat counts (issue 15), each also
 written to its own ``neural_<section>.json``/``.md`` and its block of docs/neural.md;
-``--skip-main`` runs only those. With ``--ablation`` it also runs the ablation over the
-model's settings and the harder demo variants (appearance change, speed, repetitive
-scenery). Every section rewrites its tables in docs/neural.md (unless ``--no-docs``).
+``--skip-main`` runs only those; ``--long-velocity`` adds the adaptive rings to the
+long-route and units-of-several-frames tables. With ``--ablation`` it also runs the
+ablation over the model's settings and the harder demo variants (appearance change, speed,
+repetitive scenery). Every section rewrites its tables in docs/neural.md (unless ``--no-docs``).
 Classic SeqSLAM (``torchseq.seqslam``, default settings) runs beside it on the same data.
 """
 
@@ -21,7 +22,7 @@ import json
 import sys
 import time
 import warnings
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -294,24 +295,51 @@ REFINE = {"ring argmax (default)": (0.0, None), "a + 0.3 z within +-1 unit": (0.
           "a + 0.1 z": (0.1, None)}
 
 
-def coarse_unit_rows(n_reference: int = 3000, speeds=(0.8, 1.0, 1.3)) -> list[dict]:
+def preset_changes(cfg: NeuralConfig) -> dict:
+    """The fields where ``cfg`` differs from the default ``NeuralConfig()``."""
+    base = NeuralConfig()
+    return {f.name: getattr(cfg, f.name) for f in fields(cfg)
+            if getattr(cfg, f.name) != getattr(base, f.name)}
+
+
+LONG_RINGS = {  # the rings of the long-route and several-frames tables (--long-velocity)
+    "fixed": {},
+    "ring_velocity adaptive": dict(ring_velocity="adaptive"),
+    "adaptive_velocity()": preset_changes(NeuralConfig.adaptive_velocity()),
+}
+
+
+def median_speed_estimate(model: NeuralSeqSLAM, query: torch.Tensor) -> float:
+    """An adaptive model's speed estimate, stepped frame by frame over ``query``: the
+    median over its second half."""
+    state, v = None, []
+    for t in range(len(query)):
+        _, state = model.step(query[t:t + 1], state)
+        v.append(float(state.velocity[0]))
+    return float(np.median(v[len(v) // 2:]))
+
+
+def coarse_unit_rows(n_reference: int = 3000, speeds=(0.8, 1.0, 1.3),
+                     rings=("fixed",)) -> list[dict]:
     """Signed offsets when units hold several frames (a long demo route on the default 555
-    units, 48x64 frames as in the long-route table, seed 0): per readout the decisions
-    against the exact positions, and which unit wins against the unit holding the query's
-    nearest frame, for the ring and for the feed-forward evidence alone (argmax of z)."""
+    units, 48x64 frames as in the long-route table, seed 0): per ring (:data:`LONG_RINGS`)
+    and readout the decisions against the exact positions, and which unit wins against the
+    unit holding the query's nearest frame, for the ring and for the feed-forward evidence
+    alone (argmax of z); for an adaptive ring also its speed estimate (median over the
+    second half of the query; the demo's speed is the truth)."""
     rows = []
     for speed in speeds:
         d = make_demo(n_reference=n_reference, size=(48, 64), step=4.0,
                       dense_ground_truth=False, speed=speed)
         truth = np.asarray(d.query_position)
-        for readout in ("centre", "interpolate"):
-            model = NeuralSeqSLAM(replace(NeuralConfig(), readout=readout))
+        for ring, readout in ((r, o) for r in rings for o in ("centre", "interpolate")):
+            model = NeuralSeqSLAM(replace(NeuralConfig(), readout=readout, **LONG_RINGS[ring]))
             with warnings.catch_warnings():  # fit warns about units of several frames
                 warnings.simplefilter("ignore")
                 model.fit(d.reference, log=False)
             res = model.run(d.query)
             off = res.matches.reference.numpy() - truth
-            row = {"speed": f"{speed}x", "readout": readout,
+            row = {"speed": f"{speed}x", "ring": ring, "readout": readout,
                    "frames per unit": f"{n_reference / model.n_units:.1f}",
                    "median offset": f"{np.median(off):+.1f}",
                    "exact": f"{np.mean(np.round(off) == 0):.2f}",
@@ -326,6 +354,8 @@ def coarse_unit_rows(n_reference: int = 3000, speeds=(0.8, 1.0, 1.3)) -> list[di
                     du = x.argmax(1).numpy() - unit
                     row[f"{lab}: previous unit"] = f"{np.mean(du < 0):.2f}"
                     row[f"{lab}: right unit"] = f"{np.mean(du == 0):.2f}"
+                if model.config.ring_velocity == "adaptive":
+                    row["speed estimate"] = f"{median_speed_estimate(model, d.query):.2f}"
             rows.append(row)
             print(row, flush=True)
     return rows
@@ -418,17 +448,19 @@ def relative_offsets_section(data: dict, seeds: int) -> tuple[list[dict], list[d
 # ---------------------------------------------------------------- long routes (issue 15)
 def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
                    readout: str = "centre", n_output: int | None = None,
-                   recruit: str = "uniform") -> dict:
+                   recruit: str = "uniform", ring: str = "fixed") -> dict:
     """A demo route of ``n_reference`` frames (48x64 frames, 4 px per frame, query at 0.8x):
-    recall@1 within the demo's +-2 frames, the decisions' |offset|, bytes beside SeqSLAM's."""
+    recall@1 within the demo's +-2 frames, the decisions' |offset| (and their median signed
+    offset), bytes beside SeqSLAM's; ``ring`` names a :data:`LONG_RINGS` setting."""
     from torchseq.neural.memory import seqslam_bytes
     d = make_demo(n_reference=n_reference, size=(48, 64), step=4.0, dense_ground_truth=False)
     truth = d.query_position
     row = {"reference frames": n_reference, "query frames": len(truth), "recruit": recruit,
-           "readout": readout}
-    rec, med, p90, fit_s, run_s, longest = [], [], [], [], [], []
+           "ring": ring, "readout": readout}
+    rec, med, p90, signed, fit_s, run_s, longest = [], [], [], [], [], [], []
     for seed in range(seeds):
-        cfg = replace(NeuralConfig(), seed=seed, readout=readout, recruit=recruit)
+        cfg = replace(NeuralConfig(), seed=seed, readout=readout, recruit=recruit,
+                      **LONG_RINGS[ring])
         model = NeuralSeqSLAM(cfg if n_output is None else replace(cfg, n_output=n_output))
         t0 = time.perf_counter()
         with warnings.catch_warnings():  # fit warns about units of several frames
@@ -442,6 +474,7 @@ def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
         rec.append(float(np.mean(err <= d.tolerance)))  # every query is a positive here
         med.append(float(np.median(err)))
         p90.append(float(np.percentile(err, 90)))
+        signed.append(float(np.median(got - truth)))
         spans = model.unit_to_reference
         longest.append(int((spans[:, 1] - spans[:, 0]).max()))
     row["units"] = model.n_units
@@ -449,6 +482,7 @@ def long_route_row(n_reference: int, seeds: int, with_seqslam: bool,
     row["neural recall_at_1"] = f"{np.mean(rec):.3f}"
     row["neural median abs offset"] = f"{np.mean(med):.2f}"
     row["neural p90 abs offset"] = f"{np.mean(p90):.2f}"
+    row["neural median offset"] = f"{np.mean(signed):+.2f}"
     row["neural MB (dense / masked)"] = (f"{model.model_bytes() / 1e6:.1f} / "
                                          f"{model.model_bytes(masked_only=True) / 1e6:.1f}")
     row["neural fit + run s"] = f"{np.mean(fit_s):.1f} + {np.mean(run_s):.1f}"
@@ -487,12 +521,13 @@ def dwelling_demo(n_reference: int = 600, seed: int = 0):
     return torch.from_numpy(ref), torch.from_numpy(query), ref_pos, query_pos
 
 
-def recruit_real_rows(data: dict, seeds: int) -> list[dict]:
+def recruit_real_rows(data: dict, seeds: int, rings=("fixed",)) -> list[dict]:
     """Uniform against novelty recruitment where units hold 2-3 frames: the corridor and
     LENS at 55 and 37 units (recall@1 at their ground truth; |offset| against the query
     index, their same-length traverses) and :func:`dwelling_demo` at 300 and 200 units (a
     decision is right within 8 px = two 4 px frames of the query's position; |offset| in
-    those 4 px frames)."""
+    those 4 px frames). ``rings`` beyond ``"fixed"`` (:data:`LONG_RINGS`) add rows with
+    uniform recruitment."""
     cases = {name: (*data[name], (55, 37)) for name in ("corridor", "lens", "lens+-2")
              if name in data}
     ref, query, ref_pos, query_pos = dwelling_demo()
@@ -501,11 +536,12 @@ def recruit_real_rows(data: dict, seeds: int) -> list[dict]:
     for name, (ref, query, gt, n_outputs) in cases.items():
         for n_output in n_outputs:
             for readout in ("centre", "interpolate"):
-                for recruit in ("uniform", "novelty"):
+                for recruit, ring in [("uniform", "fixed"), ("novelty", "fixed"),
+                                      *(("uniform", r) for r in rings if r != "fixed")]:
                     rec, med = [], []
                     for seed in range(seeds):
                         cfg = replace(NeuralConfig(), seed=seed, n_output=n_output,
-                                      readout=readout, recruit=recruit)
+                                      readout=readout, recruit=recruit, **LONG_RINGS[ring])
                         model = NeuralSeqSLAM(cfg)
                         with warnings.catch_warnings():  # units of several frames: fit warns
                             warnings.simplefilter("ignore")
@@ -521,7 +557,7 @@ def recruit_real_rows(data: dict, seeds: int) -> list[dict]:
                         med.append(float(np.median(err)))
                     spans = model.unit_to_reference
                     rows.append({"data": name, "R": len(ref), "units": model.n_units,
-                                 "readout": readout, "recruit": recruit,
+                                 "readout": readout, "recruit": recruit, "ring": ring,
                                  "recall_at_1 mean / worst": f"{np.mean(rec):.3f} / "
                                                              f"{np.min(rec):.3f}",
                                  "median abs offset": f"{np.mean(med):.2f}",
@@ -742,6 +778,9 @@ def main(argv=None) -> dict:
     p.add_argument("--recruit-real", action="store_true",
                    help="with --long-routes: uniform vs novelty recruitment at 55 and 37 "
                         "units on the corridor, LENS and a dwelling demo route")
+    p.add_argument("--long-velocity", action="store_true",
+                   help="with --long-routes / --recruit-real / --relative-offsets: add rows "
+                        "with the adaptive rings (plain and adaptive_velocity())")
     p.add_argument("--long-seqslam-max", type=int, default=3000,
                    help="longest route classic SeqSLAM also runs on")
     p.add_argument("--relative-offsets", action="store_true",
@@ -755,6 +794,7 @@ def main(argv=None) -> dict:
     p.add_argument("--skip-main", action="store_true",
                    help="skip the main table (run only the sections asked for)")
     args = p.parse_args(argv)
+    long_rings = tuple(LONG_RINGS) if args.long_velocity else ("fixed",)
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     base = NeuralConfig()
@@ -800,7 +840,7 @@ def main(argv=None) -> dict:
         rows, robust, refine = relative_offsets_section(data, args.seeds)
         results["relative_offsets"], results["readout_refinement"] = rows, refine
         results["content_variants"] = robust
-        coarse = coarse_unit_rows()
+        coarse = coarse_unit_rows(rings=long_rings)
         results["coarse_units"] = coarse
         part = ("### Offsets against the data's own alignment (decision - that alignment, "
                 "reference frames; share of decisions per offset)\n\n"
@@ -824,22 +864,29 @@ def main(argv=None) -> dict:
     if args.long_routes:
         rows = []
         for n in [int(v) for v in args.long_routes.split(",") if v]:
+            seeds = 1 if n > 5000 else args.long_seeds
             for recruit in args.long_recruit.split(","):
                 for readout in ("centre", "interpolate"):
                     rows.append(long_route_row(
-                        n, 1 if n > 5000 else args.long_seeds,
-                        n <= args.long_seqslam_max and readout == "centre"
+                        n, seeds, n <= args.long_seqslam_max and readout == "centre"
                         and recruit == "uniform", readout, recruit=recruit))
+            for ring in long_rings[1:]:  # adaptive rings: uniform recruitment
+                for readout in ("centre", "interpolate"):
+                    rows.append(long_route_row(n, seeds, False, readout, ring=ring))
             if args.long_extra_units and n > args.long_extra_units:
-                rows.append(long_route_row(n, 1 if n > 5000 else args.long_seeds, False,
-                                           "interpolate", args.long_extra_units))
+                rows.append(long_route_row(n, seeds, False, "interpolate", args.long_extra_units))
+                for ring in long_rings[1:]:
+                    for readout in ("centre", "interpolate"):
+                        rows.append(long_route_row(n, seeds, False, readout,
+                                                   args.long_extra_units, ring=ring))
         results["long_routes"] = rows
         cols = list(dict.fromkeys(k for r in rows for k in r))
-        part = ("### Long demo routes (48x64 frames, query at 0.8x speed, default model; "
-                "SeqSLAM's columns on the uniform centre rows)\n\n"
+        part = ("### Long demo routes (48x64 frames, query at 0.8x speed, default model but "
+                "for the ring column; SeqSLAM's columns on the uniform centre rows)\n\n"
                 + table(rows, cols) + "\n")
         if args.recruit_real:
-            real = recruit_real_rows(data, args.seeds)
+            real = recruit_real_rows(data, args.seeds,
+                                     long_rings[:1] + long_rings[2:])  # fixed, preset
             results["recruit_real"] = real
             part += (f"\n### Recruitment on short routes, units of 2-3 frames ({args.seeds} "
                      "model seeds)\n\n" + table(real, list(real[0])) + "\n")
