@@ -209,6 +209,7 @@ class NeuralSeqSLAM(nn.Module):
         n_units = min(t_len, cfg.n_output)
         self._build_output(n_units)
         _warn_coarse_units(t_len, n_units, cfg.readout)
+        _warn_adaptive_units(t_len, n_units, cfg.ring_velocity)
         dev = self.l1.weight.device
         codes = ((lo, hi, self.code(self.encode(reference[lo:hi])))
                  for lo, hi in _chunks(t_len, cfg.chunk, as_progress(progress, "fit")))
@@ -396,6 +397,22 @@ def _warn_coarse_units(n_frames: int, n_units: int, readout: str) -> None:
     warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
                   f"{per_unit:.1f} frames per unit, so readout {readout!r} places are no finer "
                   f"than that; {advice} (docs/neural.md, Long routes)", stacklevel=4)
+
+
+def _warn_adaptive_units(n_frames: int, n_units: int, ring_velocity: str) -> None:
+    """Say loudly when the adaptive ring gets units of two or more frames.
+
+    Measured (docs/neural.md, "Long routes"): it helps while each unit holds one frame and
+    costs recall past about two (3,000 frames on 555 units, interpolate: 0.994 -> 0.953;
+    corridor at 55 units: 0.798 -> 0.741), where the fixed ring is the better choice.
+    """
+    per_unit = n_frames / n_units
+    if ring_velocity != "adaptive" or per_unit < 2:
+        return
+    warnings.warn(f"ring_velocity='adaptive' on {per_unit:.1f} frames per unit: measured worse "
+                  "than the fixed ring once units hold two or more frames; raise n_output to "
+                  f"at least {n_frames} or use ring_velocity='fixed' (docs/neural.md, Long "
+                  "routes)", stacklevel=4)
 
 
 def _winners(codes, k: int) -> torch.Tensor:
