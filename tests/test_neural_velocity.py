@@ -253,6 +253,7 @@ def test_demo_severe_recall_with_the_adaptive_ring():
     assert evaluate(model.run(d.query).matches, d.ground_truth)["recall_at_1"] >= 0.95
 
 
+@pytest.mark.filterwarnings("ignore:a route of 12 frames on 6 output units")
 def test_fit_warns_when_the_adaptive_ring_gets_units_of_several_frames():
     """Measured worse than the fixed ring there (docs/neural.md, Long routes): said loudly."""
     import warnings as _w
