@@ -295,3 +295,40 @@ def test_runtime_checks_the_velocity_state(setup):
         IntegerRuntime(decode((DATA / "int_format_v1.tsq").read_bytes())).run(
             np.zeros((1, 1, 1), np.uint8), speeds=True)
     assert math.isclose(good.velocity[0] / ONE, 1.0)
+
+
+def test_largest_window_the_reader_accepts_stays_exact(setup):
+    """At the bounds the reader checks (largest K for these 100 frames, largest tolerance),
+    extreme windows (0 and F - 1 alternating, lines of slope up to F) follow the oracle:
+    the int64 arithmetic does not overflow anywhere the reader lets it run."""
+    _, im, _ = setup
+    d = im.to_dict()
+    k = 3
+    while True:  # the largest K the reader accepts for F = 100
+        d["params"]["velocity_window"] = k + 1
+        try:
+            IntegerModel.from_dict(d)
+        except IntegerFormatError:
+            break
+        k += 1
+    d["params"]["velocity_window"] = k
+    assert 64 < k < 4096
+    den = k * (k * k - 1) // 6
+    d["params"]["v_tolerance"] = (2**62 - 1) // (2 * k * den)
+    wide = IntegerModel.from_dict(d)
+    d["params"]["v_tolerance"] += 1
+    with pytest.raises(IntegerFormatError, match="overflow"):
+        IntegerModel.from_dict(d)
+    rt, mod = IntegerRuntime(wide), VelocityStepModule(wide)
+    rng = np.random.default_rng(2)
+    pos = np.stack([np.arange(k) % 2 * (N_REF - 1), np.full(k, N_REF - 1),
+                    np.minimum(np.arange(k), N_REF - 1), rng.integers(0, N_REF, k)])
+    speed = np.array([wide.velocity.v_max, wide.velocity.v_min, ONE, ONE])
+    count, ref = np.full(4, k), np.array([N_REF - 1, 0, N_REF - 1, 50])
+    act = np.zeros((4, wide.params["n_units"]), np.int32)
+    got = rt.velocity_update(IntVelocityState(act, speed, pos, count), ref, act)
+    v_t = velocity_update(torch.tensor(speed), torch.tensor(pos), torch.tensor(count),
+                          torch.tensor(ref), mod.velocity)[0]
+    for b in range(4):
+        want = oracle_update(wide, int(speed[b]), pos[b].tolist(), k, int(ref[b]))
+        assert int(got.velocity[b]) == int(v_t[b]) == want[0]

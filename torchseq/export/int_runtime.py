@@ -60,14 +60,27 @@ class IntegerStep(NamedTuple):
         reference: ``(B,)`` int64 reference frame of the winning unit.
         confidence: ``(B,)`` int64 winner minus best rival, on the ``2**-state_frac`` grid.
         activity: ``(B, N)`` int32 ring activity (also the new state).
-        speed: ``(B,)`` int64 the adaptive ring's new speed estimate on the ``2**-16`` grid
-            (format version 3), else None.
     """
 
     reference: np.ndarray
     confidence: np.ndarray
     activity: np.ndarray
-    speed: np.ndarray | None = None
+
+
+class IntegerVelocityStep(NamedTuple):
+    """Output of one integer step of the adaptive ring (format version 3).
+
+    Attributes:
+        reference: ``(B,)`` int64 reference frame of the winning unit.
+        confidence: ``(B,)`` int64 winner minus best rival, on the ``2**-state_frac`` grid.
+        activity: ``(B, N)`` int32 ring activity.
+        speed: ``(B,)`` int64 the new speed estimate on the ``2**-16`` grid.
+    """
+
+    reference: np.ndarray
+    confidence: np.ndarray
+    activity: np.ndarray
+    speed: np.ndarray
 
 
 def round_div(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -396,10 +409,12 @@ class IntegerRuntime:
 
         Args:
             frames: ``(B, h * pool_h, w * pool_w)`` uint8.
-            state: ``(B, N)`` int32 previous activity (None: zeros).
+            state: ``(B, N)`` int32 previous activity (None: zeros); with the adaptive ring
+                (format version 3) an :class:`IntVelocityState` (None: its start).
 
         Returns:
-            ``(IntegerStep, new state (B, N) int32)``.
+            ``(IntegerStep, new state (B, N) int32)``; with the adaptive ring
+            ``(IntegerVelocityStep, new IntVelocityState)``.
         """
         p = self.params
         frames = self.check_frames(frames)
@@ -422,17 +437,17 @@ class IntegerRuntime:
         return IntegerStep(*self.decide(a), a), a
 
     def _velocity_step(self, frames: np.ndarray,
-                       state: IntVelocityState) -> tuple[IntegerStep, IntVelocityState]:
+                       state: IntVelocityState) -> tuple[IntegerVelocityStep, IntVelocityState]:
         """One step of the adaptive ring (format version 3): steps 1-6, 7v, 8 and 9."""
         if self.module is not None:
             with torch.inference_mode():
                 out = self.module(torch.tensor(frames), *(torch.tensor(x) for x in state))
             act, ref, conf, v, pos, count = (x.numpy() for x in out)
-            return IntegerStep(ref, conf, act, v), IntVelocityState(act, v, pos, count)
+            return IntegerVelocityStep(ref, conf, act, v), IntVelocityState(act, v, pos, count)
         a = self.velocity_ring(state.activity, self.drive(frames), state.velocity)
         ref, conf = self.decide(a)
         new = self.velocity_update(state, ref, a)
-        return IntegerStep(ref, conf, a, new.velocity), new
+        return IntegerVelocityStep(ref, conf, a, new.velocity), new
 
     def run(self, frames: np.ndarray, speeds: bool = False) -> tuple[np.ndarray, ...]:
         """Stream a traverse ``(T, h * pool_h, w * pool_w)`` uint8 (one stream).
@@ -455,6 +470,6 @@ class IntegerRuntime:
             refs.append(out.reference)
             confs.append(out.confidence)
             acts.append(out.activity)
-            vs.append(out.speed)
+            vs.append(out.speed if speeds else None)
         out = np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
         return (*out, np.concatenate(vs)) if speeds else out

@@ -107,7 +107,7 @@ class NeuralConfig:
         ring_velocity: ``"fixed"`` (the learnt shift moves the activity as fast as the
             reference, the seed's ring) or ``"adaptive"`` (each stream estimates its speed
             from its own decisions and moves the activity by that fraction of the shift,
-            :mod:`torchseq.neural.velocity`; opt-in, float ONNX export only).
+            :mod:`torchseq.neural.velocity`; opt-in; float ONNX and integer format v3, no NIR).
         velocity_window: decisions in the adaptive speed fit (``K``).
         velocity_min: smallest adaptive speed (reference frames per query frame, <= 1).
         velocity_max: largest adaptive speed (>= 1, at most 8).
@@ -256,7 +256,7 @@ class NeuralConfig:
         ``docs/neural.md``) better than the default on the corridor, LENS and every demo
         variant there (strong appearance change, 0.6x-1.6x speed, repeats), equal on the
         one where both are perfect.
-        Opt-in: no export form yet (the integer, ONNX and spiking exports refuse it).
+        Opt-in: exported as float ONNX and integer format v3; the spiking form refuses it.
 
         ``overrides`` replace any field.
         """
