@@ -7,7 +7,9 @@ stage, L1, k-WTA, L3, cohort z-score and gain) on all frames at once and only th
 ring frame by frame. The two products use oneDNN's int8 GEMM
 (:class:`torchseq.neural.fast.Int8Linear`) where their integers fit int8 and every sum stays
 below ``2**24`` (so the float32 result of the kernel is the exact integer); otherwise the
-NumPy runtime's own integer products.
+NumPy runtime's own integer products. A model with the adaptive ring (format version 3)
+batches the same state-free stages; its ring, decision and speed estimate run frame by frame
+(:meth:`StreamRuntime.velocity_scan`: each decision sets the next frame's speed).
 """
 
 from __future__ import annotations
