@@ -7,8 +7,9 @@ One command (from the repository root, under a minute):
 For the demo route at 0.8x and 1.3x (200 reference frames, seed 0) and
 ../shared/data/corridor (its ground truth): fit ``adaptive_velocity(seed=0)`` on the
 reference, save it, run ``export_checkpoint`` on the query, and print the figures of each
-``validation.json`` (float and quantised ONNX against the eager model; the integer files and
-NIR are skipped for this model).
+``validation.json`` (float and quantised ONNX against the eager model; the integer file
+(format version 3), its NumPy runtime and integer ONNX graph against the eager model on the
+same uint8 frames: decisions and speed estimates; NIR is skipped for this model).
 """
 
 from __future__ import annotations
@@ -25,8 +26,11 @@ from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.sources import load_traverse
 
 KEYS = ("n_query", "float_onnx_agreement", "float_onnx_max_abs_error",
-        "float_onnx_confidence_max_abs_error", "quant_onnx_agreement", "recall_at_1",
-        "integer", "nir", "passed")
+        "float_onnx_confidence_max_abs_error", "quant_onnx_agreement",
+        "integer_format_version", "integer_agreement", "integer_onnx_agreement",
+        "integer_onnx_bit_exact", "uint8_input_agreement", "integer_raw_input_agreement",
+        "integer_speed_max_abs_error", "integer_speed_mean_abs_error", "recall_at_1",
+        "nir", "passed")
 
 
 def cases(data: Path) -> dict:
@@ -58,7 +62,7 @@ def main() -> None:
             model.save(out / f"{name}.pt")
             export_checkpoint(out / f"{name}.pt", out / name, query=query, ground_truth=gt)
             report = json.loads((out / name / "validation.json").read_text())
-            print(name, json.dumps({k: report[k] for k in KEYS}))
+            print(name, json.dumps({k: report.get(k) for k in KEYS}))
 
 
 if __name__ == "__main__":

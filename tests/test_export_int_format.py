@@ -69,8 +69,11 @@ def test_unknown_version(model):
     with pytest.raises(IntegerFormatError, match="unsupported format_version 99"):
         decode(_reseal(data))
     d = model.to_dict()
-    d["format_version"] = 3
+    d["format_version"] = 4
     with pytest.raises(IntegerFormatError, match="format_version"):
+        IntegerModel.from_dict(d)
+    d["format_version"] = 3  # a version-3 dict must hold the adaptive ring
+    with pytest.raises(IntegerFormatError, match=r"missing \['readout', 'decay_const'"):
         IntegerModel.from_dict(d)
     d["format_version"] = 2  # a version-2 dict must name the read-out
     with pytest.raises(IntegerFormatError, match=r"missing \['readout'\]"):

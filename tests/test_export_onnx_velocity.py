@@ -120,10 +120,10 @@ def test_streaming_step_checks_its_state_arguments(setup):
 
 
 # ---------------------------------------------------------------- the export command
-SKIPPED = "no integer/spiking form of ring_velocity='adaptive'"
+SKIPPED = "no spiking form of ring_velocity='adaptive'"
 
 
-def test_export_command_writes_the_float_graphs_and_skips_the_others(setup, tmp_path, capsys):
+def test_export_command_writes_every_form_but_nir(setup, tmp_path, capsys):
     model, routes, *_ = setup
     route = routes[1.3]
     model.save(tmp_path / "m.pt")
@@ -134,18 +134,22 @@ def test_export_command_writes_the_float_graphs_and_skips_the_others(setup, tmp_
                  "--ground-truth", str(tmp_path / "gt.npy")])
     printed = capsys.readouterr().out.splitlines()
     assert code == 0 and printed[-1] == "PASS"
-    assert f"integer: skipped ({SKIPPED})" in printed
+    assert not any(line.startswith("integer: skipped") for line in printed)
     assert f"nir: skipped ({SKIPPED})" in printed
     report = json.loads((out / "validation.json").read_text())
-    assert report["integer"] == {"skipped": SKIPPED} and report["nir"] == {"skipped": SKIPPED}
+    assert "integer" not in report and report["nir"] == {"skipped": SKIPPED}
     assert report["passed"] and report["float_onnx_agreement"] >= 0.99
-    assert set(report["checks"]) == {"float_onnx_agreement", "onnx_checker"}
+    assert report["integer_format_version"] == 3 and report["integer_onnx_bit_exact"]
+    assert report["integer_agreement"] >= 0.99 and report["integer_speed_max_abs_error"] < 1e-3
     assert report["recall_at_1"]["float_onnx"] == report["recall_at_1"]["pytorch"] >= 0.9
-    assert sorted(p.name for p in out.iterdir()) == ["model_float.onnx", "model_quant.onnx",
-                                                     "validation.json"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "model_float.onnx", "model_int.onnx", "model_int.tsq", "model_quant.onnx",
+        "validation.json"]
     props = read_contract(out / "model_float.onnx")
     assert "velocity ones float64 (B,)" in props["torchseq.initial_state"]
     assert f"(B, {model.config.velocity_window})" in props["torchseq.initial_state"]
+    props = read_contract(out / "model_int.onnx")
+    assert "velocity 65536 int64 (B,)" in props["torchseq.initial_state"]
     # the graph written is the one validated: it steps the 1.3x route at its speed
     small = resize(route.query.float(), model.config.input_size).numpy()
     vel = run_velocity_onnx(session(out / "model_float.onnx"), small)[3]
@@ -180,7 +184,7 @@ def test_export_on_the_checkpoints_own_reference(tmp_path):
     assert export_checkpoint(tmp_path / "m.pt", tmp_path / "out")
     lines = summary_lines(tmp_path / "out")
     assert lines[0].startswith("validated on the checkpoint's own reference: demo route")
-    assert f"integer: skipped ({SKIPPED})" in lines and lines[-1] == "PASS"
-    assert not any(line.startswith("device input") for line in lines)  # no integer device
+    assert f"nir: skipped ({SKIPPED})" in lines and lines[-1] == "PASS"
+    assert any(line.startswith("device input") for line in lines)  # the integer device
     report = json.loads((tmp_path / "out" / "validation.json").read_text())
     assert report["recall_at_1"]["float_onnx"] == report["recall_at_1"]["pytorch"]

@@ -203,15 +203,13 @@ def test_tolerance_scales_with_the_frames_per_unit(route):
     assert VelocityTracker.from_model(coarse).tolerance == 9.0
 
 
-# ---------------------------------------------------------------- exports refuse it
-def test_integer_and_spiking_forms_refuse_the_adaptive_model(route):
-    """(The float ONNX graph holds it: tests/test_export_onnx_velocity.py.)"""
-    from torchseq.export import IntegerFormatError, integer_model
+# ---------------------------------------------------------------- the spiking form refuses it
+def test_spiking_form_refuses_the_adaptive_model(route):
+    """(The float ONNX graph holds it: tests/test_export_onnx_velocity.py; the integer
+    format version 3: tests/test_export_int_velocity.py.)"""
     from torchseq.neural.spiking import SpikingError, SpikingSeqSLAM
 
     model = fitted(route, ring_velocity="adaptive")
-    with pytest.raises(IntegerFormatError, match="ring_velocity='adaptive'"):
-        integer_model(model)
     with pytest.raises(SpikingError, match="ring_velocity='adaptive'"):  # NIR is built from it
         SpikingSeqSLAM.convert(model, route.reference)
 

@@ -29,8 +29,8 @@ def preset_help(flags: str) -> str:
             "default (NeuralConfig()), table1 (the seed paper's Table 1: 20%% L2 -> L3 mask, "
             "5%% winners), dense-readout (dense L2 -> L3, ring decay 0.96) or "
             "adaptive-velocity (the ring estimates each stream's speed; for routes of at most "
-            "--neural-n-output frames; ONNX export only, "
-            f"no integer or NIR form); {flags} you type are applied on top of it and win "
+            "--neural-n-output frames; ONNX and integer export, "
+            f"no NIR form); {flags} you type are applied on top of it and win "
             "(default: default)")
 
 

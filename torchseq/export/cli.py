@@ -7,9 +7,9 @@ By default the export is validated on the checkpoint's own reference (recorded b
 ``train.py``), replayed as the query; the integer device's camera frame size is
 ``--frame-size`` (default: the reference's frame size), never the validation data's.
 The ONNX files carry the device contract in their ``metadata_props`` (``torchseq.*``).
-An adaptive-velocity checkpoint (``ring_velocity="adaptive"``) gets the float and quantised
-ONNX graphs only; the integer files and NIR are reported as skipped (no integer or spiking
-form), in ``validation.json`` and on the console.
+An adaptive-velocity checkpoint (``ring_velocity="adaptive"``) gets every file but NIR
+(integer format version 3; NIR is reported as skipped: no spiking form), in
+``validation.json`` and on the console.
 """
 
 from __future__ import annotations
@@ -154,10 +154,11 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     from torchseq.export.validate import (
         FLOAT_ONNX,
         INT_ONNX,
-        NO_INTEGER_FORM,
+        NO_SPIKING_FORM,
         QUANT_ONNX,
         export_and_validate,
         integer_form,
+        spiking_form,
     )
 
     t0 = time.perf_counter()
@@ -209,15 +210,15 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     graphs = ((FLOAT_ONNX, "float"), (QUANT_ONNX, "float"), (INT_ONNX, "integer"))
     for name, kind in graphs if integer_form(model) else graphs[:2]:
         props = contract(kind, model, report, threshold)
-        if not integer_form(model):
-            props.update(_velocity_contract(model))
+        if not spiking_form(model):  # the adaptive ring: its estimator state too
+            props.update(_velocity_contract(model, kind))
         write_contract(out / name, props)
         report["files_bytes"][name] = (out / name).stat().st_size
     from torchseq.export.nir_validate import calibration_frames, export_nir
 
     readout = getattr(model.config, "readout", "centre")
-    if nir and not integer_form(model):  # SpikingSeqSLAM.convert refuses it
-        report["nir"] = {"skipped": NO_INTEGER_FORM}
+    if nir and not spiking_form(model):  # SpikingSeqSLAM.convert refuses it
+        report["nir"] = {"skipped": NO_SPIKING_FORM}
     elif nir and readout != "centre":  # SpikingSeqSLAM.convert refuses it (no spiking form)
         report["nir"] = {"skipped": f"readout={readout!r} has no spiking (NIR) form; the "
                                     "ONNX and integer files hold it"}
@@ -235,9 +236,14 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     return bool(report["passed"])
 
 
-def _velocity_contract(model) -> dict[str, str]:
-    """The float graph's extra inputs of an adaptive-velocity model (contract metadata)."""
+def _velocity_contract(model, kind: str = "float") -> dict[str, str]:
+    """A graph's extra inputs of an adaptive-velocity model (contract metadata)."""
     n, k = int(model.n_units), int(model.config.velocity_window)
+    if kind == "integer":
+        return {"torchseq.initial_state": (
+            f"state zeros int32 (B, {n}), velocity 65536 int64 (B,) (speed on the 2**-16 "
+            f"grid), positions zeros int64 (B, {k}), count zeros int64 (B,); feed new_state, "
+            f"new_velocity, new_positions, new_count back")}
     return {"torchseq.initial_state": (
         f"state zeros float32 (B, {n}), velocity ones float64 (B,), positions zeros float64 "
         f"(B, {k}), count zeros int64 (B,); feed new_state, new_velocity, new_positions, "

@@ -31,6 +31,7 @@ from torchseq.export.int_stages import (
     L3Product,
     ReadoutStage,
     RingStage,
+    VelocityStage,
     integer,
     section,
 )
@@ -38,14 +39,14 @@ from torchseq.export.int_stages import (
 __all__ = [
     "FORMAT_VERSION", "INPUT_RAW", "INPUT_ZSCORE", "MAGIC", "MAX_FAN_IN", "PARAM_NAMES",
     "PARAM_NAMES_V1", "READOUT_CENTRE", "READOUT_INTERPOLATE", "SECTIONS", "SUPPORTED_VERSIONS",
-    "X_MAX", "CohortStage", "InputStage", "IntegerFormatError",
+    "X_MAX", "CohortStage", "PARAM_NAMES_V3", "VelocityStage", "InputStage", "IntegerFormatError",
     "IntegerModel", "L1Product", "L3Product", "ReadoutStage", "RingStage", "decode", "encode",
     "read_integer_model", "write_integer_model",
 ]
 
 MAGIC = b"TSQI\r\n\x1a\n"
-FORMAT_VERSION = 2  # the newest; a model is written in the oldest version that holds it
-SUPPORTED_VERSIONS = (1, 2)
+FORMAT_VERSION = 3  # the newest; a model is written in the oldest version that holds it
+SUPPORTED_VERSIONS = (1, 2, 3)
 _HEADER = struct.Struct("<8sIIQII")  # magic, version, n_sections, file_bytes, header_crc, 0
 _SECTION = struct.Struct("<16sBBH4IQI")  # name, dtype, ndim, 0, dims[4], payload bytes, crc
 _TRAILER = struct.Struct("<I")
@@ -63,7 +64,11 @@ PARAM_NAMES_V1 = (
     "ring_width", "window",
 )
 PARAM_NAMES = (*PARAM_NAMES_V1, "readout")
-_NAMES = {1: PARAM_NAMES_V1, 2: PARAM_NAMES}
+# version 3 (the adaptive ring) appends the speed estimator and the ring.shift section
+PARAM_NAMES_V3 = (*PARAM_NAMES, "decay_const", "velocity_window", "v_min", "v_max",
+                  "v_tolerance", "v_rate")
+_NAMES = {1: PARAM_NAMES_V1, 2: PARAM_NAMES, 3: PARAM_NAMES_V3}
+_VELOCITY_SECTIONS = {"ring.shift"}  # version 3 only
 # section name -> (dtype, shape as param names or ints; params: version 2's, version 1 has 24)
 SECTIONS = {
     "params": (np.dtype("<i8"), (len(PARAM_NAMES),)),
@@ -77,6 +82,7 @@ SECTIONS = {
     "ring.values": (np.dtype("<i2"), ("n_units", "ring_width")),
     "unit_centre": (np.dtype("<i4"), ("n_units",)),
     "unit_to_ref": (np.dtype("<i4"), ("n_units", 2)),
+    "ring.shift": (np.dtype("<i4"), ("n_units", "ring_width")),
 }
 # the sizes among the params: each must be the matching section dimension
 _SIZES = {"hidden": 2**15 - 1, "l1_fan_in": MAX_FAN_IN, "n_units": 2**15 - 1,
@@ -98,6 +104,8 @@ class IntegerModel:
         cohort: :class:`CohortStage`.
         ring: :class:`RingStage`.
         readout: :class:`ReadoutStage`.
+        velocity: :class:`VelocityStage` of the adaptive ring (format version 3), or None:
+            the fixed ring.
     """
 
     input: InputStage
@@ -106,6 +114,7 @@ class IntegerModel:
     cohort: CohortStage
     ring: RingStage
     readout: ReadoutStage
+    velocity: VelocityStage | None = None
 
     def __post_init__(self) -> None:
         types = {"input": InputStage, "l1": L1Product, "l3": L3Product, "cohort": CohortStage,
@@ -126,25 +135,39 @@ class IntegerModel:
             if got != n:
                 raise IntegerFormatError(f"section {name}: {got} units inconsistent with "
                                          f"l3's {n}")
+        if self.velocity is not None:
+            if not isinstance(self.velocity, VelocityStage):
+                raise IntegerFormatError("stage velocity must be a VelocityStage or None")
+            self.velocity.check_fits(int(self.readout.unit_to_ref[:, 1].max()),
+                                     self.ring.cols.shape)
 
     @property
     def format_version(self) -> int:
-        """The oldest format version that holds this model: 1 for the centre read-out, else 2.
+        """The oldest format version that holds this model.
 
-        A centre model is written exactly as version 1 always was (readers of version 1
-        keep reading it); only the interpolating read-out needs version 2.
+        3 for the adaptive ring; else 1 for the centre read-out, 2 for the interpolating
+        one. A fixed centre model is written exactly as version 1 always was (readers of
+        version 1 keep reading it), a fixed interpolating one exactly as version 2.
         """
+        if self.velocity is not None:
+            return 3
         return 1 if self.readout.readout == READOUT_CENTRE else 2
 
     @property
     def params(self) -> dict:
-        """Every name of :data:`PARAM_NAMES` -> int (a new dict).
+        """Every parameter name of this model -> int (a new dict).
 
+        :data:`PARAM_NAMES`, and with the adaptive ring those of :data:`PARAM_NAMES_V3`.
         The file's ``params`` section holds the names of :attr:`format_version`.
         """
         i, l1, l3, c, r = self.input, self.l1, self.l3, self.cohort, self.ring
-        return {"height": i.height, "width": i.width, "pool_h": i.pool_h, "pool_w": i.pool_w,
-                "patch": i.patch, "input_mode": i.input_mode, "x_frac": i.x_frac,
+        v = self.velocity
+        speed = {} if v is None else {
+            "decay_const": v.decay_const, "velocity_window": v.window, "v_min": v.v_min,
+            "v_max": v.v_max, "v_tolerance": v.tolerance, "v_rate": v.rate}
+        return {**speed, "height": i.height, "width": i.width, "pool_h": i.pool_h,
+                "pool_w": i.pool_w, "patch": i.patch, "input_mode": i.input_mode,
+                "x_frac": i.x_frac,
                 "sqrt_frac": i.sqrt_frac, "norm_const": i.norm_const, "n_input": i.n_input,
                 "hidden": l1.hidden, "k": l3.k, "l1_fan_in": l1.cols.shape[1],
                 "n_units": l3.n_units, "l3_fan_in": l3.cols.shape[1], "e_shift": l3.e_shift,
@@ -155,8 +178,9 @@ class IntegerModel:
 
     @property
     def arrays(self) -> dict:
-        """Every section of :data:`SECTIONS` except ``params`` -> its read-only array."""
-        return {"l1.cols": self.l1.cols, "l1.values": self.l1.values,
+        """Every section of this model's version except ``params`` -> its read-only array."""
+        speed = {} if self.velocity is None else {"ring.shift": self.velocity.shift}
+        return {**speed, "l1.cols": self.l1.cols, "l1.values": self.l1.values,
                 "l3.cols": self.l3.cols, "l3.values": self.l3.values,
                 "l3.row_scale": self.l3.row_scale, "cohort": self.cohort.cohort,
                 "ring.cols": self.ring.cols, "ring.values": self.ring.values,
@@ -169,10 +193,12 @@ class IntegerModel:
         """Build and check a model from the file's view (``params`` and section arrays).
 
         Args:
-            params: the names of :data:`PARAM_NAMES` (version 2) or :data:`PARAM_NAMES_V1`
-                (version 1: the centre read-out) -> int.
-            arrays: the sections other than ``params``.
-            format_version: 1 or 2; None: 2 when ``params`` has ``readout``, else 1.
+            params: the names of :data:`PARAM_NAMES_V3` (version 3: the adaptive ring),
+                :data:`PARAM_NAMES` (version 2) or :data:`PARAM_NAMES_V1` (version 1: the
+                centre read-out) -> int.
+            arrays: the sections other than ``params`` (``ring.shift`` only in version 3).
+            format_version: 1, 2 or 3; None: 3 when ``params`` has ``velocity_window``, 2
+                when it has ``readout``, else 1.
 
         Raises:
             IntegerFormatError: a missing or unknown name, a non-integer parameter, a shape
@@ -181,7 +207,8 @@ class IntegerModel:
         if not isinstance(params, dict) or not isinstance(arrays, dict):
             raise IntegerFormatError("params and arrays must be dicts")
         if format_version is None:
-            format_version = 2 if "readout" in params else 1
+            format_version = (3 if "velocity_window" in params
+                              else 2 if "readout" in params else 1)
         if format_version not in _NAMES:
             raise IntegerFormatError(f"unsupported integer format_version {format_version!r} "
                                      f"(this reader knows {SUPPORTED_VERSIONS})")
@@ -191,6 +218,8 @@ class IntegerModel:
         if missing or unknown:
             raise IntegerFormatError(f"params: missing {missing}, unknown {unknown}")
         names = set(SECTIONS) - {"params"}
+        if format_version < 3:
+            names -= _VELOCITY_SECTIONS
         if set(arrays) != names:
             raise IntegerFormatError(
                 f"arrays: missing {sorted(names - set(arrays))}, unknown section types "
@@ -209,6 +238,10 @@ class IntegerModel:
         if p["n_input"] != stage.n_input:
             raise IntegerFormatError(f"n_input {p['n_input']} is not height*width = "
                                      f"{p['height']}*{p['width']}")
+        velocity = None
+        if format_version >= 3:
+            velocity = VelocityStage(a["ring.shift"], p["decay_const"], p["velocity_window"],
+                                     p["v_min"], p["v_max"], p["v_tolerance"], p["v_rate"])
         return cls(
             stage, L1Product(a["l1.cols"], a["l1.values"], p["n_input"]),
             L3Product(a["l3.cols"], a["l3.values"], a["l3.row_scale"], p["e_shift"],
@@ -216,7 +249,8 @@ class IntegerModel:
             CohortStage(a["cohort"], p["n_cohorts"], p["gain_const"], p["gain_shift"],
                         p["state_frac"], p["rectify"]),
             RingStage(a["ring.cols"], a["ring.values"], p["ring_frac"]),
-            ReadoutStage(a["unit_centre"], a["unit_to_ref"], p["window"], p["readout"]))
+            ReadoutStage(a["unit_centre"], a["unit_to_ref"], p["window"], p["readout"]),
+            velocity)
 
     def to_dict(self) -> dict:
         """``{"format_version", "params", "arrays"}`` (arrays copied, writable).
@@ -247,13 +281,15 @@ class IntegerModel:
 def encode(model: IntegerModel) -> bytes:
     """Serialise a model to the bytes of a file of its :attr:`~IntegerModel.format_version`.
 
-    A centre read-out model gives exactly the bytes version 1 always gave.
+    A fixed centre read-out model gives exactly the bytes version 1 always gave, a fixed
+    interpolating one those of version 2.
     """
     if not isinstance(model, IntegerModel):
         raise IntegerFormatError(f"encode takes an IntegerModel, got {type(model).__name__}")
     version = model.format_version
     parts = [_section("params", np.array([model.params[n] for n in _NAMES[version]], "<i8"))]
-    parts += [_section(n, model.arrays[n]) for n in SECTIONS if n != "params"]
+    arrays = model.arrays
+    parts += [_section(n, arrays[n]) for n in SECTIONS if n in arrays]
     body = b"".join(parts)
     total = _HEADER.size + len(body) + _TRAILER.size
     head = _HEADER.pack(MAGIC, version, len(parts), total, 0, 0)

@@ -21,6 +21,7 @@ from torchseq.export.int_format import (
     IntegerFormatError,
     IntegerModel,
 )
+from torchseq.export.int_stages import VEL_FRAC
 from torchseq.quantise import fixed_point, fixed_point_array, integer_grid, quantise
 
 SQRT_FRAC = 8  # fractional bits of the patch standard deviation
@@ -60,10 +61,7 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     if cfg.patch_size and cfg.patch_mode != "zscore":
         raise IntegerFormatError(f"patch_mode {cfg.patch_mode!r} has no integer form "
                                  "(use 'zscore' or patch_size=0)")
-    if getattr(cfg, "ring_velocity", "fixed") != "fixed":  # its ring has no integer twin
-        raise IntegerFormatError(f"ring_velocity={cfg.ring_velocity!r} has no integer form "
-                                 "(the format holds the fixed ring): export a model with "
-                                 "ring_velocity='fixed'")
+    adaptive = getattr(cfg, "ring_velocity", "fixed") == "adaptive"  # format version 3
     readouts = {"centre": READOUT_CENTRE, "interpolate": READOUT_INTERPOLATE}
     readout = getattr(cfg, "readout", "centre")
     if readout not in readouts:
@@ -122,17 +120,42 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     # the ring: decay * shift on a 2**-15 grid, stored row by row as (cols, values) lists.
     ring = fixed_point_array(model.ring.params.decay * model.ring.shift.detach().cpu().double(),
                              RING_FRAC, 16)
-    width = max(1, int((ring != 0).sum(1).max()))
+    # the adaptive ring also stores the shift alone (no decay), at the same columns
+    shift = (fixed_point_array(model.ring.shift.detach().cpu().double(), RING_FRAC, 32)
+             if adaptive else np.zeros_like(ring, np.int32))
+    keep = (ring != 0) | (shift != 0)
+    width = max(1, int(keep.sum(1).max()))
     cols = np.tile(np.arange(n_units)[:, None], (1, width))  # padding: own column, value 0
     vals = np.zeros((n_units, width), "<i2")
+    shift_vals = np.zeros((n_units, width), "<i4")
     for u in range(n_units):
-        nz = np.nonzero(ring[u])[0]
+        nz = np.nonzero(keep[u])[0]
         cols[u, :nz.size], vals[u, :nz.size] = nz, ring[u, nz]
+        shift_vals[u, :nz.size] = shift[u, nz]
     a["ring.cols"], a["ring.values"] = cols.astype("<u2"), vals
     p["ring_width"] = width
+    if adaptive:
+        p.update(_velocity_params(model))
+        a["ring.shift"] = shift_vals
     a["unit_centre"] = model.unit_centre.detach().cpu().numpy().astype("<i4")
     a["unit_to_ref"] = model.unit_to_reference.detach().cpu().numpy().astype("<i4")
     return IntegerModel.from_params({k: int(v) for k, v in p.items()}, a)
+
+
+def _velocity_params(model) -> dict:
+    """The adaptive ring's version-3 parameters (speeds, tolerance and rate on ``2**-16``)."""
+    from torchseq.neural.velocity import VelocityTracker
+
+    tracker = VelocityTracker.from_model(model)
+    rate = fixed_point(tracker.rate, VEL_FRAC)
+    if rate < 1:
+        raise IntegerFormatError(f"velocity_rate {tracker.rate} is below the integer "
+                                 f"format's grid (2**-{VEL_FRAC})")
+    return {"decay_const": fixed_point(float(model.ring.params.decay), RING_FRAC, 32),
+            "velocity_window": int(tracker.window),
+            "v_min": fixed_point(tracker.v_min, VEL_FRAC),
+            "v_max": fixed_point(tracker.v_max, VEL_FRAC),
+            "v_tolerance": fixed_point(tracker.tolerance, VEL_FRAC), "v_rate": rate}
 
 
 def choose_pool(frame_size: tuple[int, int], input_size: tuple[int, int]) -> tuple[int, int]:

@@ -19,6 +19,7 @@ from torchseq.atomic import atomic_path
 from torchseq.export.int_format import IntegerModel
 from torchseq.export.int_runtime import MEMORY_BUDGET, check_dense_budget
 from torchseq.export.int_step import IntegerStepModule
+from torchseq.export.int_velocity import VelocityStepModule, initial_velocity_state
 
 OPSET = 17
 IR_VERSION = 8  # what onnxruntime >= 1.15 reads
@@ -36,6 +37,22 @@ class _StepGraph(torch.nn.Module):
         return act, act, ref, conf
 
 
+class _VelocityGraph(torch.nn.Module):
+    """The adaptive ring's step (format version 3) with the state outputs after the four."""
+
+    def __init__(self, model: IntegerModel) -> None:
+        super().__init__()
+        self.step = VelocityStepModule(model).eval()
+
+    def forward(self, frames, state, velocity, positions, count):
+        act, ref, conf, v, pos, n = self.step(frames, state, velocity, positions, count)
+        return act, act, ref, conf, v, pos, n
+
+
+VELOCITY_INPUTS = ("velocity", "positions", "count")
+VELOCITY_OUTPUTS = ("new_velocity", "new_positions", "new_count")
+
+
 def build_integer_onnx(model: IntegerModel,
                        memory_budget: int = MEMORY_BUDGET) -> onnx.ModelProto:
     """Export the integer step (:class:`IntegerStepModule`) as an ONNX model.
@@ -51,6 +68,12 @@ def build_integer_onnx(model: IntegerModel,
     Inputs: ``frames`` uint8 ``(B, h*pool_h, w*pool_w)``, ``state`` int32 ``(B, N)``.
     Outputs: ``activity`` int32 ``(B, N)``, ``new_state`` int32 ``(B, N)``, ``reference``
     int64 ``(B,)``, ``confidence`` int64 ``(B,)`` (on the ``2**-state_frac`` grid).
+
+    A model with the adaptive ring (format version 3) exports
+    :class:`~torchseq.export.int_velocity.VelocityStepModule`: three more inputs,
+    ``velocity`` int64 ``(B,)`` (``2**-16`` grid, ``2**16`` at the start), ``positions``
+    int64 ``(B, K)`` and ``count`` int64 ``(B,)`` (zeros at the start), fed back from the
+    outputs ``new_velocity``, ``new_positions``, ``new_count`` after the four above.
     """
     p = model.check().params
     check_dense_budget("the integer ONNX graph", 14 * p["n_input"] * p["hidden"]
@@ -60,13 +83,19 @@ def build_integer_onnx(model: IntegerModel,
                          dtype=torch.uint8)
     state = torch.zeros(2, p["n_units"], dtype=torch.int32)
     names = ["activity", "new_state", "reference", "confidence"]
+    inputs, graph, args = ["frames", "state"], _StepGraph, (frames, state)
+    if model.velocity is not None:
+        start = initial_velocity_state(2, p["n_units"], model.velocity.window)
+        args = (frames, state, *(torch.from_numpy(x) for x in start[1:]))
+        inputs, graph = [*inputs, *VELOCITY_INPUTS], _VelocityGraph
+        names += VELOCITY_OUTPUTS
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notice
-        torch.onnx.export(_StepGraph(model), (frames, state), buf, dynamo=False,
-                          opset_version=OPSET, input_names=["frames", "state"],
+        torch.onnx.export(graph(model), args, buf, dynamo=False,
+                          opset_version=OPSET, input_names=inputs,
                           output_names=names, do_constant_folding=True,
-                          dynamic_axes={k: {0: "batch"} for k in ["frames", "state", *names]})
+                          dynamic_axes={k: {0: "batch"} for k in [*inputs, *names]})
     m = onnx.load_from_string(buf.getvalue())
     used = {i for node in m.graph.node for i in node.input}
     keep = [t for t in m.graph.initializer if t.name in used]  # the products' index lists
@@ -117,10 +146,37 @@ def run_step_session(sess, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     return np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
 
 
-def run_integer_onnx(sess, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def run_integer_onnx(sess, frames: np.ndarray,
+                     speeds: bool = False) -> tuple[np.ndarray, ...]:
     """Stream a ``(T, H, W)`` uint8 traverse through an integer session (int32 state).
 
+    A graph of the adaptive ring (inputs ``velocity``, ``positions``, ``count``) is fed its
+    estimator state back too.
+
+    Args:
+        sess: the integer graph's session.
+        frames: the traverse.
+        speeds: also return the speed after each frame (adaptive ring only).
+
     Returns:
-        ``(reference (T,), confidence (T,), activity (T, N) int32)``.
+        ``(reference (T,), confidence (T,), activity (T, N) int32)``, and ``speed (T,)``
+        int64 (``2**-16`` grid) with ``speeds``.
     """
-    return run_step_session(sess, frames)
+    names = [i.name for i in sess.get_inputs()]
+    if not set(VELOCITY_INPUTS) <= set(names):
+        if speeds:
+            raise ValueError("speeds: the graph has the fixed ring (no speed estimate)")
+        return run_step_session(sess, frames)
+    n_units, window = sess.get_inputs()[1].shape[1], sess.get_inputs()[3].shape[1]
+    state = initial_velocity_state(1, n_units, window)
+    feed = dict(zip(["state", *VELOCITY_INPUTS], state))
+    refs, confs, acts, vs = [], [], [], []
+    for t in range(frames.shape[0]):
+        act, new, ref, conf, v, pos, n = sess.run(None, {"frames": frames[t:t + 1], **feed})
+        feed = {"state": new, "velocity": v, "positions": pos, "count": n}
+        refs.append(ref)
+        confs.append(conf)
+        acts.append(act)
+        vs.append(v)
+    out = np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
+    return (*out, np.concatenate(vs)) if speeds else out

@@ -24,7 +24,13 @@ from torchseq.export.int_format import (
     IntegerModel,
     read_integer_model,
 )
+from torchseq.export.int_stages import SLOPE_LIMIT, VEL_ONE, velocity_den
 from torchseq.export.int_step import IntegerStepModule
+from torchseq.export.int_velocity import (
+    IntVelocityState,
+    VelocityStepModule,
+    initial_velocity_state,
+)
 from torchseq.layers.functional import kwta_numpy
 
 ISQRT_BITS = 31  # isqrt handles 0 <= v < 2**62; result bits 30..0
@@ -59,6 +65,22 @@ class IntegerStep(NamedTuple):
     reference: np.ndarray
     confidence: np.ndarray
     activity: np.ndarray
+
+
+class IntegerVelocityStep(NamedTuple):
+    """Output of one integer step of the adaptive ring (format version 3).
+
+    Attributes:
+        reference: ``(B,)`` int64 reference frame of the winning unit.
+        confidence: ``(B,)`` int64 winner minus best rival, on the ``2**-state_frac`` grid.
+        activity: ``(B, N)`` int32 ring activity.
+        speed: ``(B,)`` int64 the new speed estimate on the ``2**-16`` grid.
+    """
+
+    reference: np.ndarray
+    confidence: np.ndarray
+    activity: np.ndarray
+    speed: np.ndarray
 
 
 def round_div(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -226,7 +248,9 @@ class IntegerRuntime:
         self.params = p
         self.kernel = kernel
         self.memory_budget = int(memory_budget)
-        self.module = IntegerStepModule(model).eval() if kernel == "module" else None
+        self.velocity = model.velocity  # the adaptive ring (version 3), or None
+        kind = IntegerStepModule if self.velocity is None else VelocityStepModule
+        self.module = kind(model).eval() if kernel == "module" else None
         if kernel == "module":
             return
         check_dense_budget("the NumPy L3 kernel", 4 * p["hidden"] * p["n_units"],
@@ -245,6 +269,8 @@ class IntegerRuntime:
         self.ring_values = a["ring.values"].astype(np.int64)
         self.unit_centre = a["unit_centre"].astype(np.int64)
         self.unit_to_ref = a["unit_to_ref"].astype(np.int64)
+        if self.velocity is not None:
+            self.ring_shift = self.velocity.shift.astype(np.int64)
 
     @property
     def n_units(self) -> int:
@@ -263,9 +289,74 @@ class IntegerRuntime:
             raise ValueError("frames are empty (no frame in the batch)")
         return frames
 
-    def initial_state(self, batch: int) -> np.ndarray:
-        """Zero activity ``(batch, N)`` int32."""
+    def initial_state(self, batch: int) -> np.ndarray | IntVelocityState:
+        """The start of ``batch`` streams: zero activity ``(batch, N)`` int32.
+
+        With the adaptive ring an :class:`~torchseq.export.int_velocity.IntVelocityState`
+        (zero activity, speed 1, empty window).
+        """
+        if self.velocity is not None:
+            return initial_velocity_state(batch, self.n_units, self.velocity.window)
         return np.zeros((batch, self.n_units), np.int32)
+
+    def velocity_ring(self, state: np.ndarray, g: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        """Step 7v in NumPy (the module's :func:`~torchseq.export.int_velocity.velocity_ring`).
+
+        The powers are computed only up to the largest ``n + 1`` the batch needs (the same
+        integers: the others have weight 0), and each stream takes its two by indexing.
+        """
+        st, f = self.velocity, self.params["ring_frac"]
+        n = speed // VEL_ONE  # (B,)
+        frac = speed - n * VEL_ONE
+        need = min(int(n.max()) + int((frac > 0).any()), st.top)
+        powers = [state.astype(np.int64)]
+        for _ in range(need):
+            m = (powers[-1][:, self.ring_cols] * self.ring_shift).sum(-1)
+            powers.append(np.clip(round_div(m, np.int64(1) << f), -INT32_MAX, INT32_MAX))
+        stack = np.stack(powers + [np.zeros_like(powers[0])], 1)  # (B, need + 2, N)
+        rows = np.arange(state.shape[0])
+        hi = stack[rows, np.minimum(n + 1, need + 1)]
+        mixed = (VEL_ONE - frac)[:, None] * stack[rows, n] + frac[:, None] * hi
+        moved = round_div(mixed, np.int64(VEL_ONE))
+        a = round_div(st.decay_const * moved, np.int64(1) << f) + g
+        return np.clip(a, -INT32_MAX, INT32_MAX).astype(np.int32)
+
+    def velocity_update(self, state: IntVelocityState, reference: np.ndarray,
+                        activity: np.ndarray) -> IntVelocityState:
+        """Step 9 in NumPy (the module's :func:`~torchseq.export.int_velocity.velocity_update`)."""
+        st = self.velocity
+        k, den = st.window, velocity_den(st.window)
+        p = np.concatenate([state.positions[:, 1:], reference.astype(np.int64)[:, None]], 1)
+        count = np.minimum(state.count + 1, k)
+        c = np.arange(-(k - 1), k, 2, dtype=np.int64)
+        num = p @ c
+        resid = np.abs(2 * k * den * p - (2 * den * p.sum(1))[:, None] - k * num[:, None] * c)
+        full = count >= k
+        trusted = full & (resid.max(1) * VEL_ONE <= st.tolerance * 2 * k * den)
+        slope = np.clip(round_div(num * VEL_ONE, np.int64(den)), -SLOPE_LIMIT, SLOPE_LIMIT)
+        target = np.where(trusted, slope, VEL_ONE)
+        v = state.velocity + round_div(st.rate * (target - state.velocity), np.int64(VEL_ONE))
+        v = np.clip(np.where(full, v, VEL_ONE), st.v_min, st.v_max).astype(np.int64)
+        return IntVelocityState(activity, v, p, count)
+
+    def check_velocity_state(self, state, batch: int) -> IntVelocityState:
+        """``state`` if it is this model's :class:`IntVelocityState` for ``batch`` streams.
+
+        Raises:
+            ValueError: another type, dtype or shape, or a speed outside ``[v_min, v_max]``.
+        """
+        k = self.velocity.window
+        want = ((np.int32, (batch, self.n_units)), (np.int64, (batch,)),
+                (np.int64, (batch, k)), (np.int64, (batch,)))
+        if not isinstance(state, IntVelocityState) or any(
+                np.asarray(x).dtype != d or np.shape(x) != s for x, (d, s) in zip(state, want)):
+            raise ValueError(f"an adaptive-ring model steps with an IntVelocityState of int32 "
+                             f"({batch}, {self.n_units}) activity and int64 ({batch},) speed, "
+                             f"({batch}, {k}) positions and ({batch},) count")
+        v = state.velocity
+        if (v < self.velocity.v_min).any() or (v > self.velocity.v_max).any():
+            raise ValueError("speeds must lie in [v_min, v_max] of the model")
+        return state
 
     def hidden(self, x: np.ndarray, chunk: int = 16) -> np.ndarray:
         """L1 -> L2 sums ``(B, M)`` int32 through the stored index lists."""
@@ -318,15 +409,19 @@ class IntegerRuntime:
 
         Args:
             frames: ``(B, h * pool_h, w * pool_w)`` uint8.
-            state: ``(B, N)`` int32 previous activity (None: zeros).
+            state: ``(B, N)`` int32 previous activity (None: zeros); with the adaptive ring
+                (format version 3) an :class:`IntVelocityState` (None: its start).
 
         Returns:
-            ``(IntegerStep, new state (B, N) int32)``.
+            ``(IntegerStep, new state (B, N) int32)``; with the adaptive ring
+            ``(IntegerVelocityStep, new IntVelocityState)``.
         """
         p = self.params
         frames = self.check_frames(frames)
         if state is None:
             state = self.initial_state(frames.shape[0])
+        if self.velocity is not None:
+            return self._velocity_step(frames, self.check_velocity_state(state, frames.shape[0]))
         if state.dtype != np.int32 or state.shape != (frames.shape[0], self.n_units):
             raise ValueError(f"state must be int32 ({frames.shape[0]}, {self.n_units}), got "
                              f"{state.dtype} {state.shape}")
@@ -341,17 +436,40 @@ class IntegerRuntime:
         a = a.astype(np.int32)
         return IntegerStep(*self.decide(a), a), a
 
-    def run(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _velocity_step(self, frames: np.ndarray,
+                       state: IntVelocityState) -> tuple[IntegerVelocityStep, IntVelocityState]:
+        """One step of the adaptive ring (format version 3): steps 1-6, 7v, 8 and 9."""
+        if self.module is not None:
+            with torch.inference_mode():
+                out = self.module(torch.tensor(frames), *(torch.tensor(x) for x in state))
+            act, ref, conf, v, pos, count = (x.numpy() for x in out)
+            return IntegerVelocityStep(ref, conf, act, v), IntVelocityState(act, v, pos, count)
+        a = self.velocity_ring(state.activity, self.drive(frames), state.velocity)
+        ref, conf = self.decide(a)
+        new = self.velocity_update(state, ref, a)
+        return IntegerVelocityStep(ref, conf, a, new.velocity), new
+
+    def run(self, frames: np.ndarray, speeds: bool = False) -> tuple[np.ndarray, ...]:
         """Stream a traverse ``(T, h * pool_h, w * pool_w)`` uint8 (one stream).
 
+        Args:
+            frames: the traverse.
+            speeds: also return the adaptive ring's speed estimate after each frame
+                (``(T,)`` int64, ``2**-16`` grid; ``ValueError`` for a fixed-ring model).
+
         Returns:
-            ``(reference (T,) int64, confidence (T,) int64, activity (T, N) int32)``.
+            ``(reference (T,) int64, confidence (T,) int64, activity (T, N) int32)``, and
+            ``speed (T,)`` with ``speeds``.
         """
+        if speeds and self.velocity is None:
+            raise ValueError("speeds: the model has the fixed ring (no speed estimate)")
         state = self.initial_state(1)
-        refs, confs, acts = [], [], []
+        refs, confs, acts, vs = [], [], [], []
         for t in range(frames.shape[0]):
             out, state = self.step(frames[t:t + 1], state)
             refs.append(out.reference)
             confs.append(out.confidence)
             acts.append(out.activity)
-        return np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
+            vs.append(out.speed if speeds else None)
+        out = np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
+        return (*out, np.concatenate(vs)) if speeds else out

@@ -332,3 +332,83 @@ class ReadoutStage:
         _frozen(self, unit_centre=centre, unit_to_ref=spans,
                 window=integer("window", self.window, 0, MAX_SIZE),
                 readout=integer("readout", self.readout, READOUT_CENTRE, READOUT_INTERPOLATE))
+
+
+VEL_FRAC = 16  # fractional bits of the speed, the tolerance and the rate (format version 3)
+VEL_ONE = 1 << VEL_FRAC  # speed 1: one reference frame per query frame
+MAX_SPEED = 8  # at most 8 shift products per frame (layers.ring_velocity.MAX_VELOCITY)
+MAX_WINDOW = 4096  # velocity_window (the float config's bound)
+SLOPE_LIMIT = 1 << 36  # |target| clamp (2**20 frames per frame): exact, see velocity_den
+
+
+def velocity_den(window: int) -> int:
+    """``K (K^2 - 1) / 6``: ``sum_i (t_i - mean t)^2`` of the window, times 2 squared / 4.
+
+    With ``c_i = 2 i - (K - 1)`` the LS slope is ``sum c_i p_i / velocity_den(K)``.
+    """
+    return window * (window * window - 1) // 6
+
+
+@dataclass(frozen=True, eq=False)
+class VelocityStage:
+    """The adaptive ring of format version 3 (docs/integer_format.md, step 7v and 9).
+
+    Attributes:
+        shift: ``(N, W)`` int32 the learnt shift alone (no decay) at ``ring.cols`` on the
+            ``2**-ring_frac`` grid (padding: 0), ``abs <= 2**20``.
+        decay_const: ``round(decay * 2**ring_frac)``, ``0..2**30``.
+        window: ``K``, decisions in the speed fit, ``3..4096``.
+        v_min, v_max: the speed's clamp on the ``2**-16`` grid,
+            ``0 <= v_min <= 2**16 <= v_max <= 8 * 2**16``.
+        tolerance: largest residual of a trusted window (reference frames, ``2**-16`` grid).
+        rate: step of the estimate towards its target, ``1..2**16`` (``2**-16`` grid).
+    """
+
+    shift: np.ndarray
+    decay_const: int
+    window: int
+    v_min: int
+    v_max: int
+    tolerance: int
+    rate: int
+
+    def __post_init__(self) -> None:
+        shape = np.shape(self.shift)
+        if len(shape) != 2:
+            _fail(f"section ring.shift: shape {shape} is not (n_units, ring_width)")
+        shift = section("ring.shift", self.shift, "<i4", shape)
+        if shift.size and int(np.abs(shift.astype(np.int64)).max()) > 2**20:
+            _fail("section ring.shift: values must satisfy abs <= 2**20")
+        window = integer("velocity_window", self.window, 3, MAX_WINDOW)
+        v_min = integer("v_min", self.v_min, 0, VEL_ONE)
+        v_max = integer("v_max", self.v_max, VEL_ONE, MAX_SPEED * VEL_ONE)
+        _frozen(self, shift=shift, decay_const=integer("decay_const", self.decay_const, 0, 2**30),
+                window=window, v_min=v_min, v_max=v_max,
+                tolerance=integer("v_tolerance", self.tolerance, 0, 2**40),
+                rate=integer("v_rate", self.rate, 1, VEL_ONE))
+
+    @property
+    def top(self) -> int:
+        """Shift products per frame: ``ceil(v_max / 2**16)`` (1..8)."""
+        return -(-self.v_max // VEL_ONE)
+
+    def check_fits(self, n_frames: int, ring_cols_shape: tuple[int, int]) -> None:
+        """The bounds that need the rest of the model (``IntegerFormatError`` otherwise).
+
+        Args:
+            n_frames: ``F``, one past the largest reference frame (every decision is below).
+            ring_cols_shape: ``ring.cols``' shape, which ``ring.shift`` must have.
+        """
+        if self.shift.shape != tuple(ring_cols_shape):
+            _fail(f"section ring.shift: shape {self.shift.shape} is not ring.cols' "
+                  f"{tuple(ring_cols_shape)}")
+        width = self.shift.shape[1]
+        if width * 2**20 * INT32_MAX >= A_BOUND:
+            _fail(f"ring_width {width} too large for the velocity ring's int64 sums")
+        k, den = self.window, velocity_den(self.window)
+        num = k * k // 2 * n_frames  # |sum c_i p_i|: sum |c_i| <= K^2 / 2, 0 <= p < F
+        resid = 2 * k * den * n_frames + k * (k - 1) * num  # |R_i|
+        if num << VEL_FRAC >= A_BOUND or resid << VEL_FRAC >= B_BOUND \
+                or self.tolerance * 2 * k * den >= B_BOUND:
+            _fail(f"velocity_window {k} and {n_frames} reference frames (or the tolerance) "
+                  "overflow the speed fit's int64 arithmetic")

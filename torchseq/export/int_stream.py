@@ -7,7 +7,9 @@ stage, L1, k-WTA, L3, cohort z-score and gain) on all frames at once and only th
 ring frame by frame. The two products use oneDNN's int8 GEMM
 (:class:`torchseq.neural.fast.Int8Linear`) where their integers fit int8 and every sum stays
 below ``2**24`` (so the float32 result of the kernel is the exact integer); otherwise the
-NumPy runtime's own integer products.
+NumPy runtime's own integer products. A model with the adaptive ring (format version 3)
+batches the same state-free stages; its ring, decision and speed estimate run frame by frame
+(:meth:`StreamRuntime.velocity_scan`: each decision sets the next frame's speed).
 """
 
 from __future__ import annotations
@@ -83,8 +85,43 @@ class StreamRuntime(IntegerRuntime):
         frames = self.check_frames(frames)
         g = np.concatenate([self.drive(frames[lo:lo + self.chunk])
                             for lo in range(0, frames.shape[0], self.chunk)])  # (T, N)
+        if self.velocity is not None:
+            return self.velocity_scan(g)[:3]
         act = self.ring_scan(g)
         return (*self.decide(act), act)
+
+    def run_speeds(self, frames: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`run` of an adaptive-ring model (format version 3) with its speeds.
+
+        Returns:
+            ``(reference (T,), confidence (T,), activity (T, N) int32, speed (T,) int64)``
+            (the speed estimate after each frame, ``2**-16`` grid), the same integers as
+            :meth:`IntegerRuntime.run` with ``speeds=True``.
+        """
+        if self.velocity is None:
+            raise ValueError("run_speeds: the model has the fixed ring (no speed estimate)")
+        frames = self.check_frames(frames)
+        g = np.concatenate([self.drive(frames[lo:lo + self.chunk])
+                            for lo in range(0, frames.shape[0], self.chunk)])
+        return self.velocity_scan(g)
+
+    def velocity_scan(self, g: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The adaptive ring over ``gain * z`` ``(T, N)``: steps 7v, 8 and 9 frame by frame.
+
+        The decisions feed the speed of the next frame, so only the state-free stages batch.
+        """
+        state = self.initial_state(1)
+        refs, confs, vs = [], [], []
+        act = np.empty(g.shape, np.int32)
+        for t in range(g.shape[0]):
+            a = self.velocity_ring(state.activity, g[t:t + 1], state.velocity)
+            ref, conf = self.decide(a)
+            state = self.velocity_update(state, ref, a)
+            act[t] = a[0]
+            refs.append(ref)
+            confs.append(conf)
+            vs.append(state.velocity)
+        return np.concatenate(refs), np.concatenate(confs), act, np.concatenate(vs)
 
     def ring_scan(self, g: np.ndarray) -> np.ndarray:
         """The fixed-point ring over ``gain * z`` ``(T, N)`` int64 -> activity ``(T, N)`` int32.

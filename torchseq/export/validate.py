@@ -39,12 +39,28 @@ MIN_AGREEMENT = 0.99
 # demo: 0.975-0.996); far below, the frames are not grey levels 0..255 at all (event frames
 # of window means: 0.001) and the integer files cannot reproduce the model on them.
 MIN_UINT8_AGREEMENT = 0.9
-NO_INTEGER_FORM = "no integer/spiking form of ring_velocity='adaptive'"
+NO_SPIKING_FORM = "no spiking form of ring_velocity='adaptive'"
+NO_INTEGER_FORM = NO_SPIKING_FORM  # the earlier name (the integer form now exists)
 
 
 def integer_form(model) -> bool:
-    """Whether the model has the integer (and spiking) forms: not the adaptive ring."""
+    """Whether the model has the integer forms: every fitted model (format versions 1-3)."""
+    return getattr(model.config, "ring_velocity", "fixed") in ("fixed", "adaptive")
+
+
+def spiking_form(model) -> bool:
+    """Whether the model has the spiking (NIR) form: not the adaptive ring."""
     return getattr(model.config, "ring_velocity", "fixed") == "fixed"
+
+
+def _float_speeds(model, frames: torch.Tensor) -> np.ndarray:
+    """The float adaptive model's speed estimate after each frame (one stream), ``(T,)``."""
+    state, out = None, []
+    with torch.no_grad():
+        for t in range(frames.shape[0]):
+            _, state = model.step(frames[t:t + 1], state)
+            out.append(float(state.velocity[0]))
+    return np.asarray(out)
 
 
 def quantise_onnx(model: onnx.ModelProto) -> onnx.ModelProto:
@@ -80,9 +96,10 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
                         frame_size: tuple[int, int] | None = None) -> dict:
     """Write the four exported files and measure every variant on ``query``.
 
-    An adaptive-velocity model (``ring_velocity="adaptive"``) has only the float and
-    quantised ONNX graphs: the integer files are not written and ``report["integer"]`` says
-    ``{"skipped": ...}``.
+    An adaptive-velocity model (``ring_velocity="adaptive"``) is written as integer format
+    version 3; the report adds the speed estimates' agreement
+    (``integer_speed_max_abs_error``, ``integer_speed_mean_abs_error``, in reference frames
+    per query frame, against the float model on the same uint8 frames).
 
     Args:
         model: a fitted :class:`torchseq.neural.NeuralSeqSLAM`.
@@ -155,11 +172,14 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
     frames_u8 = device_frames(camera, size, pool)
     result_u8 = model.run(torch.from_numpy(frames_u8).to(torch.float32))
     ref_u8, act_u8 = result_u8.matches.reference.numpy(), result_u8.activity.numpy()
-    ref_n, conf_n, act_n = IntegerRuntime(stored).run(frames_u8)
-    ref_o, conf_o, act_o = run_integer_onnx(session(out / INT_ONNX), frames_u8)
+    adaptive = stored.velocity is not None
+    ref_n, conf_n, act_n, *v_n = IntegerRuntime(stored).run(frames_u8, speeds=adaptive)
+    ref_o, conf_o, act_o, *v_o = run_integer_onnx(session(out / INT_ONNX), frames_u8,
+                                                  speeds=adaptive)
     unit = 2.0 ** -stored.params["state_frac"]
     bit_exact = bool(np.array_equal(ref_n, ref_o) and np.array_equal(conf_n, conf_o)
-                     and np.array_equal(act_n, act_o) and act_n.dtype == act_o.dtype)
+                     and np.array_equal(act_n, act_o) and act_n.dtype == act_o.dtype
+                     and all(np.array_equal(a, b) for a, b in zip(v_n, v_o)))
     report = {
         **float_report,
         "device_frame_size": list(frames_u8.shape[1:3]),
@@ -173,6 +193,12 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
         "integer_onnx_bit_exact": bit_exact,
         "onnx_checker": checker,
     }
+    if adaptive:  # the speed estimates, integer (2**-16 grid) against float
+        diff = np.abs(v_n[0] / 2.0**16 - _float_speeds(model, torch.from_numpy(frames_u8)
+                                                       .to(torch.float32)))
+        report["integer_format_version"] = stored.format_version
+        report["integer_speed_max_abs_error"] = float(diff.max())
+        report["integer_speed_mean_abs_error"] = float(diff.mean())
     if ground_truth is not None:
         gt = np.asarray(ground_truth, dtype=bool)
         report["recall_at_1"] = {name: recall_at_k(r, gt) for name, r in (

@@ -97,8 +97,8 @@ class NeuralConfig:
             within the winner's stretch of frames from its neighbours' activity, see
             :func:`torchseq.neural.readout.decide`; the same decisions while every unit
             holds one frame, finer when a long route gives units several frames; measured
-            worse for queries much faster than the reference, and no integer export for
-            units of several frames, so opt-in).
+            worse for queries much faster than the reference, so opt-in; integer format
+            v2 holds it).
         recruit: how ``fit`` gives the route's frames to units, each unit a contiguous
             stretch: ``"uniform"`` (frame ``t`` -> unit ``floor(t N / R)``) or ``"novelty"``
             (a new unit where the frames' L2 codes stop matching the current unit's mean
@@ -107,7 +107,7 @@ class NeuralConfig:
         ring_velocity: ``"fixed"`` (the learnt shift moves the activity as fast as the
             reference, the seed's ring) or ``"adaptive"`` (each stream estimates its speed
             from its own decisions and moves the activity by that fraction of the shift,
-            :mod:`torchseq.neural.velocity`; opt-in, float ONNX export only).
+            :mod:`torchseq.neural.velocity`; opt-in; float ONNX and integer format v3, no NIR).
         velocity_window: decisions in the adaptive speed fit (``K``).
         velocity_min: smallest adaptive speed (reference frames per query frame, <= 1).
         velocity_max: largest adaptive speed (>= 1, at most 8).
@@ -258,7 +258,7 @@ class NeuralConfig:
         one where both are perfect, while each unit holds one frame (routes of at most
         ``n_output`` frames). With units of several frames it costs recall (3,000 frames on
         555 units, interpolate: 0.994 -> 0.953; corridor at 55 units 0.798 -> 0.741).
-        Opt-in: no export form yet (the integer, ONNX and spiking exports refuse it).
+        Opt-in: exported as float ONNX and integer format v3; the spiking form refuses it.
 
         ``overrides`` replace any field.
         """
