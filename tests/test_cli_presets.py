@@ -158,3 +158,28 @@ def test_the_scripts_take_the_preset_and_say_typed_flags_win(script, capsys):
     assert "20% L2 -> L3 mask, 5% winners" in text
     code = run_main(module.main, f"{script}.py", ["--neural-preset", "x"])
     assert code == 2 and "--neural-preset must be one of" in capsys.readouterr().err
+
+
+def test_replay_drops_the_recorded_settings_of_an_engine_it_does_not_configure(tmp_path,
+                                                                                capsys):
+    # a run with neural and SeqSLAM settings of its own, replayed for one engine: the
+    # other engine's recorded settings are not this command's flags, so not refused
+    out = tmp_path / "run"
+    code = run_main(cli_eval.main, "eval.py", [
+        "--neural-preset", "adaptive-velocity", "--neural-hidden", "256", "--ds", "12",
+        "--demo-frames", "40", "--no-tensorboard", "--no-progress", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    replay = ["--config", str(out / "config.json")]
+    seqslam_only = cli_eval.parse_args([*replay, "--engine", "seqslam"])[0]
+    assert seqslam_only.seqslam.ds == 12 and seqslam_only.run.neural_preset is None
+    neural_only = cli_eval.parse_args([*replay, "--engine", "neural"])[0]
+    assert neural_only.seqslam.ds == 10
+    assert neural_only.neural == NeuralConfig.adaptive_velocity(hidden=256)
+    checkpoint = cli_eval.parse_args([*replay, "--checkpoint", "m.pt"])[0]
+    assert checkpoint.neural == NeuralConfig() and checkpoint.seqslam.ds == 12
+    # typed now, they are still refused
+    for typed in (["--engine", "seqslam", "--neural-preset", "default"],
+                  ["--engine", "neural", "--ds", "12"],
+                  ["--checkpoint", "m.pt", "--neural-hidden", "256"]):
+        with pytest.raises(UsageError, match="no effect"):
+            cli_eval.parse_args([*replay, *typed])

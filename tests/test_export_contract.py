@@ -5,6 +5,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from torchseq.demo import make_demo
 from torchseq.export import export_checkpoint
@@ -22,7 +23,12 @@ def doc_snippet() -> dict:
     return namespace
 
 
-def test_documented_host_code_gives_the_librarys_decisions(tmp_path):
+@pytest.mark.parametrize("config", [
+    NeuralConfig(hidden=512, n_output=40),
+    # the adaptive ring's graph has three more state inputs the host must feed back
+    NeuralConfig.adaptive_velocity(hidden=512, n_output=40),
+], ids=["fixed", "adaptive-velocity"])
+def test_documented_host_code_gives_the_librarys_decisions(tmp_path, config):
     # colour camera frames at a size that is no multiple of the input (area windows overlap)
     route = make_demo(n_reference=40, size=(90, 125), seed=3)
     rng = np.random.default_rng(0)
@@ -33,7 +39,7 @@ def test_documented_host_code_gives_the_librarys_decisions(tmp_path):
         bgr = np.stack([g * 0.9, g, np.clip(g * 1.1 + rng.normal(0, 3, g.shape), 0, 255)], -1)
         cv2.imwrite(str(folder / f"{i:03d}.png"), bgr.round().astype(np.uint8))
     frames = load_traverse(folder, progress=False)  # the library's own reading
-    model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=40))
+    model = NeuralSeqSLAM(config)
     model.fit(frames)
     model.save(tmp_path / "m.pt", extra={"reference": {
         "source": str(folder), "n_frames": 40, "frame_size": [90, 125]}})

@@ -1,3 +1,5 @@
+import fractions
+
 import numpy as np
 import pytest
 import torch
@@ -284,3 +286,18 @@ def test_the_engine_times_nothing():
     import torchseq.neural.model as model_module
 
     assert not hasattr(model_module, "time")
+
+
+def test_unreadable_checkpoint_errors_are_one_plain_line(tmp_path):
+    # torch's safe-loader text is multi-line with terminal escapes and advises
+    # weights_only=False; the library's error names the cause in one plain line instead
+    (tmp_path / "config.json").write_text('{"hidden": 512}')
+    torch.save({"format": "x", "bad": fractions.Fraction(1, 2)}, tmp_path / "pickled.pt")
+    expect = {"config.json": "no intact torch.save archive",
+              "pickled.pt": "safe loader .* refuses: Unsupported global: GLOBAL "
+                            "fractions.Fraction"}
+    for name, why in expect.items():
+        with pytest.raises(NeuralError, match=f"not a readable torchseq checkpoint .*{why}") as e:
+            NeuralSeqSLAM.load(tmp_path / name)
+        text = str(e.value)
+        assert "\n" not in text and "\x1b" not in text and "weights_only` set to `False" not in text

@@ -277,9 +277,11 @@ def parse_args(argv: list[str] | None
     parser = build_parser()
     pre, _ = parser.parse_known_args(argv)
     replayed = frozenset()
-    if pre.config:
-        replayed = config_file_defaults(parser, pre.config, {"seqslam": "", "neural": "neural_"})
     neural = {"neural_" + f.name: f.name for f in dataclasses.fields(NeuralConfig)}
+    if pre.config:
+        before = {a.dest: a.default for a in parser._actions}
+        replayed = config_file_defaults(parser, pre.config, {"seqslam": "", "neural": "neural_"})
+        replayed -= _unused_replay(parser, argv, replayed, before, set(neural))
     replayed = frozenset(neural[d] for d in replayed if d in neural)
     recorded = parser.get_default("neural_preset")
 
@@ -294,6 +296,27 @@ def parse_args(argv: list[str] | None
     grid = sweep_grid(args.sweep, parser)
     points = [settings(argv + extra) for extra in grid]
     return base, points, grid, list(args.sweep)
+
+
+def _unused_replay(parser: argparse.ArgumentParser, argv: list[str], replayed: frozenset[str],
+                   before: dict, neural: set[str]) -> frozenset[str]:
+    """Drop a ``--config`` file's settings for an engine this command does not configure.
+
+    The file holds the replayed run's SeqSLAM and neural settings; with ``--engine seqslam``
+    or ``--checkpoint`` (neural) or ``--engine neural`` (SeqSLAM) typed now, those are not
+    this command's choice, so they go back to their defaults instead of being refused as
+    flags that would be ignored (flags typed now still are). Returns the dests reset.
+    """
+    args = parser.parse_args(argv)
+    seqslam = {f.name for f in dataclasses.fields(SeqSLAMConfig)} | {"preset"}
+    unused = set()
+    if args.engine == "seqslam" or args.checkpoint:
+        unused |= neural | {"neural_preset"}
+    if args.engine == "neural":
+        unused |= seqslam
+    unused = (unused & replayed) - given_flags(parser, argv, unused & replayed)
+    parser.set_defaults(**{d: before[d] for d in unused})
+    return frozenset(unused)
 
 
 def size_key(size) -> str:

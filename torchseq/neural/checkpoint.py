@@ -14,8 +14,10 @@ files (no checksum) still load, with a warning.
 from __future__ import annotations
 
 import hashlib
+import pickle
 import struct
 import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +82,23 @@ def save_checkpoint(path: str | Path, config: dict, state_dict: dict,
         torch.save(blob, f)
 
 
+def _load_failure(path: Path, err: Exception) -> str:
+    """Why ``torch.load(weights_only=True)`` failed, in one line for the user.
+
+    torch's own text for the safe loader is several lines with terminal escapes, and its
+    first advice is to load with ``weights_only=False``, which a checkpoint never needs.
+    """
+    if not zipfile.is_zipfile(path):
+        return "no intact torch.save archive: damaged, cut short or another kind of file"
+    text = str(err)
+    if isinstance(err, pickle.UnpicklingError):
+        why = [ln.strip() for ln in text.splitlines() if "WeightsUnpickler error:" in ln]
+        detail = why[0].split("error:", 1)[1].split(". ", 1)[0].strip() if why else ""
+        return ("it holds objects the safe loader (weights_only=True) refuses"
+                + (f": {detail[:200]}" if detail else ""))
+    return f"{type(err).__name__}: {' '.join(text.split())[:200]}"
+
+
 def load_checkpoint(path: str | Path, map_location=None) -> dict:
     """Read a checkpoint's dict and check its outline (format, the dicts it must hold).
 
@@ -95,7 +114,7 @@ def load_checkpoint(path: str | Path, map_location=None) -> dict:
         blob = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as err:  # truncated, corrupt or foreign file
         raise NeuralError(f"{path}: not a readable torchseq checkpoint "
-                          f"({type(err).__name__}: {str(err)[:200]})") from err
+                          f"({_load_failure(path, err)})") from err
     if not isinstance(blob, dict) or blob.get("format") not in (FORMAT, FORMAT_V1):
         got = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
         raise NeuralError(f"{path}: format {got!r} is not {FORMAT!r}")

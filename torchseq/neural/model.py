@@ -210,6 +210,7 @@ class NeuralSeqSLAM(nn.Module):
         self._build_output(n_units)
         _warn_coarse_units(t_len, n_units, cfg.readout)
         _warn_adaptive_units(t_len, n_units, cfg.ring_velocity)
+        _warn_novelty_without_effect(t_len, cfg.n_output, cfg.recruit)
         dev = self.l1.weight.device
         codes = ((lo, hi, self.code(self.encode(reference[lo:hi])))
                  for lo, hi in _chunks(t_len, cfg.chunk, as_progress(progress, "fit")))
@@ -413,6 +414,20 @@ def _warn_adaptive_units(n_frames: int, n_units: int, ring_velocity: str) -> Non
                   "than the fixed ring once units hold two or more frames; raise n_output to "
                   f"at least {n_frames} or use ring_velocity='fixed' (docs/neural.md, Long "
                   "routes)", stacklevel=4)
+
+
+def _warn_novelty_without_effect(n_frames: int, n_output: int, recruit: str) -> None:
+    """Say so when ``recruit="novelty"`` cannot change the model (one frame per unit).
+
+    With ``R <= n_output`` both rules give every frame its own unit, so the model is the
+    uniform one bit for bit; without a word a user would read equal recall as the rule's
+    measured effect.
+    """
+    if recruit != "novelty" or n_frames > n_output:
+        return
+    warnings.warn(f"recruit='novelty' has no effect on a route of {n_frames} frames with "
+                  f"n_output={n_output}: each frame gets its own unit, as with 'uniform' (it "
+                  "only changes routes longer than n_output)", stacklevel=4)
 
 
 def _winners(codes, k: int) -> torch.Tensor:
