@@ -11,6 +11,7 @@ from export_helpers import small_setup
 from int_oracle import oracle_step
 
 from torchseq.demo import make_demo
+from torchseq.export import IntegerInputError
 from torchseq.export.int_model import choose_pool, device_frames, integer_model
 from torchseq.export.int_onnx import build_integer_onnx, run_integer_onnx, session
 from torchseq.export.int_runtime import IntegerRuntime, input_stage, isqrt, kwta_int, round_div
@@ -133,9 +134,9 @@ def test_integer_decisions_agree_with_the_float_model(seed):
 def test_bad_step_input():
     _, _, _, frames, im = small_setup()
     rt = IntegerRuntime(im)
-    with pytest.raises(ValueError, match="uint8"):
+    with pytest.raises(IntegerInputError, match="uint8"):
         rt.step(frames[:1].astype(np.int16))
-    with pytest.raises(ValueError, match="state"):
+    with pytest.raises(IntegerInputError, match="state"):
         rt.step(frames[:2], rt.initial_state(3))
 
 

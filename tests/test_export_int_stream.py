@@ -8,6 +8,7 @@ import torch
 from conftest import coarse_units_expected
 
 from torchseq.demo import make_demo
+from torchseq.export import IntegerInputError
 from torchseq.export.int_format import X_MAX
 from torchseq.export.int_model import device_frames, integer_model
 from torchseq.export.int_runtime import IntegerRuntime, input_stage, kwta_int
@@ -42,11 +43,11 @@ def test_stream_runtime_equals_step_by_step(grids):
 def test_stream_runtime_errors():
     im, frames = fitted()
     runtime = StreamRuntime(im)
-    with pytest.raises(ValueError, match="uint8"):
+    with pytest.raises(IntegerInputError, match="uint8"):
         runtime.run(frames.astype(np.int16))
-    with pytest.raises(ValueError, match="uint8"):
+    with pytest.raises(IntegerInputError, match="uint8"):
         runtime.run(frames[:, :-1])
-    with pytest.raises(ValueError, match="empty"):
+    with pytest.raises(IntegerInputError, match="empty"):
         runtime.run(frames[:0])
 
 

@@ -16,14 +16,15 @@ from torchseq.export.int_format import (
 from torchseq.export.int_model import choose_pool, device_frames, integer_model
 from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime, IntegerStep
+from torchseq.export.int_stages import IntegerInputError
 from torchseq.export.int_stream import StreamRuntime
 from torchseq.export.onnx_float import StreamingStep, build_float_onnx, export_float_onnx
 from torchseq.export.quantise import Quantised, dequantise, fixed_point, quantise
 
 __all__ = [
-    "FORMAT_VERSION", "ExportError", "IntegerFormatError", "IntegerModel", "IntegerRuntime",
-    "IntegerStep", "Quantised", "StreamRuntime", "StreamingStep", "build_float_onnx",
-    "build_integer_onnx", "choose_pool", "dequantise", "device_frames", "export_checkpoint",
+    "FORMAT_VERSION", "ExportError", "IntegerFormatError", "IntegerInputError", "IntegerModel",
+    "IntegerRuntime", "IntegerStep", "Quantised", "StreamRuntime", "StreamingStep",
+    "build_float_onnx", "build_integer_onnx", "choose_pool", "dequantise", "device_frames", "export_checkpoint",
     "export_float_onnx", "fixed_point", "integer_model", "quantise", "read_integer_model",
     "write_integer_model",
 ]

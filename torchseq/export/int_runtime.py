@@ -24,7 +24,7 @@ from torchseq.export.int_format import (
     IntegerModel,
     read_integer_model,
 )
-from torchseq.export.int_stages import SLOPE_LIMIT, VEL_ONE, velocity_den
+from torchseq.export.int_stages import SLOPE_LIMIT, VEL_ONE, IntegerInputError, velocity_den
 from torchseq.export.int_step import IntegerStepModule
 from torchseq.export.int_velocity import (
     IntVelocityState,
@@ -240,7 +240,7 @@ class IntegerRuntime:
     def __init__(self, model: IntegerModel | str | Path, kernel: str = "numpy",
                  memory_budget: int = MEMORY_BUDGET) -> None:
         if kernel not in KERNELS:
-            raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+            raise IntegerInputError(f"kernel must be one of {KERNELS}, got {kernel!r}")
         if not isinstance(model, IntegerModel):
             model = read_integer_model(model)
         self.model = model.check()
@@ -283,10 +283,10 @@ class IntegerRuntime:
         frames = np.asarray(frames)
         size = (p["height"] * p["pool_h"], p["width"] * p["pool_w"])
         if frames.dtype != np.uint8 or frames.ndim != 3 or frames.shape[1:] != size:
-            raise ValueError(f"frames must be uint8 (B, {size[0]}, {size[1]}), got "
-                             f"{frames.dtype} {frames.shape}")
+            raise IntegerInputError(f"frames must be uint8 (B, {size[0]}, {size[1]}), got "
+                                    f"{frames.dtype} {frames.shape}")
         if frames.shape[0] == 0:
-            raise ValueError("frames are empty (no frame in the batch)")
+            raise IntegerInputError("frames are empty (no frame in the batch)")
         return frames
 
     def initial_state(self, batch: int) -> np.ndarray | IntVelocityState:
@@ -350,12 +350,13 @@ class IntegerRuntime:
                 (np.int64, (batch, k)), (np.int64, (batch,)))
         if not isinstance(state, IntVelocityState) or any(
                 np.asarray(x).dtype != d or np.shape(x) != s for x, (d, s) in zip(state, want)):
-            raise ValueError(f"an adaptive-ring model steps with an IntVelocityState of int32 "
-                             f"({batch}, {self.n_units}) activity and int64 ({batch},) speed, "
-                             f"({batch}, {k}) positions and ({batch},) count")
+            raise IntegerInputError(
+                f"an adaptive-ring model steps with an IntVelocityState of int32 "
+                f"({batch}, {self.n_units}) activity and int64 ({batch},) speed, "
+                f"({batch}, {k}) positions and ({batch},) count")
         v = state.velocity
         if (v < self.velocity.v_min).any() or (v > self.velocity.v_max).any():
-            raise ValueError("speeds must lie in [v_min, v_max] of the model")
+            raise IntegerInputError("speeds must lie in [v_min, v_max] of the model")
         return state
 
     def hidden(self, x: np.ndarray, chunk: int = 16) -> np.ndarray:
@@ -423,8 +424,8 @@ class IntegerRuntime:
         if self.velocity is not None:
             return self._velocity_step(frames, self.check_velocity_state(state, frames.shape[0]))
         if state.dtype != np.int32 or state.shape != (frames.shape[0], self.n_units):
-            raise ValueError(f"state must be int32 ({frames.shape[0]}, {self.n_units}), got "
-                             f"{state.dtype} {state.shape}")
+            raise IntegerInputError(f"state must be int32 ({frames.shape[0]}, {self.n_units}), "
+                                    f"got {state.dtype} {state.shape}")
         if self.module is not None:
             with torch.inference_mode():
                 act, ref, conf = self.module(torch.tensor(frames), torch.tensor(state))
@@ -462,7 +463,7 @@ class IntegerRuntime:
             ``speed (T,)`` with ``speeds``.
         """
         if speeds and self.velocity is None:
-            raise ValueError("speeds: the model has the fixed ring (no speed estimate)")
+            raise IntegerInputError("speeds: the model has the fixed ring (no speed estimate)")
         state = self.initial_state(1)
         refs, confs, acts, vs = [], [], [], []
         for t in range(frames.shape[0]):

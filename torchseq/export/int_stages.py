@@ -34,6 +34,10 @@ class IntegerFormatError(ValueError):
     """A bad integer model file or dict: wrong magic, version, section, checksum or shape."""
 
 
+class IntegerInputError(ValueError):
+    """Bad input to an integer runtime: frames, state or speeds of the wrong shape or dtype."""
+
+
 def _fail(msg: str) -> None:
     raise IntegerFormatError(msg)
 

@@ -26,6 +26,7 @@ from torchseq.export.int_runtime import (
     IntegerRuntime,
     check_dense_budget,
 )
+from torchseq.export.int_stages import IntegerInputError
 from torchseq.neural.fast import Int8Linear
 
 EXACT_F32 = 2**24  # integers below this are exact in float32
@@ -99,7 +100,7 @@ class StreamRuntime(IntegerRuntime):
             :meth:`IntegerRuntime.run` with ``speeds=True``.
         """
         if self.velocity is None:
-            raise ValueError("run_speeds: the model has the fixed ring (no speed estimate)")
+            raise IntegerInputError("run_speeds: the model has the fixed ring (no speed estimate)")
         frames = self.check_frames(frames)
         g = np.concatenate([self.drive(frames[lo:lo + self.chunk])
                             for lo in range(0, frames.shape[0], self.chunk)])
