@@ -24,7 +24,7 @@ from torchseq.export.quantise import Quantised, dequantise, fixed_point, quantis
 __all__ = [
     "FORMAT_VERSION", "ExportError", "IntegerFormatError", "IntegerInputError", "IntegerModel",
     "IntegerRuntime", "IntegerStep", "Quantised", "StreamRuntime", "StreamingStep",
-    "build_float_onnx", "build_integer_onnx", "choose_pool", "dequantise", "device_frames", "export_checkpoint",
-    "export_float_onnx", "fixed_point", "integer_model", "quantise", "read_integer_model",
-    "write_integer_model",
+    "build_float_onnx", "build_integer_onnx", "choose_pool", "dequantise", "device_frames",
+    "export_checkpoint", "export_float_onnx", "fixed_point", "integer_model", "quantise",
+    "read_integer_model", "write_integer_model",
 ]
