@@ -6,11 +6,11 @@ from export_helpers import small_setup
 import torchseq.export as export
 from torchseq.export.int_runtime import IntegerRuntime
 
-PUBLIC = ["FORMAT_VERSION", "ExportError", "IntegerFormatError", "IntegerModel",
-          "IntegerRuntime", "IntegerStep", "Quantised", "StreamRuntime", "StreamingStep",
-          "build_float_onnx", "build_integer_onnx", "choose_pool", "dequantise", "device_frames",
-          "export_checkpoint", "export_float_onnx", "fixed_point", "integer_model", "quantise",
-          "read_integer_model", "write_integer_model"]
+PUBLIC = ["FORMAT_VERSION", "ExportError", "IntegerFormatError", "IntegerInputError",
+          "IntegerModel", "IntegerRuntime", "IntegerStep", "Quantised", "StreamRuntime",
+          "StreamingStep", "build_float_onnx", "build_integer_onnx", "choose_pool", "dequantise",
+          "device_frames", "export_checkpoint", "export_float_onnx", "fixed_point",
+          "integer_model", "quantise", "read_integer_model", "write_integer_model"]
 
 
 def test_public_names():
@@ -18,6 +18,7 @@ def test_public_names():
         assert hasattr(export, name), name
     assert sorted(export.__all__) == sorted(PUBLIC)
     assert issubclass(export.IntegerFormatError, ValueError)
+    assert issubclass(export.IntegerInputError, ValueError)
     assert issubclass(export.ExportError, ValueError)
 
 
