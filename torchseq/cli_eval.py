@@ -219,10 +219,15 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
     return Settings(cfg, scfg, ncfg)
 
 
+def changed_fields(config, default) -> dict:
+    """``{field: value}`` of the dataclass fields of ``config`` that differ from ``default``."""
+    return {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
+            if getattr(config, f.name) != getattr(default, f.name)}
+
+
 def changed_flags(config, default, prefix: str = "") -> list[str]:
     """The ``--flag`` names of the fields of ``config`` that differ from ``default``."""
-    return [f"--{(prefix + f.name).replace('_', '-')}" for f in dataclasses.fields(config)
-            if getattr(config, f.name) != getattr(default, f.name)]
+    return [f"--{(prefix + name).replace('_', '-')}" for name in changed_fields(config, default)]
 
 
 def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[str]) -> None:
@@ -258,9 +263,7 @@ def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False
     (OFF | ON side by side, twice as wide) its 16x16 becomes 16x32 unless ``--image-size``
     is given, so the halves are not squeezed into one square.
     """
-    default = SeqSLAMConfig()
-    changed = {f.name: getattr(flags, f.name) for f in dataclasses.fields(SeqSLAMConfig)
-               if getattr(flags, f.name) != getattr(default, f.name)}
+    changed = changed_fields(flags, SeqSLAMConfig())
     if name == "events" and two_channel and "image_size" not in changed:
         h, w = SeqSLAMConfig.events().image_size
         changed["image_size"] = (h, 2 * w)
