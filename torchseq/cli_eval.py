@@ -33,6 +33,7 @@ from torchseq.frontend import (
     Parser,
     UsageError,
     add_config_flags,
+    changed_fields,
     check_event_flags_apply,
     check_neural,
     check_ranges,
@@ -217,12 +218,6 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
                  + changed_flags(dataclasses.replace(ncfg, seed=0), preset, "neural_")
                  + ["--neural-seed"] * neural_seed_given)
     return Settings(cfg, scfg, ncfg)
-
-
-def changed_fields(config, default) -> dict:
-    """``{field: value}`` of the dataclass fields of ``config`` that differ from ``default``."""
-    return {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
-            if getattr(config, f.name) != getattr(default, f.name)}
 
 
 def changed_flags(config, default, prefix: str = "") -> list[str]:

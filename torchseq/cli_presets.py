@@ -12,7 +12,7 @@ import dataclasses
 from collections.abc import Collection
 from typing import Callable
 
-from torchseq.frontend import UsageError
+from torchseq.frontend import UsageError, changed_fields
 from torchseq.neural import NeuralConfig
 
 NEURAL_PRESETS: dict[str, Callable[[], NeuralConfig]] = {
@@ -68,9 +68,7 @@ def apply_preset(flags: NeuralConfig, name: str | None, typed: Collection[str],
         The config (not yet validated).
     """
     base, was, plain = preset_config(name), preset_config(recorded), NeuralConfig()
-    preset_fields = {f.name for f in dataclasses.fields(NeuralConfig)
-                     if getattr(base, f.name) != getattr(plain, f.name)
-                     or getattr(was, f.name) != getattr(plain, f.name)}
+    preset_fields = set(changed_fields(base, plain)) | set(changed_fields(was, plain))
     taken = {}
     for field in preset_fields:
         value = getattr(flags, field)

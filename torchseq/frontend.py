@@ -326,6 +326,12 @@ def event_frame_options(cfg: EventFlags) -> EventFrameOptions:
                          cfg.refractory_us, cfg.time_unit, cfg.evt3_kernel)
 
 
+def changed_fields(config, default) -> dict:
+    """``{field: value}`` of the dataclass fields of ``config`` that differ from ``default``."""
+    return {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
+            if getattr(config, f.name) != getattr(default, f.name)}
+
+
 def event_flags_set(cfg: EventFlags, given: frozenset[str] = frozenset()) -> list[str]:
     """The event flags given values other than their defaults, or named in ``given``.
 
