@@ -155,8 +155,9 @@ class NeuralSeqSLAM(nn.Module):
         """
         self._require_fit()
         adaptive = self.config.ring_velocity == "adaptive"
+        tracker = VelocityTracker.from_model(self) if adaptive else None
         if state is not None and adaptive:
-            VelocityTracker.from_model(self).check(state, frames.shape[0], self.n_units)
+            tracker.check(state, frames.shape[0], self.n_units)
         elif state is not None:
             state = _ring_state(state)
             if tuple(state.activity.shape) != (frames.shape[0], self.n_units):
@@ -166,7 +167,6 @@ class NeuralSeqSLAM(nn.Module):
             return self._inference(frames, state)
         e = self.evidence(self.code(self.encode(frames)))  # (B, N)
         if adaptive:  # the ring at each stream's speed estimate (neural/velocity.py)
-            tracker = VelocityTracker.from_model(self)
             activity, reference, confidence, state = adaptive_step(
                 e, state if state is not None else tracker.initial(e),
                 self.ring.shift.to(e.dtype), self.ring.params, None,
