@@ -157,7 +157,6 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         NO_SPIKING_FORM,
         QUANT_ONNX,
         export_and_validate,
-        integer_form,
         spiking_form,
     )
 
@@ -203,12 +202,10 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
               "query_source": source, "ground_truth_source": gt_source,
               "device_frame_size_source": size_source}
     report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size))
-    if not integer_form(model):  # no integer device, so no device frame size
-        del report["device_frame_size_source"]
     threshold = _suggested_threshold(model, frames, ground_truth)
     report["suggested_confidence_threshold"] = threshold
     graphs = ((FLOAT_ONNX, "float"), (QUANT_ONNX, "float"), (INT_ONNX, "integer"))
-    for name, kind in graphs if integer_form(model) else graphs[:2]:
+    for name, kind in graphs:
         props = contract(kind, model, report, threshold)
         if not spiking_form(model):  # the adaptive ring: its estimator state too
             props.update(_velocity_contract(model, kind))
@@ -260,8 +257,6 @@ def summary_lines(out_dir) -> list[str]:
     for key, value in report.items():
         if key.endswith("_agreement") or key.endswith("_error") or key == "recall_at_1":
             lines.append(f"{key}: {value}")
-    if "skipped" in report.get("integer", {}):
-        lines.append(f"integer: skipped ({report['integer']['skipped']})")
     nir = report.get("nir") or {}
     if "skipped" in nir:
         lines.append(f"nir: skipped ({nir['skipped']})")

@@ -40,12 +40,6 @@ MIN_AGREEMENT = 0.99
 # of window means: 0.001) and the integer files cannot reproduce the model on them.
 MIN_UINT8_AGREEMENT = 0.9
 NO_SPIKING_FORM = "no spiking form of ring_velocity='adaptive'"
-NO_INTEGER_FORM = NO_SPIKING_FORM  # the earlier name (the integer form now exists)
-
-
-def integer_form(model) -> bool:
-    """Whether the model has the integer forms: every fitted model (format versions 1-3)."""
-    return getattr(model.config, "ring_velocity", "fixed") in ("fixed", "adaptive")
 
 
 def spiking_form(model) -> bool:
@@ -121,18 +115,16 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
     size = tuple(model.config.input_size)
     camera = grey if frame_size is None else resize(grey, tuple(frame_size))
     pool = choose_pool(tuple(camera.shape[1:3]), size)
-    has_int = integer_form(model)
     # build and write
     float_onnx = build_float_onnx(model)
     quant = quantise_onnx(float_onnx)
     files = {FLOAT_ONNX: write_onnx(float_onnx, out / FLOAT_ONNX),
              QUANT_ONNX: write_onnx(quant, out / QUANT_ONNX)}
-    if has_int:
-        files[INT_FILE] = write_integer_model(out / INT_FILE, integer_model(model, pool))
-        stored = read_integer_model(out / INT_FILE)  # validate what was written
-        files[INT_ONNX] = write_onnx(build_integer_onnx(stored), out / INT_ONNX)
+    files[INT_FILE] = write_integer_model(out / INT_FILE, integer_model(model, pool))
+    stored = read_integer_model(out / INT_FILE)  # validate what was written
+    files[INT_ONNX] = write_onnx(build_integer_onnx(stored), out / INT_ONNX)
     checker = {}
-    for name in (FLOAT_ONNX, QUANT_ONNX, INT_ONNX)[:3 if has_int else 2]:
+    for name in (FLOAT_ONNX, QUANT_ONNX, INT_ONNX):
         try:
             onnx.checker.check_model(str(out / name), full_check=True)
             checker[name] = True
@@ -158,17 +150,6 @@ def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
         "quant_onnx_max_abs_error": float(np.abs(act_q - act_pt).max()),
         "quant_onnx_agreement": agreement(ref_q, ref_pt),
     }
-    if not has_int:
-        report = {**float_report, "integer": {"skipped": NO_INTEGER_FORM},
-                  "onnx_checker": checker, "warnings": []}
-        if ground_truth is not None:
-            gt = np.asarray(ground_truth, dtype=bool)
-            report["recall_at_1"] = {name: recall_at_k(r, gt) for name, r in (
-                ("pytorch", ref_pt), ("float_onnx", ref_f), ("quant_onnx", ref_q))}
-        report["checks"] = {"float_onnx_agreement": report["float_onnx_agreement"]
-                            >= MIN_AGREEMENT, "onnx_checker": all(checker.values())}
-        report["passed"] = all(report["checks"].values())
-        return report
     frames_u8 = device_frames(camera, size, pool)
     result_u8 = model.run(torch.from_numpy(frames_u8).to(torch.float32))
     ref_u8, act_u8 = result_u8.matches.reference.numpy(), result_u8.activity.numpy()
