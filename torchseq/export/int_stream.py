@@ -83,9 +83,7 @@ class StreamRuntime(IntegerRuntime):
             ``(reference (T,) int64, confidence (T,) int64, activity (T, N) int32)``, the
             same integers as :meth:`IntegerRuntime.run`.
         """
-        frames = self.check_frames(frames)
-        g = np.concatenate([self.drive(frames[lo:lo + self.chunk])
-                            for lo in range(0, frames.shape[0], self.chunk)])  # (T, N)
+        g = self.drive_all(frames)
         if self.velocity is not None:
             return self.velocity_scan(g)[:3]
         act = self.ring_scan(g)
@@ -101,10 +99,13 @@ class StreamRuntime(IntegerRuntime):
         """
         if self.velocity is None:
             raise IntegerInputError("run_speeds: the model has the fixed ring (no speed estimate)")
+        return self.velocity_scan(self.drive_all(frames))
+
+    def drive_all(self, frames: np.ndarray) -> np.ndarray:
+        """``gain * z`` ``(T, N)`` of a checked traverse, ``chunk`` frames at a time."""
         frames = self.check_frames(frames)
-        g = np.concatenate([self.drive(frames[lo:lo + self.chunk])
-                            for lo in range(0, frames.shape[0], self.chunk)])
-        return self.velocity_scan(g)
+        return np.concatenate([self.drive(frames[lo:lo + self.chunk])
+                               for lo in range(0, frames.shape[0], self.chunk)])
 
     def velocity_scan(self, g: np.ndarray) -> tuple[np.ndarray, ...]:
         """The adaptive ring over ``gain * z`` ``(T, N)``: steps 7v, 8 and 9 frame by frame.
