@@ -31,13 +31,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchseq.demo import make_demo  # noqa: E402
-from torchseq.ground_truth import load_ground_truth  # noqa: E402
 from torchseq.metrics import evaluate  # noqa: E402
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig  # noqa: E402
 from torchseq.seqslam.search import search, trajectory_offsets, trajectory_scores  # noqa: E402
-from torchseq.sources import load_traverse  # noqa: E402
-
-DATA = ROOT.parent / "shared" / "data"
 
 
 def content_alignment(ref: torch.Tensor, query: torch.Tensor) -> np.ndarray:
@@ -59,23 +55,19 @@ def routes(long: int) -> dict:
     out["demo-severe (0.8x)"] = (d.reference, d.query, d.query_position, d.ground_truth, 2)
     d = make_demo(repeat=3)
     out["demo-repeat 3 (0.8x)"] = (d.reference, d.query, d.query_position, d.ground_truth, 2)
-    corridor = DATA / "corridor"
-    if corridor.exists():
-        r = load_traverse(corridor / "ref", progress=False)
-        q = load_traverse(corridor / "query", progress=False)
-        gt = load_ground_truth(corridor / "ground_truth.csv", len(r), len(q))
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from neural_quality import datasets  # the quality tables' loader (absent data skipped)
+    real = datasets(("corridor", "lens"))
+    if "corridor" in real:
+        r, q, gt = real["corridor"]
         truth = np.arange(len(q), dtype=np.float64)
         out["corridor"] = (r, q, truth, gt, 2)
         out["corridor (content alignment)"] = (r, q, content_alignment(r, q), None, 0)
-    lens = DATA / "lens-davis128"
-    if lens.exists():
-        r = load_traverse(lens / "example-reference", progress=False)
-        q = load_traverse(lens / "example-query", progress=False)
-        gt = load_ground_truth(lens / "example-reference_example-query_GT.npy", len(r), len(q))
+    if "lens" in real:
+        r, q, gt = real["lens"]
         truth = np.arange(len(q), dtype=np.float64)
         out["lens (file GT)"] = (r, q, truth, gt, 0)
-        near = np.abs(np.arange(len(r))[:, None] - truth[None]) <= 2
-        out["lens (file GT +-2)"] = (r, q, truth, near, 2)
+        out["lens (file GT +-2)"] = (r, q, truth, real["lens+-2"][2], 2)
         content = content_alignment(r, q)
         same = np.arange(len(r))[:, None] == content[None]
         out["lens (content alignment)"] = (r, q, content, same, 0)
