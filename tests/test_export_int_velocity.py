@@ -332,3 +332,19 @@ def test_largest_window_the_reader_accepts_stays_exact(setup):
     for b in range(4):
         want = oracle_update(wide, int(speed[b]), pos[b].tolist(), k, int(ref[b]))
         assert int(got.velocity[b]) == int(v_t[b]) == want[0]
+
+
+@pytest.mark.parametrize("value", [2**20 + 1, -(2**20) - 1])
+def test_reader_bounds_the_velocity_shift(setup, value):
+    """``ring.shift`` is read with ``abs <= 2**20``: the velocity ring's int64 sums
+    (``check_fits``: width * 2**20 * INT32_MAX < A_BOUND) rely on it."""
+    _, im, _ = setup
+    d = im.to_dict()
+    shift = np.array(d["arrays"]["ring.shift"], np.int32, copy=True)
+    assert int(np.abs(shift.astype(np.int64)).max()) <= 2**20  # the model's own shift passes
+    shift.flat[0] = value
+    d["arrays"]["ring.shift"] = shift
+    with pytest.raises(IntegerFormatError, match=r"ring\.shift: values must satisfy abs"):
+        IntegerModel.from_dict(d)
+    shift.flat[0] = 2**20 if value > 0 else -(2**20)  # the bound itself is accepted
+    assert IntegerModel.from_dict(d).velocity.shift.flat[0] == shift.flat[0]
