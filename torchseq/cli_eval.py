@@ -55,6 +55,7 @@ from torchseq.ground_truth import GroundTruthRanges, alignment_ranges, load_grou
 from torchseq.neural import NeuralConfig
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
 from torchseq.sources import FrameSelection, load_traverse_sizes
+from torchseq.versions import VERSIONS_KEY, versions
 
 PROG = "torchseq eval"  # set by main() to the name the user ran
 ENGINES = ("seqslam", "neural", "both")
@@ -576,7 +577,7 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
-               "warnings": warning_list(notes)}
+               "warnings": warning_list(notes), VERSIONS_KEY: versions()}
     curves = {}
     for name, r in results.items():
         summary[name] = engine_metrics(r, gt, s.run.target_precision)
@@ -584,7 +585,8 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
             curves[name] = metrics.precision_recall_curve(r["matches"], gt)
     write_json(out / "metrics.json", summary)
     write_text(out / "matches.csv", matches_csv(results))
-    write_text(out / "config.json", config_text(config_dict(s)) + "\n")
+    write_text(out / "config.json",
+               config_text({**config_dict(s), VERSIONS_KEY: versions()}) + "\n")
     figures = {}
     if "seqslam" in results:
         r = results["seqslam"]
@@ -666,8 +668,9 @@ def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: 
     w.writerows(rows)
     write_text(out / "sweep.csv", buf.getvalue())
     write_json(out / "sweep.json", {"inputs": source, "rows": rows,
-                                     "warnings": warning_list(notes)})
-    write_text(out / "config.json", config_text({**config_dict(base), "sweep": specs}) + "\n")
+                                     "warnings": warning_list(notes), VERSIONS_KEY: versions()})
+    write_text(out / "config.json", config_text({**config_dict(base), "sweep": specs,
+                                                 VERSIONS_KEY: versions()}) + "\n")
     for row in rows:
         r1 = "n/a" if row["recall_at_1"] is None else f"{row['recall_at_1']:.3f}"
         print(f"{row['setting']}: {row['engine']} recall@1 {r1}")

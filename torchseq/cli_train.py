@@ -47,6 +47,7 @@ from torchseq.frontend import (
 )
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
 from torchseq.sources import FrameSelection, is_event_file, load_traverse, load_traverse_sizes
+from torchseq.versions import VERSIONS_KEY, versions
 
 PROG = "torchseq train"  # set by main() to the name the user ran
 
@@ -244,9 +245,10 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
     seconds = time.perf_counter() - start
     model.save(out / "model.pt", extra={"train_config": to_jsonable(cfg),
                                         "reference": reference})
-    write_text(out / "config.json", config_text({"train": cfg, "model": ncfg}) + "\n")
+    write_text(out / "config.json", config_text({"train": cfg, "model": ncfg,
+                                                 VERSIONS_KEY: versions()}) + "\n")
     summary = {"reference": reference, "neural_preset": preset_name(cfg.neural_preset),
-               "fit_seconds": seconds,
+               "fit_seconds": seconds, VERSIONS_KEY: versions(),
                "model_bytes": int(model.model_bytes()), "n_units": int(model.n_units)}
     write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
     log_training(cfg, ncfg, model, log, out)

@@ -27,6 +27,7 @@ from torchseq.sources import (
     is_event_file,
     load_traverse,
 )
+from torchseq.versions import VERSIONS_KEY
 
 
 class UsageError(ValueError):
@@ -556,6 +557,8 @@ def config_file_defaults(parser: argparse.ArgumentParser, path: str,
     dests = {a.dest: a for a in parser._actions}
     flat = {}
     for key, value in data.items():
+        if key == VERSIONS_KEY:  # a record of what made the run, not a setting
+            continue
         if key in sections:
             if not isinstance(value, dict):
                 raise UsageError(f"--config {path}: {key!r} must be an object")

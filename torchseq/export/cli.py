@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from torchseq.atomic import write_json
+from torchseq.versions import VERSIONS_KEY, versions, versions_line
 
 
 class ExportError(ValueError):
@@ -198,7 +199,8 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         size_source = "the validation query's frames (give --frame-size for the camera's)"
     if len(frame_size) != 2 or not all(0 < v <= 16384 for v in frame_size):
         raise ExportError(f"frame size must be two sides in 1..16384, got {frame_size}")
-    report = {"checkpoint": str(ckpt), "checkpoint_bytes": ckpt.stat().st_size,
+    report = {VERSIONS_KEY: versions(), "checkpoint": str(ckpt),
+              "checkpoint_bytes": ckpt.stat().st_size,
               "query_source": source, "ground_truth_source": gt_source,
               "device_frame_size_source": size_source}
     report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size))
@@ -251,6 +253,8 @@ def summary_lines(out_dir) -> list[str]:
     """The lines the command prints from ``validation.json``: figures, then PASS or FAIL."""
     report = json.loads((Path(out_dir) / "validation.json").read_text())
     lines = [f"validated on {report['query_source']}"]
+    if VERSIONS_KEY in report:  # files written before versions were recorded have none
+        lines.append(f"made with {versions_line(report[VERSIONS_KEY])}")
     if "device_frame_size" in report:  # the integer device's input (none when skipped)
         lines.append(f"device input: uint8 {'x'.join(map(str, report['device_frame_size']))} "
                      f"(from {report['device_frame_size_source']})")
