@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from torchseq._checks import as_frames
 from torchseq.layers import KWinnersTakeAll, MaskedLinear, OutputRing, RingState
 from torchseq.layers.functional import cohort_normalise
 from torchseq.matches import Matches
@@ -194,13 +195,15 @@ class NeuralSeqSLAM(nn.Module):
         the ring's shift matrix learns from the order in which units fired.
 
         Args:
-            reference: ``(T, H, W)`` or ``(T, H, W, 3)`` frames, any size, 0..255, ``T >= 2``.
+            reference: ``(T, H, W)`` or ``(T, H, W, 3)`` frames, any size, 0..255, ``T >= 2``
+                (a tensor or a NumPy array).
             progress: a callback ``(frames done, frames in all)`` (``True``: a tqdm bar).
             log: also compute the reference evidence raster (a second feed-forward pass).
 
         Returns:
             :class:`NeuralFitLog`.
         """
+        reference = as_frames(reference, "reference")
         if reference.dim() not in (3, 4) or reference.shape[0] < 2:
             raise NeuralError(f"reference must be (T, H, W) with T >= 2 frames, got "
                               f"{tuple(reference.shape)}")
@@ -273,7 +276,7 @@ class NeuralSeqSLAM(nn.Module):
         numbers as :meth:`step` once per frame, up to float rounding.
 
         Args:
-            query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames.
+            query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames (a tensor or a NumPy array).
             progress: a callback ``(frames done, frames in all)`` (``True``: a tqdm bar).
             l1_dtype: ``torch.bfloat16`` runs the L1 product in bfloat16 (the
                 ``"bfloat16_gemm"`` kernel) - an approximation: rounding moves a few L2
@@ -284,6 +287,7 @@ class NeuralSeqSLAM(nn.Module):
             :class:`NeuralResult`.
         """
         self._require_fit()
+        query = as_frames(query, "query")
         if query.dim() not in (3, 4) or query.shape[0] == 0:
             raise NeuralError(f"query must be a non-empty (T, H, W), got {tuple(query.shape)}")
         module = self._run_module(l1_dtype)
