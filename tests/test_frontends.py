@@ -98,7 +98,7 @@ def test_eval_ground_truth_that_does_not_fit(tmp_path, capsys):
 
 def test_eval_help_explains_every_flag(capsys):
     with pytest.raises(SystemExit) as exit_info:
-        load_script("eval").main(["--help"])
+        load_script("eval").main(["--help-all"])
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     for flag in ("--reference", "--query", "--ground-truth", "--tolerance", "--engine", "--ds",
@@ -246,7 +246,7 @@ def test_checkpoint_on_another_reference_is_said_plainly(tmp_path, capsys):
 def test_help_is_plain_text_with_one_default_each(capsys):
     for script in ("train", "eval"):
         with pytest.raises(SystemExit):
-            load_script(script).main(["--help"])
+            load_script(script).main(["--help-all"])
         out = capsys.readouterr().out
         assert "``" not in out and ":class:" not in out
         entries = out.split("\n  -")

@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchseq import metrics, plots
+from torchseq import cli_help, metrics, plots
 from torchseq.atomic import write_json, write_text
+from torchseq.cli_help import organise_help
 from torchseq.cli_presets import apply_preset, preset_config, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
@@ -169,6 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
                      {"seed": "seed of the random masks and L1 weights (default: --seed)"},
                      prefix="neural_")
     parser.set_defaults(neural_seed=None)
+    organise_help(parser, cli_help.EVAL, cli_help.EVAL_EXAMPLES)
     return parser
 
 

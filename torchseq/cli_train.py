@@ -18,8 +18,9 @@ from pathlib import Path
 
 import torch
 
-from torchseq import plots
+from torchseq import cli_help, plots
 from torchseq.atomic import write_json, write_text
+from torchseq.cli_help import organise_help
 from torchseq.cli_presets import apply_preset, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
@@ -109,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(parser, TrainConfig, HELP, skip=EventFlags)
     add_config_flags(parser.add_argument_group("event files"), EventFlags, EVENT_HELP)
     add_config_flags(parser.add_argument_group("model (NeuralConfig)"), NeuralConfig, {})
+    organise_help(parser, cli_help.TRAIN, cli_help.TRAIN_EXAMPLES)
     return parser
 
 

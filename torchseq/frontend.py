@@ -43,6 +43,13 @@ class Parser(argparse.ArgumentParser):
     def error(self, message: str):  # noqa: D102 - argparse's hook
         self.exit(2, f"{self.prog}: error: {message.splitlines()[0]}\n")
 
+    help_layout = None  # a torchseq.cli_help.HelpLayout: grouped --help (organise_help)
+
+    def format_help(self) -> str:  # noqa: D102 - argparse's hook
+        if self.help_layout is None:
+            return super().format_help()
+        return self.help_layout.format(self, full=False)
+
 
 def parse_size(text: str | None) -> tuple[int, int] | None:
     """Parse ``"HxW"`` (e.g. ``"16x12"``) into ``(H, W)``; a single ``"N"`` means ``N x N``."""

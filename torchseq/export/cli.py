@@ -295,6 +295,9 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
                     "takes (default: the checkpoint's reference frame size)")
     ap.add_argument("--no-nir", action="store_true", help="do not write model.nir (the "
                     "spiking model as a NIR graph) nor run it in snnTorch and Norse")
+    from torchseq import cli_help
+
+    cli_help.organise_help(ap, cli_help.EXPORT, cli_help.EXPORT_EXAMPLES)
     return ap
 
 
