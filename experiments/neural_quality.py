@@ -11,7 +11,8 @@ written to its own ``neural_<section>.json``/``.md`` and its block of docs/resul
 ``--skip-main`` runs only those; ``--long-velocity`` adds the adaptive rings to the
 long-route and units-of-several-frames tables. With ``--ablation`` it also runs the
 ablation over the model's settings and the harder demo variants (appearance change, speed,
-repetitive scenery). Every section rewrites its tables in docs/results/neural.md (unless ``--no-docs``).
+repetitive scenery). Every section rewrites its tables in docs/results/neural.md (unless
+``--no-docs``).
 Classic SeqSLAM (``torchseq.seqslam``, default settings) runs beside it on the same data.
 """
 

@@ -314,7 +314,7 @@ EVENT_HELP = {
     "hot_pixel": "event files: drop pixels firing more than this many times the median active "
                  "pixel (default: off)",
     "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
-    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md; "
+    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/guide/events.md; "
                  "carry is refused for EVT 2.0 files)",
     "evt3_kernel": "Prophesee EVT 3 .raw files: decoder, auto (numba from 128 MiB when "
                    "installed, else numpy), numpy or numba; the same events either way (numpy "

@@ -1,7 +1,7 @@
 """``torchseq export CHECKPOINT --out DIR``: export and validate a Neural SeqSLAM model.
 
 Writes ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``, ``model_int.onnx``,
-``model.nir`` (the spiking model, with the ``nir`` extra; ``docs/nir.md``) and
+``model.nir`` (the spiking model, with the ``nir`` extra; ``docs/guide/nir.md``) and
 ``validation.json``; exits 0 when every check passes, 1 when a check fails, 2 on bad input.
 By default the export is validated on the checkpoint's own reference (recorded by
 ``train.py``), replayed as the query; the integer device's camera frame size is
@@ -142,7 +142,7 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
             reference's frame size, else the validation query's (reported in
             ``validation.json`` as ``device_frame_size_source``).
         nir: also write ``model.nir`` (the spiking model) and validate it in snnTorch and
-            Norse (``docs/nir.md``; needs the ``nir`` extra, else reported as skipped).
+            Norse (``docs/guide/nir.md``; needs the ``nir`` extra, else reported as skipped).
 
     Returns:
         True when every check passes (see ``validation.json`` ``checks``).
