@@ -375,10 +375,12 @@ def test_event_flags_are_checked_before_any_work(tmp_path, capsys, args, message
 
 
 def readme_commands(word):
-    """The README's ``torchseq eval`` commands that mention ``word``, as argv lists."""
+    """The ``torchseq eval`` commands of the README and the evaluate guide (where its longer
+    examples live) that mention ``word``, as argv lists."""
     import shlex
 
-    text = (ROOT / "README.md").read_text(encoding="utf-8").replace("\\\n", " ")
+    text = "\n".join((ROOT / name).read_text(encoding="utf-8") for name in (
+        "README.md", "docs/guide/evaluate.md")).replace("\\\n", " ")
     return [shlex.split(line.split("torchseq eval", 1)[1]) for line in text.splitlines()
             if line.startswith("torchseq eval") and word in line]
 
