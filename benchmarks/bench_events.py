@@ -1,7 +1,7 @@
 """Event benchmarks: accumulation, readers and the speed experiment end to end; one thread.
 
     .venv/bin/python benchmarks/bench_events.py            # prints Markdown tables
-    .venv/bin/python benchmarks/bench_events.py --write-docs   # also updates docs/events.md
+    .venv/bin/python benchmarks/bench_events.py --write-docs   # also updates docs/results/events.md
     .venv/bin/python benchmarks/bench_events.py --only readers # one section
 
 Accumulation: torchseq's bincount ``accumulate`` against a straightforward NumPy version
@@ -58,7 +58,7 @@ from torchseq.events.prophesee import EVT3_KERNEL, write_evt3
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "events"
-DOC = ROOT / "docs" / "events.md"
+DOC = ROOT / "docs" / "results" / "events.md"
 BEGIN, END = "<!-- bench_events:begin -->", "<!-- bench_events:end -->"
 
 
@@ -508,7 +508,7 @@ def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--events", type=int, default=2_000_000)
     p.add_argument("--write-docs", action="store_true",
-                   help="replace the table block of docs/events.md (all sections only)")
+                   help="replace the table block of docs/results/events.md (all sections only)")
     p.add_argument("--reader-events", type=int, default=20_000_000)
     p.add_argument("--only", choices=SECTIONS, action="append",
                    help="run only these sections (repeatable)")

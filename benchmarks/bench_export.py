@@ -1,6 +1,6 @@
 """Speed of one streaming step per exported variant, one CPU thread, batch 1 and 256.
 
-    .venv/bin/python benchmarks/bench_export.py [--quick] [--doc docs/export.md]
+    .venv/bin/python benchmarks/bench_export.py [--quick] [--doc docs/results/export.md]
 
 Default-size Neural SeqSLAM (NeuralConfig()) fitted on the demo route (200 reference frames,
 so N = 200 output units). Variants: PyTorch eager (``model.step`` after ``fold``), float ONNX,
@@ -8,7 +8,7 @@ quantised ONNX, integer ONNX, NumPy integer runtime; plus single-stream traverse
 of ``model.run`` (feed-forward batched over time, blocked ring scan) and of the integer
 ``StreamRuntime`` (the integer file's arithmetic batched over time), and the bare per-call
 overhead of onnxruntime and of a PyTorch call. Prints a Markdown table and writes it into
-``docs/export.md`` between the ``bench_export`` markers.
+``docs/results/export.md`` between the ``bench_export`` markers.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def timed(fn, min_seconds: float, min_calls: int = 3) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="shorter timing rounds")
-    ap.add_argument("--doc", default=str(ROOT / "docs" / "export.md"))
+    ap.add_argument("--doc", default=str(ROOT / "docs" / "results" / "export.md"))
     args = ap.parse_args()
     torch.set_num_threads(1)
     secs = 0.3 if args.quick else 1.5

@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_neural.py [--no-docs] [--repeats 5] [--compare DIR]
 
-Two parts, printed as Markdown tables and written into docs/neural.md between the
+Two parts, printed as Markdown tables and written into docs/results/neural.md between the
 ``bench`` markers:
 
 1. **This tree beside another checkout** (``--compare``, default ``../main`` when it exists):
@@ -231,7 +231,7 @@ def main(argv=None) -> str:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--compare", type=Path, default=ROOT.parent / "main")
-    p.add_argument("--no-docs", action="store_true", help="do not update docs/neural.md")
+    p.add_argument("--no-docs", action="store_true", help="do not update docs/results/neural.md")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
@@ -250,7 +250,7 @@ def main(argv=None) -> str:
     lines += stages(args.repeats)
     table = "\n".join(lines)
     print(table)
-    docs = ROOT / "docs" / "neural.md"
+    docs = ROOT / "docs" / "results" / "neural.md"
     if not args.no_docs and docs.exists():
         text = docs.read_text()
         if START in text and END in text:

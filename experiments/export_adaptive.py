@@ -1,4 +1,4 @@
-"""The export of ``NeuralConfig.adaptive_velocity()`` models, validated (docs/export.md).
+"""The export of ``NeuralConfig.adaptive_velocity()`` models, validated (docs/results/export.md).
 
 One command (from the repository root, under a minute):
 

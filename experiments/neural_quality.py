@@ -7,11 +7,12 @@ One command (from the repository root):
 Writes ``neural_quality.json`` and ``neural_quality.md`` (a Markdown table) under ``--out``,
 prints the table. ``--offsets``, ``--long-routes 500,3000,20000`` and ``--repeat`` add the
 offset histograms, the long-route table and the wrong-repeat counts (issue 15), each also
-written to its own ``neural_<section>.json``/``.md`` and its block of docs/neural.md;
+written to its own ``neural_<section>.json``/``.md`` and its block of docs/results/neural.md;
 ``--skip-main`` runs only those; ``--long-velocity`` adds the adaptive rings to the
 long-route and units-of-several-frames tables. With ``--ablation`` it also runs the
 ablation over the model's settings and the harder demo variants (appearance change, speed,
-repetitive scenery). Every section rewrites its tables in docs/neural.md (unless ``--no-docs``).
+repetitive scenery). Every section rewrites its tables in docs/results/neural.md (unless
+``--no-docs``).
 Classic SeqSLAM (``torchseq.seqslam``, default settings) runs beside it on the same data.
 """
 
@@ -764,7 +765,7 @@ def main(argv=None) -> dict:
     p.add_argument("--ablation-seeds", type=int, default=3,
                    help="model seeds averaged in the ablation and the appearance sweep")
     p.add_argument("--no-docs", action="store_true",
-                   help="do not rewrite the tables in docs/neural.md")
+                   help="do not rewrite the tables in docs/results/neural.md")
     p.add_argument("--offsets", action="store_true",
                    help="offset histograms of both engines' decisions (LENS, corridor, demo)")
     p.add_argument("--long-routes", default="",
@@ -800,7 +801,7 @@ def main(argv=None) -> dict:
     base = NeuralConfig()
     data = datasets()
     results = {"config": base.to_dict(), "main": [], "ablation": []}
-    blocks = {}  # docs/neural.md marker name -> Markdown
+    blocks = {}  # docs/results/neural.md marker name -> Markdown
     md = ""
     for name, (ref, query, gt) in ({} if args.skip_main else data).items():
         row = {"data": name, "R": len(ref), "Q": len(query)}
@@ -963,7 +964,7 @@ def main(argv=None) -> dict:
         ablation_md = md[start:]
     if not args.skip_main:
         _write(args.out, "neural_quality", results, md)
-    docs = ROOT / "docs" / "neural.md"
+    docs = ROOT / "docs" / "results" / "neural.md"
     if args.ablation and not args.skip_main:
         blocks["quality"] = quality_md + ablation_md
     if blocks and not args.no_docs and docs.exists():

@@ -1,4 +1,4 @@
-"""An independent plain-Python reference of one integer step (docs/integer_format.md).
+"""An independent plain-Python reference of one integer step (docs/reference/integer_format.md).
 
 Written from the spec with Python integers, ``math.isqrt``, exact ``Fraction`` rounding,
 explicit loops and a sort-based top-k, sharing no code with ``torchseq.export.int_runtime``.

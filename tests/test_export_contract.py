@@ -1,4 +1,4 @@
-"""The device contract in docs/export.md: its NumPy/OpenCV host agrees with the library."""
+"""The device contract in docs/guide/export.md: its NumPy/OpenCV host agrees with the library."""
 
 import re
 from pathlib import Path
@@ -16,10 +16,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def doc_snippet() -> dict:
-    text = (ROOT / "docs" / "export.md").read_text()
+    text = (ROOT / "docs" / "guide" / "export.md").read_text()
     block = re.search(r"<!-- contract-snippet -->\s*```python\n(.*?)```", text, re.S).group(1)
     namespace: dict = {}
-    exec(compile(block, "docs/export.md", "exec"), namespace)  # the documented code, as is
+    exec(compile(block, "docs/guide/export.md", "exec"), namespace)  # the documented code, as is
     return namespace
 
 

@@ -1,4 +1,4 @@
-"""The integer reader checks every stage against docs/integer_format.md, never later.
+"""The integer reader checks every stage against docs/reference/integer_format.md, never later.
 
 Files are written here by an independent, unchecking writer (`_raw_file`, from the layout
 table of the spec) so that the reader itself, not the writer, must refuse each invalid file.

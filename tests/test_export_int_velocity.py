@@ -1,4 +1,5 @@
-"""The adaptive ring in the integer format (version 3): docs/integer_format.md, steps 7v and 9.
+"""The adaptive ring in the integer format (version 3): docs/reference/integer_format.md,
+steps 7v and 9.
 
 References: an independent plain-Python oracle of the velocity ring and the speed estimator
 below (Python integers and exact fractions: the LS slope and the residual test as rationals,

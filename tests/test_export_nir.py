@@ -223,7 +223,7 @@ def test_consumer_runs_the_tiny_graph_spike_for_spike(name, tiny_report):
 @pytest.mark.parametrize("name", ["snntorch", "norse"])
 def test_consumer_agrees_on_the_demo(name, demo_report):
     rep = _consumer_report(name, demo_report)
-    # measured: every frame and every ring spike equal (docs/nir.md)
+    # measured: every frame and every ring spike equal (docs/results/nir.md)
     assert rep["agreement"] >= 0.99, rep["differing_frames"]
     assert rep["recall_at_1"] == pytest.approx(demo_report["torchseq"]["recall_at_1"], abs=0.01)
     assert rep["time_steps"] == 249

@@ -77,7 +77,7 @@ def test_quantised_onnx_quantises_the_weight_matmuls(setup):
     assert ops.count("MatMulInteger") == 2
     ref, _, _ = run_float_onnx(session(quant), small.numpy())
     ref_pt = model.run(demo.query).matches.reference.numpy()
-    assert np.mean(ref == ref_pt) >= 0.9  # measured 0.93-0.99 on the data of docs/export.md
+    assert np.mean(ref == ref_pt) >= 0.9  # measured 0.93-0.99 on the data of docs/results/export.md
 
 
 def test_unfitted_model_is_rejected():

@@ -98,7 +98,7 @@ def test_eval_ground_truth_that_does_not_fit(tmp_path, capsys):
 
 def test_eval_help_explains_every_flag(capsys):
     with pytest.raises(SystemExit) as exit_info:
-        load_script("eval").main(["--help"])
+        load_script("eval").main(["--help-all"])
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     for flag in ("--reference", "--query", "--ground-truth", "--tolerance", "--engine", "--ds",
@@ -246,7 +246,7 @@ def test_checkpoint_on_another_reference_is_said_plainly(tmp_path, capsys):
 def test_help_is_plain_text_with_one_default_each(capsys):
     for script in ("train", "eval"):
         with pytest.raises(SystemExit):
-            load_script(script).main(["--help"])
+            load_script(script).main(["--help-all"])
         out = capsys.readouterr().out
         assert "``" not in out and ":class:" not in out
         entries = out.split("\n  -")
@@ -375,10 +375,12 @@ def test_event_flags_are_checked_before_any_work(tmp_path, capsys, args, message
 
 
 def readme_commands(word):
-    """The README's ``torchseq eval`` commands that mention ``word``, as argv lists."""
+    """The ``torchseq eval`` commands of the README and the evaluate guide (where its longer
+    examples live) that mention ``word``, as argv lists."""
     import shlex
 
-    text = (ROOT / "README.md").read_text(encoding="utf-8").replace("\\\n", " ")
+    text = "\n".join((ROOT / name).read_text(encoding="utf-8") for name in (
+        "README.md", "docs/guide/evaluate.md")).replace("\\\n", " ")
     return [shlex.split(line.split("torchseq eval", 1)[1]) for line in text.splitlines()
             if line.startswith("torchseq eval") and word in line]
 

@@ -1,4 +1,4 @@
-"""Units of several frames: the learnt shift does not depend on the kernel (docs/neural.md,
+"""Units of several frames: the learnt shift does not depend on the kernel (docs/results/neural.md,
 "Units of several frames" and the adaptive rows of the long-route table).
 
 When every unit holds at least two frames, the default kernel (lags 0/1/2, stay 0.5, spread

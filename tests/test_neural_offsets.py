@@ -3,7 +3,7 @@
 The LENS frames align one frame early against their identity ground truth (engine-free
 frame differences are smallest at reference ``j - 1`` for query ``j``, two or three frames in
 the middle of the route), so the decisions are measured against that content alignment,
-computed here by a plain loop; the demo's positions are exact. Figures: docs/neural.md,
+computed here by a plain loop; the demo's positions are exact. Figures: docs/results/neural.md,
 ``experiments/neural_quality.py --skip-main --relative-offsets``.
 """
 

@@ -1,4 +1,5 @@
-"""Each rule of Neural SeqSLAM against a plain loop written here from docs/neural.md ("Step maths").
+"""Each rule of Neural SeqSLAM against a plain loop written here from docs/guide/neural.md
+("Step maths").
 
 The loops use Python floats and lists only, so they share no code with the library.
 """

@@ -1,6 +1,6 @@
 """The interpolating readout (issue 15, long routes): the place within the winner's stretch.
 
-The oracle is a plain loop written here from docs/neural.md ("Step maths", step 8b), in
+The oracle is a plain loop written here from docs/guide/neural.md ("Step maths", step 8b), in
 Python floats; the floors are on the demo route with units of several frames.
 """
 

@@ -2,7 +2,7 @@
 under ``torch.inference_mode()``, batched, and ``run`` frame by frame.
 
 The reference here composes the ``torchseq.layers`` modules of the model by hand (the
-definition in docs/neural.md, "Step maths"), so no fast kernel is involved in it.
+definition in docs/guide/neural.md, "Step maths"), so no fast kernel is involved in it.
 """
 
 import pytest

@@ -86,7 +86,7 @@ def test_pinned_adaptive_model_steps_like_the_fixed_model(route, folded):
 # ---------------------------------------------------------------- a plain-loop reference
 def reference_loop(evidence: np.ndarray, shift: np.ndarray, decay: float, gain: float,
                    centre: np.ndarray, cfg: NeuralConfig):
-    """The adaptive step of docs/neural.md written out frame by frame, one stream."""
+    """The adaptive step of docs/guide/neural.md written out frame by frame, one stream."""
     a, v, seen = np.zeros(shift.shape[0]), 1.0, []
     refs, speeds = [], []
     for e in evidence:
@@ -253,7 +253,8 @@ def test_demo_severe_recall_with_the_adaptive_ring():
 
 @pytest.mark.filterwarnings("ignore:a route of 12 frames on 6 output units")
 def test_fit_warns_when_the_adaptive_ring_gets_units_of_several_frames():
-    """Measured worse than the fixed ring there (docs/neural.md, Long routes): said loudly."""
+    """Measured worse than the fixed ring there (docs/results/neural.md, Long routes): said
+    loudly."""
     import warnings as _w
 
     frames = torch.rand(12, 24, 32) * 255

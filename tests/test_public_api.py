@@ -64,7 +64,7 @@ PUBLIC = {
     "torchseq.cli_eval": ["EvalConfig", "Settings", "build_parser", "cli", "main",
                           "parse_args", "seqslam_preset"],
     "torchseq.cli_train": ["TrainConfig", "build_parser", "cli", "main", "parse_args"],
-    # the spiking model and its NIR export (docs/nir.md)
+    # the spiking model and its NIR export (docs/guide/nir.md)
     "torchseq.neural.spiking": ["DT", "SpikingConfig", "SpikingError", "SpikingSeqSLAM",
                                 "SpikingState", "SpikingStep", "ladder", "lif_step"],
     "torchseq.export.nir_export": ["FORMAT", "NIRExportError", "read_nir", "require_nir",

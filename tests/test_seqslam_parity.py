@@ -156,7 +156,7 @@ def test_corridor_matches_oracle_and_recall():
     # measured with OpenSeqSLAM's parameters: recall@1 = 0.441 (49/111) reporting where the
     # best trajectory crosses the query (the default), 0.378 with OpenSeqSLAM's start + ds/2
     # (same starts); this fisheye corridor is hard for 64x32 patch-normalised frames
-    # (contrast enhancement off gives 0.586, ds=20 gives 0.450, see docs/seqslam.md).
+    # (contrast enhancement off gives 0.586, ds=20 gives 0.450, see docs/guide/seqslam.md).
     assert metrics["recall_at_1"] >= 0.42
 
 

@@ -286,7 +286,7 @@ def _agreement(model, sp, query, gt):
 def test_agrees_with_the_rate_model_on_the_demo():
     model, demo, sp = demo_setup()
     agree, rate_recall, spiking_recall = _agreement(model, sp, demo.query, demo.ground_truth)
-    # measured 0.960 agreement, recall 0.996 vs the rate model's 1.000 (docs/nir.md)
+    # measured 0.960 agreement, recall 0.996 vs the rate model's 1.000 (docs/results/nir.md)
     assert agree >= 0.94
     assert spiking_recall >= rate_recall - 0.01
 
@@ -311,7 +311,7 @@ def test_agrees_with_the_rate_model_on_real_data(name):
     model.fit(ref, log=False)
     sp = SpikingSeqSLAM.convert(model, ref)
     agree, rate_recall, spiking_recall = _agreement(model, sp, qry, gt)
-    # measured (experiments/spiking_quality.py, docs/nir.md; default ladder K=128,
+    # measured (experiments/spiking_quality.py, docs/results/nir.md; default ladder K=128,
     # low=0.01): corridor 0.820 agreement, recall 0.865 vs the rate model's 0.811;
     # lens-davis128 within +-2 frames 0.820 agreement, recall 0.780 vs 0.850. Floors 0.04
     # below (4 corridor frames); the former ladder (K=64, low=0.03) gives 0.640 / 0.770

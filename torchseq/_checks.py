@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numpy as np
 import torch
 
 
@@ -37,3 +38,25 @@ def check_not_empty(x: torch.Tensor, name: str = "input") -> None:
     """Raise ``ValueError`` when ``x`` has no elements along its first axis."""
     if x.dim() == 0 or x.shape[0] == 0:
         raise ValueError(f"{name} is empty (shape {tuple(x.shape)})")
+
+
+def as_frames(x: torch.Tensor | np.ndarray, name: str = "frames") -> torch.Tensor:
+    """A traverse of frames as a tensor: a tensor as it is, a NumPy array as one.
+
+    A NumPy array shares its memory where it can (contiguous and writable) and is copied
+    otherwise; nested lists of numbers become a tensor as ``torch.as_tensor`` makes it; anything
+    else is a ``TypeError`` naming the accepted kinds.
+    """
+    if isinstance(x, torch.Tensor):
+        return x
+    if isinstance(x, np.ndarray):
+        if not (np.issubdtype(x.dtype, np.number) or x.dtype == np.bool_):
+            raise TypeError(f"{name} must hold numbers, got a NumPy array of {x.dtype}")
+        if not (x.flags.c_contiguous and x.flags.writeable):
+            x = np.array(x, order="C")  # torch cannot wrap negative strides or read-only memory
+        return torch.from_numpy(x)
+    try:  # nested lists of numbers, as torch.as_tensor reads them
+        return torch.as_tensor(x)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"{name} must be a torch.Tensor or a NumPy array, got "
+                        f"{type(x).__name__}") from None

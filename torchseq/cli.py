@@ -13,8 +13,9 @@ COMMANDS = {
     "train": "learn a Neural SeqSLAM model from a reference traverse",
     "export": "export a Neural SeqSLAM checkpoint to ONNX and integer files and validate them",
 }
-USAGE = "usage: torchseq {eval,train,export} [--help] ...\n\n" + "\n".join(
-    f"  {name:<8}{text}" for name, text in COMMANDS.items())
+USAGE = "usage: torchseq [--version] {eval,train,export} [--help] ...\n\n" + "\n".join(
+    f"  {name:<8}{text}" for name, text in COMMANDS.items()) + (
+    "\n\n`torchseq COMMAND --help` lists a command's common flags, `--help-all` all of them.")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,6 +24,10 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print(USAGE)
         return 0 if argv else 2
+    if argv[0] in ("-V", "--version"):
+        from torchseq.versions import versions_line
+        print(versions_line())
+        return 0
     command, rest = argv[0], argv[1:]
     prog = f"torchseq {command}"
     if command == "eval":

@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchseq import metrics, plots
+from torchseq import cli_help, metrics, plots
 from torchseq.atomic import write_json, write_text
+from torchseq.cli_help import organise_help
 from torchseq.cli_presets import apply_preset, preset_config, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
@@ -55,6 +56,7 @@ from torchseq.ground_truth import GroundTruthRanges, alignment_ranges, load_grou
 from torchseq.neural import NeuralConfig
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
 from torchseq.sources import FrameSelection, load_traverse_sizes
+from torchseq.versions import VERSIONS_KEY, versions
 
 PROG = "torchseq eval"  # set by main() to the name the user ran
 ENGINES = ("seqslam", "neural", "both")
@@ -168,6 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
                      {"seed": "seed of the random masks and L1 weights (default: --seed)"},
                      prefix="neural_")
     parser.set_defaults(neural_seed=None)
+    organise_help(parser, cli_help.EVAL, cli_help.EVAL_EXAMPLES)
     return parser
 
 
@@ -576,7 +579,7 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
-               "warnings": warning_list(notes)}
+               "warnings": warning_list(notes), VERSIONS_KEY: versions()}
     curves = {}
     for name, r in results.items():
         summary[name] = engine_metrics(r, gt, s.run.target_precision)
@@ -584,7 +587,8 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
             curves[name] = metrics.precision_recall_curve(r["matches"], gt)
     write_json(out / "metrics.json", summary)
     write_text(out / "matches.csv", matches_csv(results))
-    write_text(out / "config.json", config_text(config_dict(s)) + "\n")
+    write_text(out / "config.json",
+               config_text({**config_dict(s), VERSIONS_KEY: versions()}) + "\n")
     figures = {}
     if "seqslam" in results:
         r = results["seqslam"]
@@ -666,8 +670,9 @@ def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: 
     w.writerows(rows)
     write_text(out / "sweep.csv", buf.getvalue())
     write_json(out / "sweep.json", {"inputs": source, "rows": rows,
-                                     "warnings": warning_list(notes)})
-    write_text(out / "config.json", config_text({**config_dict(base), "sweep": specs}) + "\n")
+                                     "warnings": warning_list(notes), VERSIONS_KEY: versions()})
+    write_text(out / "config.json", config_text({**config_dict(base), "sweep": specs,
+                                                 VERSIONS_KEY: versions()}) + "\n")
     for row in rows:
         r1 = "n/a" if row["recall_at_1"] is None else f"{row['recall_at_1']:.3f}"
         print(f"{row['setting']}: {row['engine']} recall@1 {r1}")

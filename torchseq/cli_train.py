@@ -18,8 +18,9 @@ from pathlib import Path
 
 import torch
 
-from torchseq import plots
+from torchseq import cli_help, plots
 from torchseq.atomic import write_json, write_text
+from torchseq.cli_help import organise_help
 from torchseq.cli_presets import apply_preset, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
@@ -47,6 +48,7 @@ from torchseq.frontend import (
 )
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
 from torchseq.sources import FrameSelection, is_event_file, load_traverse, load_traverse_sizes
+from torchseq.versions import VERSIONS_KEY, versions
 
 PROG = "torchseq train"  # set by main() to the name the user ran
 
@@ -108,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(parser, TrainConfig, HELP, skip=EventFlags)
     add_config_flags(parser.add_argument_group("event files"), EventFlags, EVENT_HELP)
     add_config_flags(parser.add_argument_group("model (NeuralConfig)"), NeuralConfig, {})
+    organise_help(parser, cli_help.TRAIN, cli_help.TRAIN_EXAMPLES)
     return parser
 
 
@@ -244,9 +247,10 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
     seconds = time.perf_counter() - start
     model.save(out / "model.pt", extra={"train_config": to_jsonable(cfg),
                                         "reference": reference})
-    write_text(out / "config.json", config_text({"train": cfg, "model": ncfg}) + "\n")
+    write_text(out / "config.json", config_text({"train": cfg, "model": ncfg,
+                                                 VERSIONS_KEY: versions()}) + "\n")
     summary = {"reference": reference, "neural_preset": preset_name(cfg.neural_preset),
-               "fit_seconds": seconds,
+               "fit_seconds": seconds, VERSIONS_KEY: versions(),
                "model_bytes": int(model.model_bytes()), "n_units": int(model.n_units)}
     write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
     log_training(cfg, ncfg, model, log, out)

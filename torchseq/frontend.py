@@ -27,6 +27,7 @@ from torchseq.sources import (
     is_event_file,
     load_traverse,
 )
+from torchseq.versions import VERSIONS_KEY
 
 
 class UsageError(ValueError):
@@ -41,6 +42,13 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str):  # noqa: D102 - argparse's hook
         self.exit(2, f"{self.prog}: error: {message.splitlines()[0]}\n")
+
+    help_layout = None  # a torchseq.cli_help.HelpLayout: grouped --help (organise_help)
+
+    def format_help(self) -> str:  # noqa: D102 - argparse's hook
+        if self.help_layout is None:
+            return super().format_help()
+        return self.help_layout.format(self, full=False)
 
 
 def parse_size(text: str | None) -> tuple[int, int] | None:
@@ -306,7 +314,7 @@ EVENT_HELP = {
     "hot_pixel": "event files: drop pixels firing more than this many times the median active "
                  "pixel (default: off)",
     "refractory_us": "event files: per-pixel refractory period in microseconds (default: off)",
-    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/events.md; "
+    "evt3_time": "Prophesee EVT 3 .raw files: time rule, spec or carry (see docs/guide/events.md; "
                  "carry is refused for EVT 2.0 files)",
     "evt3_kernel": "Prophesee EVT 3 .raw files: decoder, auto (numba from 128 MiB when "
                    "installed, else numpy), numpy or numba; the same events either way (numpy "
@@ -556,6 +564,8 @@ def config_file_defaults(parser: argparse.ArgumentParser, path: str,
     dests = {a.dest: a for a in parser._actions}
     flat = {}
     for key, value in data.items():
+        if key == VERSIONS_KEY:  # a record of what made the run, not a setting
+            continue
         if key in sections:
             if not isinstance(value, dict):
                 raise UsageError(f"--config {path}: {key!r} must be an object")

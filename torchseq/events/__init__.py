@@ -1,7 +1,7 @@
 """Event cameras: read and write event files, accumulate frames, simulate events from video.
 
 Events are a structured NumPy array ``(t int64 us, x int16, y int16, p uint8)`` with the
-sensor size ``(W, H)``: an :class:`EventStream`. See ``docs/events.md``.
+sensor size ``(W, H)``: an :class:`EventStream`. See ``docs/guide/events.md``.
 """
 
 from torchseq.events.aedat2 import iter_aedat2, write_aedat2

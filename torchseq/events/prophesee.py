@@ -129,7 +129,7 @@ EVT3_KERNELS = ("numba", "numpy")
 # the fast kernel when installed (numba is imported only when it first runs)
 EVT3_KERNEL = "numba" if importlib.util.find_spec("numba") is not None else "numpy"
 # numba's ~1 s start-up per process is repaid from about 10**8 events (~200 MB of words):
-# NumPy decodes ~50 M events/s per core, numba ~140 M (docs/events.md); below this size the
+# NumPy decodes ~50 M events/s per core, numba ~140 M (docs/results/events.md); below this size the
 # NumPy kernel finishes first
 EVT3_NUMBA_MIN_BYTES = 1 << 27
 

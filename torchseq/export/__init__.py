@@ -1,8 +1,9 @@
 """Deployment export of Neural SeqSLAM: float ONNX, quantised ONNX, integer file and graph.
 
-See ``docs/export.md`` (how to use it, measured agreement and speed),
-``docs/integer_format.md`` (the integer file and its arithmetic) and ``docs/nir.md`` (the
-spiking model as a NIR graph: ``torchseq.export.nir_export``).
+See ``docs/guide/export.md`` (how to use it; measured agreement and speed in
+``docs/results/export.md``), ``docs/reference/integer_format.md`` (the integer file and its
+arithmetic) and ``docs/guide/nir.md`` (the spiking model as a NIR graph:
+``torchseq.export.nir_export``).
 """
 
 from torchseq.export.cli import ExportError, export_checkpoint

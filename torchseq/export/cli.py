@@ -1,7 +1,7 @@
 """``torchseq export CHECKPOINT --out DIR``: export and validate a Neural SeqSLAM model.
 
 Writes ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``, ``model_int.onnx``,
-``model.nir`` (the spiking model, with the ``nir`` extra; ``docs/nir.md``) and
+``model.nir`` (the spiking model, with the ``nir`` extra; ``docs/guide/nir.md``) and
 ``validation.json``; exits 0 when every check passes, 1 when a check fails, 2 on bad input.
 By default the export is validated on the checkpoint's own reference (recorded by
 ``train.py``), replayed as the query; the integer device's camera frame size is
@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from torchseq.atomic import write_json
+from torchseq.versions import VERSIONS_KEY, versions, versions_line
 
 
 class ExportError(ValueError):
@@ -141,7 +142,7 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
             reference's frame size, else the validation query's (reported in
             ``validation.json`` as ``device_frame_size_source``).
         nir: also write ``model.nir`` (the spiking model) and validate it in snnTorch and
-            Norse (``docs/nir.md``; needs the ``nir`` extra, else reported as skipped).
+            Norse (``docs/guide/nir.md``; needs the ``nir`` extra, else reported as skipped).
 
     Returns:
         True when every check passes (see ``validation.json`` ``checks``).
@@ -198,7 +199,8 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         size_source = "the validation query's frames (give --frame-size for the camera's)"
     if len(frame_size) != 2 or not all(0 < v <= 16384 for v in frame_size):
         raise ExportError(f"frame size must be two sides in 1..16384, got {frame_size}")
-    report = {"checkpoint": str(ckpt), "checkpoint_bytes": ckpt.stat().st_size,
+    report = {VERSIONS_KEY: versions(), "checkpoint": str(ckpt),
+              "checkpoint_bytes": ckpt.stat().st_size,
               "query_source": source, "ground_truth_source": gt_source,
               "device_frame_size_source": size_source}
     report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size))
@@ -251,6 +253,8 @@ def summary_lines(out_dir) -> list[str]:
     """The lines the command prints from ``validation.json``: figures, then PASS or FAIL."""
     report = json.loads((Path(out_dir) / "validation.json").read_text())
     lines = [f"validated on {report['query_source']}"]
+    if VERSIONS_KEY in report:  # files written before versions were recorded have none
+        lines.append(f"made with {versions_line(report[VERSIONS_KEY])}")
     if "device_frame_size" in report:  # the integer device's input (none when skipped)
         lines.append(f"device input: uint8 {'x'.join(map(str, report['device_frame_size']))} "
                      f"(from {report['device_frame_size_source']})")
@@ -291,6 +295,9 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
                     "takes (default: the checkpoint's reference frame size)")
     ap.add_argument("--no-nir", action="store_true", help="do not write model.nir (the "
                     "spiking model as a NIR graph) nor run it in snnTorch and Norse")
+    from torchseq import cli_help
+
+    cli_help.organise_help(ap, cli_help.EXPORT, cli_help.EXPORT_EXAMPLES)
     return ap
 
 

@@ -2,7 +2,7 @@
 
 A host that feeds an exported graph must make its input exactly as the library does, or
 decisions drift (a few percent of frames with another grey conversion or resize). The rules
-travel with the files under ``torchseq.*`` keys; ``docs/export.md`` ("Device contract") has
+travel with the files under ``torchseq.*`` keys; ``docs/guide/export.md`` ("Device contract") has
 a NumPy/OpenCV reference that follows them and that a test runs against the library.
 """
 

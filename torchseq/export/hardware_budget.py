@@ -6,7 +6,7 @@ an int8 grid), the *effective* neuron-to-neuron
 synapses (a chain of Linear nodes between two spiking populations multiplied out, as a chip
 without analog intermediate layers would have to hold it), fan-in and fan-out, and memory
 at 8-bit weights. :func:`check` compares it with :data:`LIMITS`. Sources of the limits
-(figures as published; see ``docs/nir.md``):
+(figures as published; see ``docs/guide/nir.md``):
 
 - Speck: 328K integrate-and-fire neurons, 9 layers (https://open-neuromorphic.org/
   neuromorphic-computing/hardware/speck-synsense); a layer's fan-out is 2 destination

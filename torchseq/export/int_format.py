@@ -1,6 +1,6 @@
 """The integer weight file (``.tsq``): versioned, little-endian, sectioned, CRC32-checked.
 
-The layout and the arithmetic are specified in ``docs/integer_format.md``; this module is
+The layout and the arithmetic are specified in ``docs/reference/integer_format.md``; this module is
 the writer and the reader. :class:`IntegerModel` is the in-memory form: the typed stages of
 :mod:`torchseq.export.int_stages`, each checked against the spec when built;
 :func:`encode` / :func:`decode` turn it into bytes and back; :func:`write_integer_model` /
@@ -55,7 +55,8 @@ DTYPES = {1: np.dtype("<u1"), 2: np.dtype("<i1"), 3: np.dtype("<u2"), 4: np.dtyp
           5: np.dtype("<i4"), 6: np.dtype("<i8")}
 _CODES = {v: k for k, v in DTYPES.items()}
 
-# params: the integer scalars of the header section, in file order (docs/integer_format.md).
+# params: the integer scalars of the header section, in file order
+# (docs/reference/integer_format.md).
 # Version 1 holds the first 24; version 2 appends ``readout`` (version 1: READOUT_CENTRE).
 PARAM_NAMES_V1 = (
     "height", "width", "pool_h", "pool_w", "patch", "input_mode", "x_frac", "sqrt_frac",

@@ -1,7 +1,7 @@
 """Convert a fitted float :class:`~torchseq.neural.NeuralSeqSLAM` into an :class:`IntegerModel`.
 
 The fixed-point design (bit widths, shifts, constants) is specified in
-``docs/integer_format.md``; every integer comes from the export grids of the one
+``docs/reference/integer_format.md``; every integer comes from the export grids of the one
 quantiser, :mod:`torchseq.quantise`.
 """
 

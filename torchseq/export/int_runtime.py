@@ -1,6 +1,6 @@
 """Integer runtime of the integer format: the step's definition or its NumPy kernels.
 
-The arithmetic of ``docs/integer_format.md`` ("One step") is defined once, by
+The arithmetic of ``docs/reference/integer_format.md`` ("One step") is defined once, by
 :class:`torchseq.export.int_step.IntegerStepModule`. :class:`IntegerRuntime` runs either that
 module eagerly (``kernel="module"``) or private NumPy kernels of the same integers
 (``kernel="numpy"``, the default: 2.5x faster per step at batch 1 on a 1024-unit L2), chosen at

@@ -1,6 +1,6 @@
 """The stages of an integer model, typed, each checking its own fields against the spec.
 
-``docs/integer_format.md`` defines one step as: the input stage (pool, patch z-score), two
+``docs/reference/integer_format.md`` defines one step as: the input stage (pool, patch z-score), two
 sparse products (L1 -> L2 with the k-WTA, L2 -> L3 with the per-row rescale), the cohort
 normalisation with the gain, the fixed-point ring and the read-out. Each is a frozen
 dataclass here that validates its fields on construction: dtypes, shapes, index ranges and
@@ -312,7 +312,7 @@ class ReadoutStage:
         window: units around the winner the margin ignores, ``0..32767``.
         readout: ``READOUT_CENTRE`` (0): the winner's ``unit_centre``;
             ``READOUT_INTERPOLATE`` (1): the frame within the winner's span read from its
-            neighbours' activity (docs/integer_format.md, step 8; format version 2).
+            neighbours' activity (docs/reference/integer_format.md, step 8; format version 2).
     """
 
     unit_centre: np.ndarray
@@ -355,7 +355,7 @@ def velocity_den(window: int) -> int:
 
 @dataclass(frozen=True, eq=False)
 class VelocityStage:
-    """The adaptive ring of format version 3 (docs/integer_format.md, step 7v and 9).
+    """The adaptive ring of format version 3 (docs/reference/integer_format.md, step 7v and 9).
 
     Attributes:
         shift: ``(N, W)`` int32 the learnt shift alone (no decay) at ``ring.cols`` on the

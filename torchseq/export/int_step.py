@@ -1,4 +1,4 @@
-"""The integer step of ``docs/integer_format.md``, written once as a torch integer module.
+"""The integer step of ``docs/reference/integer_format.md``, written once as a torch integer module.
 
 :class:`IntegerStepModule` holds the stages of an :class:`IntegerModel` as int64 buffers and
 computes one streaming step with integer tensor operations only (no float in the
@@ -217,7 +217,7 @@ class _SparseCore(torch.autograd.Function):
 
 
 class IntegerStepModule(nn.Module):
-    """One integer step of an :class:`IntegerModel` (docs/integer_format.md, steps 1-8).
+    """One integer step of an :class:`IntegerModel` (docs/reference/integer_format.md, steps 1-8).
 
     Args:
         model: a checked :class:`IntegerModel` (its stages are validated when built).

@@ -1,6 +1,6 @@
 """The adaptive ring in integers (format version 3), written once as torch integer operations.
 
-docs/integer_format.md, steps 7v and 9: the ring moves by the fixed-point speed ``v``
+docs/reference/integer_format.md, steps 7v and 9: the ring moves by the fixed-point speed ``v``
 (``2**-16`` grid) as the mix of two integer powers of the stored shift, and after each
 decision the speed is re-estimated from the window of the last ``K`` reported frames (the
 least-squares slope, an exact rational residual test, the rate step and the clamp). No

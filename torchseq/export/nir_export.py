@@ -1,4 +1,4 @@
-"""NIR export of the spiking Neural SeqSLAM (``docs/nir.md``).
+"""NIR export of the spiking Neural SeqSLAM (``docs/guide/nir.md``).
 
 :func:`to_nir` turns a :class:`~torchseq.neural.spiking.SpikingSeqSLAM` into a
 ``nir.NIRGraph`` (the Neuromorphic Intermediate Representation, package ``nir``);
@@ -38,7 +38,7 @@ from torchseq.neural.spiking import DT
 FORMAT = "torchseq.spiking-nir/1"
 KWTA_NOTE = ("k-WTA has no NIR primitive: L2 is a layer of threshold units (LIF, tau = dt) with "
              "the threshold calibrated on the reference traverse so that about k units fire; "
-             "the number of winners varies from frame to frame (see docs/nir.md)")
+             "the number of winners varies from frame to frame (see docs/guide/nir.md)")
 
 
 class NIRExportError(ValueError):

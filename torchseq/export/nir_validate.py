@@ -1,4 +1,6 @@
-"""``model.nir`` and its validation figures for ``python -m torchseq.export`` (``docs/nir.md``).
+"""``model.nir`` and its validation figures for ``python -m torchseq.export``.
+
+The spiking model and the graph: ``docs/guide/nir.md``.
 
 :func:`export_nir` converts the checkpoint's rate model to the spiking model (calibrated on
 the reference it learnt), writes ``model.nir``, reads it back (values must be equal), runs

@@ -61,7 +61,7 @@ def quantise_onnx(model: onnx.ModelProto) -> onnx.ModelProto:
     """Dynamic int8 quantisation (onnxruntime) of the L1 and L3 weight ``MatMul`` nodes.
 
     The cohort normalisation and the ring stay float: quantising the recurrent state with
-    per-call dynamic 8-bit scales costs decisions (measured in ``docs/export.md``).
+    per-call dynamic 8-bit scales costs decisions (measured in ``docs/results/export.md``).
     """
     from onnxruntime.quantization import QuantType, quantize_dynamic
 

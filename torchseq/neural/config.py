@@ -57,7 +57,7 @@ class NeuralConfig:
     The structure is the seed's Table 1: 32x24 input, 20% L1 -> L2 mask, 3072 L2 units,
     555 output units, except the L2 -> L3 layer, which is dense (``density_out=1.0``; Table
     1: a 20% mask). The dynamics were chosen by measurements over several seeds
-    (``experiments/neural_quality.py --ablation``, ``docs/neural.md``):
+    (``experiments/neural_quality.py --ablation``, ``docs/results/neural.md``):
     ``k_fraction=0.10`` (Table 1's example: 5%), ``patch_size=4``, ``ring_decay=0.97``,
     ``hebbian="centred"``, ``rectify=True``, ``density_out=1.0`` (over 8 seeds it lifts the
     worst corridor seed from 0.676 to 0.811 and helps every other data set measured).
@@ -253,7 +253,7 @@ class NeuralConfig:
 
         With the speed estimated online the ring no longer needs the default's wide kernel
         (lags 0/1/2) to cover other speeds: measured (``experiments/neural_quality.py``,
-        ``docs/neural.md``) better than the default on the corridor, LENS and every demo
+        ``docs/results/neural.md``) better than the default on the corridor, LENS and every demo
         variant there (strong appearance change, 0.6x-1.6x speed, repeats), equal on the
         one where both are perfect, while each unit holds one frame (routes of at most
         ``n_output`` frames). With units of several frames it costs recall (3,000 frames on

@@ -1,6 +1,6 @@
 """``NeuralInference``: a fitted Neural SeqSLAM folded for inference, kernels chosen at build.
 
-It computes the step of ``docs/neural.md`` ("Step maths") with the same functions as the
+It computes the step of ``docs/guide/neural.md`` ("Step maths") with the same functions as the
 model's layers (:func:`~torchseq.preprocess.zscore_pixel_major`,
 :func:`~torchseq.layers.kwta`, :func:`~torchseq.layers.cohort_normalise`,
 :func:`~torchseq.layers.ring_step` / :func:`~torchseq.layers.ring_scan`,

@@ -3,7 +3,7 @@
 L1 (patch-normalised pixels) -> fixed random ``MaskedLinear`` -> L2 binary k-WTA code ->
 Hebbian ``MaskedLinear`` -> L3 evidence, z-scored within cohorts -> ``OutputRing`` that
 shifts activity along the learnt route -> the most active unit is the place. The exact
-equations of one step are in ``docs/neural.md`` ("Step maths").
+equations of one step are in ``docs/guide/neural.md`` ("Step maths").
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from torchseq._checks import as_frames
 from torchseq.layers import KWinnersTakeAll, MaskedLinear, OutputRing, RingState
 from torchseq.layers.functional import cohort_normalise
 from torchseq.matches import Matches
@@ -194,13 +195,15 @@ class NeuralSeqSLAM(nn.Module):
         the ring's shift matrix learns from the order in which units fired.
 
         Args:
-            reference: ``(T, H, W)`` or ``(T, H, W, 3)`` frames, any size, 0..255, ``T >= 2``.
+            reference: ``(T, H, W)`` or ``(T, H, W, 3)`` frames, any size, 0..255, ``T >= 2``
+                (a tensor or a NumPy array).
             progress: a callback ``(frames done, frames in all)`` (``True``: a tqdm bar).
             log: also compute the reference evidence raster (a second feed-forward pass).
 
         Returns:
             :class:`NeuralFitLog`.
         """
+        reference = as_frames(reference, "reference")
         if reference.dim() not in (3, 4) or reference.shape[0] < 2:
             raise NeuralError(f"reference must be (T, H, W) with T >= 2 frames, got "
                               f"{tuple(reference.shape)}")
@@ -273,7 +276,7 @@ class NeuralSeqSLAM(nn.Module):
         numbers as :meth:`step` once per frame, up to float rounding.
 
         Args:
-            query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames.
+            query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames (a tensor or a NumPy array).
             progress: a callback ``(frames done, frames in all)`` (``True``: a tqdm bar).
             l1_dtype: ``torch.bfloat16`` runs the L1 product in bfloat16 (the
                 ``"bfloat16_gemm"`` kernel) - an approximation: rounding moves a few L2
@@ -284,6 +287,7 @@ class NeuralSeqSLAM(nn.Module):
             :class:`NeuralResult`.
         """
         self._require_fit()
+        query = as_frames(query, "query")
         if query.dim() not in (3, 4) or query.shape[0] == 0:
             raise NeuralError(f"query must be a non-empty (T, H, W), got {tuple(query.shape)}")
         module = self._run_module(l1_dtype)
@@ -382,7 +386,7 @@ COARSE_UNIT_FRAMES = 8  # frames per unit past which even the interpolating read
 def _warn_coarse_units(n_frames: int, n_units: int, readout: str) -> None:
     """Say loudly when units stand for several frames (the place resolution this costs).
 
-    Measured on demo routes (docs/neural.md, "Long routes"): 5.4 frames per unit cost the
+    Measured on demo routes (docs/results/neural.md, "Long routes"): 5.4 frames per unit cost the
     centre readout a fifth of its recall@1 (the interpolating readout keeps it); 36 frames
     per unit fail both (a unit's weights then average views that share nothing).
     """
@@ -397,13 +401,13 @@ def _warn_coarse_units(n_frames: int, n_units: int, readout: str) -> None:
                   "neighbours' activity")
     warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
                   f"{per_unit:.1f} frames per unit, so readout {readout!r} places are no finer "
-                  f"than that; {advice} (docs/neural.md, Long routes)", stacklevel=4)
+                  f"than that; {advice} (docs/results/neural.md, Long routes)", stacklevel=4)
 
 
 def _warn_adaptive_units(n_frames: int, n_units: int, ring_velocity: str) -> None:
     """Say loudly when the adaptive ring gets units of two or more frames.
 
-    Measured (docs/neural.md, "Long routes"): it helps while each unit holds one frame and
+    Measured (docs/results/neural.md, "Long routes"): it helps while each unit holds one frame and
     costs recall past about two (3,000 frames on 555 units, interpolate: 0.994 -> 0.953;
     corridor at 55 units: 0.798 -> 0.741), where the fixed ring is the better choice.
     """
@@ -412,7 +416,7 @@ def _warn_adaptive_units(n_frames: int, n_units: int, ring_velocity: str) -> Non
         return
     warnings.warn(f"ring_velocity='adaptive' on {per_unit:.1f} frames per unit: measured worse "
                   "than the fixed ring once units hold two or more frames; raise n_output to "
-                  f"at least {n_frames} or use ring_velocity='fixed' (docs/neural.md, Long "
+                  f"at least {n_frames} or use ring_velocity='fixed' (docs/results/neural.md, Long "
                   "routes)", stacklevel=4)
 
 

@@ -1,14 +1,15 @@
 """Spiking Neural SeqSLAM: the fitted rate model as leaky integrate-and-fire units (NIR semantics).
 
-One more definition of the step beside the float (``docs/neural.md`` "Step maths") and the
-integer one (``docs/integer_format.md``). It reads the fitted model's weights, masks, cohorts
-and learnt ring shift (nothing is relearnt: whatever ``fit`` learns flows through) plus three
-scales calibrated on the reference traverse, and runs **one time step per frame**:
+One more definition of the step beside the float (``docs/guide/neural.md`` "Step maths") and
+the integer one (``docs/reference/integer_format.md``). It reads the fitted model's weights,
+masks, cohorts and learnt ring shift (nothing is relearnt: whatever ``fit`` learns flows
+through) plus three scales calibrated on the reference traverse, and runs **one time step
+per frame**:
 
 1. ``x`` ``(B, D)``: the model's own ``encode`` of the frame (an analog input current).
 2. L1 -> L2: ``z2 = lif(x @ w1.T)``, ``w1 = l1.folded_weight() / theta2``: binary spikes of
    the L2 units whose L1 sum exceeds the calibrated threshold ``theta2`` (the rate model keeps
-   exactly the ``k`` largest: this is the approximation of k-WTA, see ``docs/nir.md``).
+   exactly the ``k`` largest: this is the approximation of k-WTA, see ``docs/guide/nir.md``).
 3. L3 evidence, cohort-centred and scaled, one linear map: ``e = z2 @ w3.T`` with
    ``w3 = gain * (I - G diag(1/n_c) G^T) (l3.weight * l3.mask) / sigma_c``, i.e.
    ``gain * (l3 - cohort mean) / sigma_c`` with ``sigma_c`` calibrated (the rate model
@@ -29,7 +30,7 @@ Every neuron is NIR's ``LIF`` with ``tau = dt`` (``r = 1``, ``v_leak = 0``, thre
 reset to 0), stepped with Euler as snnTorch and Norse step it:
 ``v <- v + dt / tau * (I - v)``, ``z = v > 1``, ``v <- v * (1 - z)`` (:func:`lif_step`).
 With ``tau = dt`` the units are memoryless; the network's memory is the ring's cycle.
-Why one step per frame and levels in space: see ``docs/nir.md`` ("Why one time step").
+Why one step per frame and levels in space: see ``docs/guide/nir.md`` ("Why one time step").
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ class SpikingConfig:
     The defaults (``K = 128`` rungs down to ``low = 0.01``, about 3.6% apart) follow the
     dense L2 -> L3 default of the rate model, whose winning unit leads the next one by a
     median 1.9% on the corridor (2.9% with the former 20% mask): the former ``K = 64``,
-    ``low = 0.03`` (5.4% apart) tied them too often (``docs/nir.md``, "Choosing the ladder").
+    ``low = 0.03`` (5.4% apart) tied them too often (``docs/guide/nir.md``, "Choosing the ladder").
 
     Attributes:
         levels: ring neurons per output unit (the thermometer code's ``K``).

@@ -1,4 +1,4 @@
-"""Classic SeqSLAM, tensorised, with OpenSeqSLAM parity (see docs/seqslam.md)."""
+"""Classic SeqSLAM, tensorised, with OpenSeqSLAM parity (see docs/guide/seqslam.md)."""
 
 from torchseq.seqslam.ann_index import CandidateIndex
 from torchseq.seqslam.candidates import CandidateSeqSLAM

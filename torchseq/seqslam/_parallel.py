@@ -11,7 +11,7 @@ With the default thread use (``threads=None``) each stage also counts the cores 
 processes keep busy right now (the kernel's count of runnable tasks in ``/proc/loadavg``,
 sampled a few times, minimum taken) and uses only the idle ones, at least one: on a 2-core
 machine beside a busy co-tenant the stages run on one worker instead of fighting for the
-busy core (measured: two workers there were slower than one, see docs/seqslam.md).
+busy core (measured: two workers there were slower than one, see docs/results/seqslam.md).
 """
 
 from __future__ import annotations

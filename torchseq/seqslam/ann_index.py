@@ -8,7 +8,7 @@ from the stored descriptors, exactly. Kinds (chosen explicitly, or by ``"auto"``
   the references; time: ``R x D`` per query.
 - ``"ivf"``: PCA to ``pca_dim`` dimensions, then an inverted file (``nlist`` k-means cells,
   ``nprobe`` cells scanned per query) with exact L2 inside the cells. For ``l1`` the L2 order
-  in the PCA space is a proxy (measured in docs/seqslam.md).
+  in the PCA space is a proxy (measured in docs/guide/seqslam.md).
 - ``"hnsw"``: PCA as above, then an HNSW graph (``hnsw_m`` links per node).
 
 ``"auto"`` is ``"flat"`` up to :data:`FLAT_MAX_REFERENCES` references, ``"ivf"`` above.
@@ -26,7 +26,7 @@ from torchseq._checks import check_finite, check_not_empty, check_shape
 
 INDEX_KINDS = ("auto", "flat", "ivf", "hnsw")
 # "auto" builds an exact flat index up to this many references (a float32 copy of R x D and
-# R x D work per query), an IVF index above it (see docs/seqslam.md for the measurements)
+# R x D work per query), an IVF index above it (see docs/guide/seqslam.md for the measurements)
 FLAT_MAX_REFERENCES = 5_000
 # rows converted to float32 at a time while adding references (bounds the temporary copy)
 ADD_CHUNK_ROWS = 16_384

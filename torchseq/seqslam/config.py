@@ -41,7 +41,7 @@ class SeqSLAMConfig:
             None (default): ``"trajectory"``; the :meth:`openseqslam` preset sets
             ``"start"``. The rule moves only the reported place (and the ranked
             candidates' places), never the best start or its uniqueness; measured in
-            docs/seqslam.md, "Where the reported place sits".
+            docs/guide/seqslam.md, "Where the reported place sits".
         preprocessing: ``"torchseq"`` (default): float grey, a flat 8x8 block becomes 127;
             ``"openseqslam"``: OpenSeqSLAM's uint8 rules (MATLAB ``rgb2gray`` rounded to
             integer grey, integer resize output, ``127 + round(z)`` stored in uint8 so a flat
@@ -57,7 +57,7 @@ class SeqSLAMConfig:
             work in bands of query columns in O(R (B + ds)) memory (``seqslam/banded.py``)
             and return only a reduced copy (``SeqSLAMResult.preview``). None (default): keep
             them while ``R * Q <= KEEP_MATRICES_MAX`` (2**27, two 512 MiB float32 matrices).
-        candidates: candidate mode (docs/seqslam.md): K >= 1 nearest references per query
+        candidates: candidate mode (docs/guide/seqslam.md): K >= 1 nearest references per query
             from a FAISS index, only trajectories through them scored; 0 = always the exact
             all-pairs mode; None (default) = exact up to 2**31 reference x query pairs,
             candidate mode with K = 20 (and a warning) above.

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from torchseq._checks import check_not_empty
+from torchseq._checks import as_frames, check_not_empty
 from torchseq.matches import Matches
 from torchseq.preprocess import preprocess, preprocess_openseqslam
 from torchseq.seqslam._parallel import resolve_threads, single_threaded_ops
@@ -110,12 +110,14 @@ class SeqSLAM(nn.Module):
         """Match a query traverse of frames against a reference traverse.
 
         Args:
-            reference: ``(R, H, W)`` (or RGB ``(R, H, W, 3)``) frames.
-            query: ``(Q, H, W)`` frames.
+            reference: ``(R, H, W)`` (or RGB ``(R, H, W, 3)``) frames, a tensor or a NumPy
+                array.
+            query: ``(Q, H, W)`` frames, likewise.
             progress: show a progress bar during the search.
         """
-        check_not_empty(torch.as_tensor(reference), "reference frames")
-        check_not_empty(torch.as_tensor(query), "query frames")
+        reference, query = as_frames(reference, "reference"), as_frames(query, "query")
+        check_not_empty(reference, "reference frames")
+        check_not_empty(query, "query frames")
         return self.match_descriptors(self.descriptors(reference), self.descriptors(query),
                                       progress=progress)
 
