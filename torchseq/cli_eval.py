@@ -435,15 +435,29 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
         raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
                          + hint)
     size = s.seqslam.image_size
-    result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
-                                                     progress=s.run.progress)
+    config = ranked_config(s.seqslam)
+    result = SeqSLAM(config, device=device).match(ref.at(size), query.at(size),
+                                                  progress=s.run.progress)
     # plots draw the engine's reduced copy (area averages, at most 1024 a side; the whole
     # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
     # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)
     matrix = result.preview if result.preview is not None else result.enhanced
-    return {"matches": result.matches, "ranked": result.ranked, "matrix": matrix,
+    return {"matches": result.matches, "ranked": result.ranked,
+            "ranked_score": result.ranked_score, "matrix": matrix,
             "matrix_shape": (len(ref), len(query)), "matrix_reduced": result.enhanced is None,
-            "seconds": result.seconds["total"], "parameters": to_jsonable(s.seqslam)}
+            "seconds": result.seconds["total"], "parameters": to_jsonable(config)}
+
+
+RANKED = max(metrics.RECALL_KS) + 1  # candidates ranked: recall@20 and the tie past it
+
+
+def ranked_config(config: SeqSLAMConfig) -> SeqSLAMConfig:
+    """The run's SeqSLAM config with at least :data:`RANKED` ranked candidates.
+
+    ``top_k`` only sizes the ranked list (it changes no match); metrics.json's recall@20
+    needs 20 candidates and one more to see a tie at the 20th.
+    """
+    return dataclasses.replace(config, top_k=max(config.top_k, RANKED))
 
 
 def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
@@ -530,10 +544,12 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
     t0 = time.perf_counter()
     result = model.run(query.at(size), progress=cfg.progress)
     run_seconds = time.perf_counter() - t0
-    k = min(10, model.n_units)
-    ranked = model.unit_centre.cpu()[result.activity.topk(k, dim=1).indices]
+    k = min(RANKED, model.n_units)
+    top = result.activity.topk(k, dim=1)  # activity: higher is better, as the confidence
+    ranked = model.unit_centre.cpu()[top.indices]
     preset = None if cfg.checkpoint else preset_name(cfg.neural_preset)
-    return {"matches": result.matches, "ranked": ranked, "activity": result.activity,
+    return {"matches": result.matches, "ranked": ranked, "ranked_score": top.values,
+            "activity": result.activity,
             "seconds": run_seconds, "fit_seconds": fit_seconds, "preset": preset,
             "parameters": to_jsonable(model.config), "model_bytes": int(model.model_bytes()),
             "frames_per_unit": per_unit}
@@ -558,7 +574,7 @@ def engine_metrics(r: dict, gt, target_precision: float) -> dict:
         m = {"recall_at_1": None, "auc": None, "recall_at_100_precision": None,
              "n_queries": len(r["matches"]), "coverage": metrics.coverage(r["matches"])}
     else:
-        m = metrics.evaluate(r["matches"], gt, r["ranked"])
+        m = metrics.evaluate(r["matches"], gt, r["ranked"], r.get("ranked_score"))
         m["operating_point"] = metrics.operating_point(r["matches"], gt, target_precision)
     m.update({k: r[k] for k in ("seconds", "fit_seconds", "model_bytes", "frames_per_unit",
                                 "preset", "parameters") if k in r})
