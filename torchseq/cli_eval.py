@@ -26,6 +26,15 @@ from torchseq.atomic import write_json, write_text
 from torchseq.cli_presets import apply_preset, preset_config, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
+from torchseq.descriptors import (
+    DescriptorError,
+    describe,
+    descriptor_kind,
+    load_descriptors,
+    load_hook,
+    neural_config,
+    neural_input,
+)
 from torchseq.frontend import (
     EVENT_FIELDS,
     EVENT_HELP,
@@ -88,11 +97,15 @@ class EvalConfig(EventFlags):
     device: str = "cpu"
     tensorboard: bool = True
     progress: bool = True
+    descriptor: str | None = None
+    descriptor_batch: int = 64
 
 
 HELP = {
-    "reference": "reference traverse: image folder, video, frame array (.npy/.npz) or event file "
-                 "(.aedat, .aedat4, .raw, event .npy/.npz, .csv); default: the built-in demo",
+    "reference": "reference traverse: image folder, video, frame array (.npy/.npz), event file "
+                 "(.aedat, .aedat4, .raw, event .npy/.npz, .csv) or descriptors ((T, D) .npy, "
+                 ".npz/.h5 with 'descriptors', a folder of VPR-methods-evaluation .gfeat "
+                 "files); default: the built-in demo",
     "query": "query traverse, same kinds as --reference (required with --reference)",
     "ground_truth": "ground truth: CSV 'query,references', (reference x query) 0/1 .npy matrix, "
                     "or VPR-Bench per-query .npy of admissible indices; with --tolerance it is "
@@ -122,6 +135,11 @@ HELP = {
     "device": "cpu, cuda or auto",
     "tensorboard": "write TensorBoard logs",
     "progress": "show progress bars",
+    "descriptor": "descriptor hook 'module:callable': a function or nn.Module mapping (B, H, W) "
+                  "float32 grey frames (0..255) to (B, D) descriptors, run on --device while "
+                  "the frames stream in; the engines then match descriptors (SeqSLAM with "
+                  "--metric)",
+    "descriptor_batch": "frames per call of the --descriptor hook",
     # SeqSLAMConfig fields whose docstring reads poorly as a flag
     "ds": "SeqSLAM sequence length in frames (rounded up to even)",
     "image_size": "SeqSLAM image size HxW after resizing",
@@ -131,7 +149,7 @@ LIMITS = {
     "tolerance": (0.0, 1e9), "gt_offset": (-1e9, 1e9), "target_precision": (0.0, 1.0),
     "demo_frames": (2, 20_000), "demo_speed": (0.01, 100.0), "seed": (0, 2 ** 32 - 1),
     "start": (0, 2 ** 40), "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40),
-    "max_frames": (1, 2 ** 40),
+    "max_frames": (1, 2 ** 40), "descriptor_batch": (1, 2 ** 20),
 }
 THUMBNAIL = 160  # longer side of the frames kept for plots
 SEQSLAM_LIMITS = {
@@ -327,8 +345,9 @@ class Traverse:
     """A loaded traverse: frames at each size an engine needs, thumbnails for plots, facts."""
 
     frames: dict
-    thumbnail: torch.Tensor
+    thumbnail: torch.Tensor | None
     info: dict
+    descriptors: torch.Tensor | None = None  # (T, D) for a traverse of descriptors
 
     def __len__(self) -> int:
         return int(self.info["n_frames"])
@@ -351,7 +370,27 @@ def needed_sizes(settings: list[Settings], model=None) -> dict:
 
 
 def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -> Traverse:
-    """One traverse, shrunk frame by frame to ``sizes`` (a library error names it)."""
+    """One traverse, shrunk frame by frame to ``sizes`` (a library error names it).
+
+    A descriptor file (:func:`torchseq.descriptors.descriptor_kind`) is read as ``(T, D)``
+    descriptors; with ``--descriptor`` the hook describes the frames as they stream in.
+    """
+    name = "demo" if not isinstance(source, (str, Path)) else source
+    try:
+        if cfg.descriptor is not None:
+            return describe_traverse(source, cfg, select)
+        if isinstance(source, (str, Path)) and Path(source).exists() and \
+                descriptor_kind(source) is not None:
+            desc = load_descriptors(source)
+            keep = list(select.validate().indices(len(desc)))
+            if not keep:
+                raise DescriptorError(f"{source}: no descriptor in the selected range "
+                                      f"({len(desc)} rows)")
+            return Traverse({}, None, {"n_frames": len(keep), "frame_size": None,
+                                       "indices": keep, "n_total": len(desc), "events": False,
+                                       "descriptor_dim": int(desc.shape[1])}, desc[keep])
+    except (ValueError, OSError) as err:
+        raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
     try:
         frames, info = load_traverse_sizes(source, sizes, event_frame_options(cfg),
                                            cfg.progress, select, thumbnail=THUMBNAIL)
@@ -360,6 +399,30 @@ def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -
         raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
     return Traverse({k: v for k, v in frames.items() if k != "thumbnail"},
                     frames["thumbnail"], info)
+
+
+def describe_traverse(source, cfg: EvalConfig, select) -> Traverse:
+    """A traverse described by the ``--descriptor`` hook as its frames stream (thumbnails kept)."""
+    from torchseq.preprocess import resize
+    from torchseq.sources import iter_traverse, thumbnail_size
+
+    hook = load_hook(cfg.descriptor)
+    thumbs, sizes, total = [], [], {}
+
+    def keep(frame: torch.Tensor) -> None:
+        if not sizes:
+            sizes.append(tuple(int(v) for v in frame.shape))
+        size = thumbnail_size(sizes[0], THUMBNAIL)
+        thumbs.append(resize(frame[None], size)[0].round().clamp(0, 255).to(torch.uint8))
+
+    frames = iter_traverse(source, event_frame_options(cfg), cfg.progress, select, total)
+    desc = describe(frames, hook, resolve_device(cfg.device), cfg.descriptor_batch, keep)
+    n = len(desc)
+    return Traverse({}, torch.stack(thumbs), {
+        "n_frames": n, "frame_size": list(sizes[0]),
+        "indices": list(range(select.start, select.start + n * select.step, select.step)),
+        "n_total": total.get("n_total"), "events": bool(total.get("events")),
+        "descriptor_dim": int(desc.shape[1]), "descriptor_hook": cfg.descriptor}, desc)
 
 
 def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
@@ -384,6 +447,10 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
         ref = load_traverse_for(cfg.reference, "reference", cfg, sizes, select)
         query = load_traverse_for(cfg.query, "query", cfg, sizes, select)
         gt, source = None, {"reference": cfg.reference, "query": cfg.query}
+        check_descriptor_pair(ref, query)
+        if ref.descriptors is not None:
+            source["descriptors"] = {"dim": ref.info["descriptor_dim"],
+                                     "hook": cfg.descriptor}
     selected = select != FrameSelection()
     totals = (ref.info["n_total"], query.info["n_total"])
     if selected and (cfg.ground_truth is not None or cfg.tolerance is not None) and None in totals:
@@ -406,6 +473,8 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
                                "frame_step": cfg.frame_step, "max_frames": cfg.max_frames}
     two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
     for what, t in (("reference", ref), ("query", query)):
+        if t.descriptors is not None:
+            continue
         fh, fw = t.info["frame_size"]
         for key, (h, w) in sizes.items():
             if h > fh or w > fw:
@@ -417,6 +486,17 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
                      f"side), resized to {key}: the halves change shape (set --image-size or "
                      f"--neural-input-size to {fh}x{fw}, or a size of that shape)", notes)
     return ref, query, gt, source
+
+
+def check_descriptor_pair(ref: Traverse, query: Traverse) -> None:
+    """Both traverses descriptors of one size, or both frames."""
+    if (ref.descriptors is None) != (query.descriptors is None):
+        which = "reference" if ref.descriptors is not None else "query"
+        raise UsageError(f"the {which} traverse holds descriptors and the other frames: give "
+                         f"descriptors for both (or frames for both)")
+    if ref.descriptors is not None and ref.descriptors.shape[1] != query.descriptors.shape[1]:
+        raise UsageError(f"reference descriptors have {ref.descriptors.shape[1]} values, query "
+                         f"descriptors {query.descriptors.shape[1]}: they must be the same size")
 
 
 def run_seqslam(s: Settings, ref, query, device, notes: Notes):
@@ -436,8 +516,12 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
                          + hint)
     size = s.seqslam.image_size
     config = ranked_config(s.seqslam)
-    result = SeqSLAM(config, device=device).match(ref.at(size), query.at(size),
-                                                  progress=s.run.progress)
+    engine = SeqSLAM(config, device=device)
+    if ref.descriptors is not None:
+        result = engine.match_descriptors(ref.descriptors, query.descriptors,
+                                          progress=s.run.progress)
+    else:
+        result = engine.match(ref.at(size), query.at(size), progress=s.run.progress)
     # plots draw the engine's reduced copy (area averages, at most 1024 a side; the whole
     # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
     # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)
@@ -469,7 +553,8 @@ def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
             frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames))}
         if ref.info.get("events"):
             source["events"] = to_jsonable(event_frame_options(cfg))
-    return {**source, "n_frames": len(ref), "frame_size": list(ref.info["frame_size"])}
+    size = ref.info["frame_size"]
+    return {**source, "n_frames": len(ref), "frame_size": None if size is None else list(size)}
 
 
 # event settings that change no frame (the same events either way, or a complete file read)
@@ -497,7 +582,7 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
         if was != now:
             problems.append(f"it learnt {learnt.get('source')}, this reference is "
                             f"{this['source']}")
-        if learnt.get("frame_size") not in (None, this["frame_size"]):
+        if learnt.get("frame_size") not in (None, this["frame_size"]) and this["frame_size"]:
             fs = learnt["frame_size"]
             problems.append(f"its frames were {fs[0]}x{fs[1]}, these are "
                             f"{this['frame_size'][0]}x{this['frame_size'][1]}")
@@ -527,10 +612,17 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
         problem = checkpoint_mismatch(model, describe_reference(cfg, ref))
         if problem:
             warn(PROG, problem, notes)
+    elif ref.descriptors is not None:
+        model = NeuralSeqSLAM(neural_config(s.neural, ref.descriptors.shape[1]), device=device)
+        model.fit(neural_input(ref.descriptors), progress=cfg.progress)
     else:
         model = NeuralSeqSLAM(s.neural, device=device)
         model.fit(ref.at(s.neural.input_size), progress=cfg.progress)
     size = model.config.input_size
+    if ref.descriptors is not None and tuple(size) != (1, ref.descriptors.shape[1]):
+        raise UsageError(f"the checkpoint's L1 takes {size[0]}x{size[1]} inputs, not "
+                         f"{ref.descriptors.shape[1]}-value descriptors (train it on these "
+                         f"descriptors)")
     fit_seconds = time.perf_counter() - start
     n_ref = int(model.unit_to_reference[-1, 1])
     per_unit = n_ref / model.n_units
@@ -542,7 +634,8 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
              f"unit stands for about {per_unit:.1f} frames ({how}; raise --neural-n-output "
              f"for a finer place resolution)", notes)
     t0 = time.perf_counter()
-    result = model.run(query.at(size), progress=cfg.progress)
+    result = model.run(query.at(size) if query.descriptors is None else
+                       neural_input(query.descriptors), progress=cfg.progress)
     run_seconds = time.perf_counter() - t0
     k = min(RANKED, model.n_units)
     top = result.activity.topk(k, dim=1)  # activity: higher is better, as the confidence
@@ -612,6 +705,8 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
         figures["neural_activity"] = plots.plot_activity_raster(
             results["neural"]["activity"], title="neural output activity over the query")
     for name, r in results.items():
+        if ref.thumbnail is None or query.thumbnail is None:
+            break  # descriptor files: no frames to show
         figures[f"{name}_matched_pairs"] = plots.plot_matched_pairs(
             ref.thumbnail, query.thumbnail, r["matches"], gt,
             title=f"{name}: query (top) and matched reference")
@@ -722,6 +817,23 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
     if cfg.checkpoint and cfg.engine in ("neural", "both"):
         model = load_model(cfg.checkpoint, device)
     ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes)
+    if ref.descriptors is not None and cfg.engine != "neural" and cfg.preset is None:
+        default = SeqSLAMConfig()
+        typed = [f"--{k.replace('_', '-')}" for k in ("image_size", "patch_size",
+                                                      "preprocessing")
+                 if any(getattr(p.seqslam, k) != getattr(default, k) for p in (s, *points))]
+        if typed:
+            raise UsageError(f"{', '.join(typed)} shape{'s' if len(typed) == 1 else ''} "
+                             f"SeqSLAM's own descriptors, and this run matches given "
+                             f"descriptors; drop {'it' if len(typed) == 1 else 'them'}")
+    if ref.descriptors is not None and cfg.engine != "seqslam" and model is None:
+        preset = preset_config(cfg.neural_preset)
+        typed = [f"--neural-{k.replace('_', '-')}" for k in ("input_size", "patch_size")
+                 if any(getattr(p.neural, k) != getattr(preset, k) for p in (s, *points))]
+        if typed:
+            raise UsageError(f"{', '.join(typed)} ha{'s' if len(typed) == 1 else 've'} no "
+                             f"effect on descriptors: the network's L1 takes the "
+                             f"{ref.info['descriptor_dim']} values of each descriptor")
     if grid:
         return sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
     results = run_engines(s, ref, query, device, notes, model)
