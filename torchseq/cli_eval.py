@@ -358,11 +358,13 @@ class Traverse:
 
 
 def needed_sizes(settings: list[Settings], model=None) -> dict:
-    """Every frame size the run's engines read, by key."""
+    """Every frame size the run's engines read, by key.
+
+    SeqSLAM's size always: its descriptors are the single-frame baseline of every run.
+    """
     sizes = {}
     for s in settings:
-        if s.run.engine in ("seqslam", "both"):
-            sizes[size_key(s.seqslam.image_size)] = tuple(s.seqslam.image_size)
+        sizes[size_key(s.seqslam.image_size)] = tuple(s.seqslam.image_size)
         if s.run.engine in ("neural", "both"):
             size = model.config.input_size if model is not None else s.neural.input_size
             sizes[size_key(size)] = tuple(size)
@@ -680,17 +682,48 @@ def config_dict(s: Settings) -> dict:
             "neural": to_jsonable(s.neural)}
 
 
-def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes) -> dict:
-    """Write metrics.json, matches.csv, plots and TensorBoard logs; return the metrics."""
+SINGLE_FRAME_RULE = ("each query's nearest reference by the run's --metric on the same "
+                     "descriptors (SeqSLAM's own for frames), no contrast enhancement, no "
+                     "sequence (ds = 1)")
+
+
+def single_frame_baseline(s: Settings, ref: Traverse, query: Traverse, device):
+    """Single-frame matches on the run's descriptors (:func:`torchseq.seqslam.single_frame`)."""
+    from torchseq.seqslam.single import single_frame
+
+    if ref.descriptors is not None:
+        r, q = ref.descriptors, query.descriptors
+    else:
+        engine = SeqSLAM(s.seqslam, device=device)
+        size = s.seqslam.image_size
+        r, q = engine.descriptors(ref.at(size)), engine.descriptors(query.at(size))
+    return single_frame(r.to(device), q.to(device), s.seqslam.metric, RANKED,
+                        s.seqslam.max_chunk_elements)
+
+
+def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes,
+           single=None) -> dict:
+    """Write metrics.json, matches.csv, plots and TensorBoard logs; return the metrics.
+
+    ``single``: the single-frame baseline (:func:`single_frame_baseline`), reported beside
+    each engine with the share of queries the sequence makes worse (needs ground truth).
+    """
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
                "warnings": warning_list(notes)}
+    if single is not None and gt is not None:
+        summary["single_frame"] = {
+            "rule": SINGLE_FRAME_RULE, "metric": s.seqslam.metric,
+            **metrics.evaluate(single.matches, gt, single.ranked, single.ranked_score)}
     curves = {}
     for name, r in results.items():
         summary[name] = engine_metrics(r, gt, s.run.target_precision)
         if gt is not None:
             curves[name] = metrics.precision_recall_curve(r["matches"], gt)
+            if single is not None:
+                summary[name]["versus_single_frame"] = metrics.sequence_vs_single(
+                    r["matches"], single.matches, gt)
     write_json(out / "metrics.json", summary)
     write_text(out / "matches.csv", matches_csv(results))
     write_text(out / "config.json", config_text(config_dict(s)) + "\n")
@@ -837,16 +870,30 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
     if grid:
         return sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
     results = run_engines(s, ref, query, device, notes, model)
-    summary = report(s, ref, query, gt, source, results, out, notes)
+    single = single_frame_baseline(s, ref, query, device) if gt is not None else None
+    summary = report(s, ref, query, gt, source, results, out, notes, single)
     for name in results:
-        m = summary[name]
-        r1 = "n/a (no ground truth)" if m.get("recall_at_1") is None else \
-            f"{m['recall_at_1']:.3f}"
-        auc = "" if m.get("auc") is None else f", AUC {m['auc']:.3f}"
-        print(f"{name}: recall@1 {r1}{auc} over {m['n_queries']} queries "
-              f"({m['seconds']:.2f} s)")
+        print(summary_line(name, summary[name]))
     print(f"wrote {out / 'metrics.json'}, {out / 'matches.csv'} and plots to {out}")
     return 0
+
+
+def summary_line(name: str, m: dict) -> str:
+    """One engine's line: recall@1 (ties both ways), single frame, share made worse, AUC."""
+    if m.get("recall_at_1") is None:
+        return (f"{name}: recall@1 n/a (no ground truth) over {m['n_queries']} queries "
+                f"({m['seconds']:.2f} s)")
+    text = f"{name}: recall@1 {m['recall_at_1']:.3f}"
+    rec = m.get("recall", {}).get("queries_with_a_true_match")
+    if rec and rec["ties_for"]["1"] != rec["ties_against"]["1"]:
+        text += f" (ties {rec['ties_against']['1']:.3f}..{rec['ties_for']['1']:.3f})"
+    vs = m.get("versus_single_frame")
+    if vs:
+        text += (f", single frame {vs['single_frame_recall_at_1']:.3f}, made worse "
+                 f"{100 * vs['made_worse']:.1f}% / better {100 * vs['made_better']:.1f}% "
+                 f"of queries")
+    return (f"{text}, AUC {m['auc']:.3f} over {m['n_queries']} queries "
+            f"({m['seconds']:.2f} s)")
 
 
 def cli(argv: list[str] | None = None, prog: str | None = None) -> int:

@@ -309,6 +309,40 @@ def recall_table(ranked, scores, gt: GroundTruth, lower_is_better: bool,
                                               d).to_dict() for d in DENOMINATORS}}
 
 
+def sequence_vs_single(sequence: Matches, single: Matches, gt: GroundTruth) -> dict:
+    """What sequence matching does to each query, against single-frame matching.
+
+    Over the queries with a true match: ``made_worse`` is the share whose single-frame
+    match is correct and whose sequence match is not (wrong, or no match at all, e.g. the
+    first and last ``ds/2`` queries); ``made_better`` the reverse; both the engines' own
+    decisions (top-1).
+
+    Returns:
+        ``{"single_frame_recall_at_1", "sequence_recall_at_1", "made_worse", "made_better",
+        "n_made_worse", "n_made_better", "n_without_sequence_match", "denominator",
+        "n_queries"}`` (shares NaN
+        without positives).
+    """
+    gt = _check_gt(gt, len(sequence))
+    if len(single) != len(sequence):
+        raise ValueError(f"single-frame and sequence matches must cover the same queries, "
+                         f"got {len(single)} and {len(sequence)}")
+    counted = positives(gt)
+    n = int(counted.sum())
+    seq_ok, one_ok = correct(sequence, gt)[counted], correct(single, gt)[counted]
+    worse, better = int((one_ok & ~seq_ok).sum()), int((seq_ok & ~one_ok).sum())
+
+    def share(x: float) -> float:
+        return x / n if n else float("nan")
+
+    return {"single_frame_recall_at_1": share(int(one_ok.sum())),
+            "sequence_recall_at_1": share(int(seq_ok.sum())),
+            "made_worse": share(worse), "made_better": share(better),
+            "n_made_worse": worse, "n_made_better": better,
+            "n_without_sequence_match": int((sequence.reference.cpu().numpy() < 0)[counted].sum()),
+            "denominator": "queries_with_a_true_match", "n_queries": n}
+
+
 def evaluate(matches: Matches, gt: GroundTruth, ranked: np.ndarray | None = None,
              ranked_score: np.ndarray | torch.Tensor | None = None) -> dict:
     """All headline metrics of one engine on one query traverse, as a JSON-ready dict.
