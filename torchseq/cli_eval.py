@@ -99,6 +99,10 @@ class EvalConfig(EventFlags):
     progress: bool = True
     descriptor: str | None = None
     descriptor_batch: int = 64
+    dataset: str | None = None
+    root: str | None = None
+    reference_split: str | None = None
+    query_split: str | None = None
 
 
 HELP = {
@@ -140,6 +144,13 @@ HELP = {
                   "the frames stream in; the engines then match descriptors (SeqSLAM with "
                   "--metric)",
     "descriptor_batch": "frames per call of the --descriptor hook",
+    "dataset": "a dataset's local copy under --root (nothing is downloaded): nordland, "
+               "gardens-point, vpr-bench or brisbane-event; gives reference, query and "
+               "ground truth (--tolerance: frames, or metres for brisbane-event)",
+    "root": "the --dataset folder",
+    "reference_split": "--dataset split of the reference (nordland: a season folder; "
+                       "default: the dataset's own, e.g. summer)",
+    "query_split": "--dataset split of the query (default: the dataset's own, e.g. winter)",
     # SeqSLAMConfig fields whose docstring reads poorly as a flag
     "ds": "SeqSLAM sequence length in frames (rounded up to even)",
     "image_size": "SeqSLAM image size HxW after resizing",
@@ -257,7 +268,17 @@ def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[s
     default = EvalConfig()
     demo = [f"--{k.replace('_', '-')}" for k in ("demo_frames", "demo_speed")
             if getattr(cfg, k) != getattr(default, k)]
-    no_truth = cfg.reference is not None and cfg.ground_truth is None and cfg.tolerance is None
+    split = [f"--{k.replace('_', '-')}" for k in ("root", "reference_split", "query_split")
+             if getattr(cfg, k) is not None]
+    if split and cfg.dataset is None:
+        raise UsageError(f"{', '.join(split)} belong{'s' if len(split) == 1 else ''} to "
+                         f"--dataset; give --dataset NAME or drop "
+                         f"{'it' if len(split) == 1 else 'them'}")
+    if demo and cfg.dataset is not None:
+        raise UsageError(f"{', '.join(demo)} shape the built-in demo route, not --dataset; "
+                         f"drop {'it' if len(demo) == 1 else 'them'}")
+    no_truth = (cfg.reference is not None and cfg.ground_truth is None and cfg.tolerance is None
+                and cfg.dataset is None)
     if no_truth and cfg.target_precision != default.target_precision:
         raise UsageError("--target-precision picks an operating point from the ground truth, "
                          "and this run has none (--ground-truth or --tolerance); drop it or "
@@ -437,7 +458,14 @@ def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
 def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
     """Reference and query traverses, ``(R, Q)`` ground truth (or None) and a description."""
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
-    if cfg.reference is None and cfg.query is None:
+    if cfg.dataset is not None:
+        ds = open_place_dataset(cfg)
+        ref = load_traverse_for(ds.reference.path, "reference", cfg, sizes, select)
+        query = load_traverse_for(ds.query.path, "query", cfg, sizes, select)
+        gt = ds.ground_truth
+        source = {"dataset": ds.name, "root": str(ds.root), "reference": ds.splits[0],
+                  "query": ds.splits[1], "ground_truth": ds.description}
+    elif cfg.reference is None and cfg.query is None:
         demo = make_demo(n_reference=cfg.demo_frames, speed=cfg.demo_speed, seed=cfg.seed)
         ref = load_traverse_for(demo.reference, "reference", cfg, sizes, select)
         query = load_traverse_for(demo.query, "query", cfg, sizes, select)
@@ -460,7 +488,9 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
                          "cannot be matched to --start/--stop/--frame-step; convert it to "
                          "images or drop the selection")
     n_ref, n_query = totals if selected else (len(ref), len(query))
-    if cfg.ground_truth is not None:
+    if cfg.dataset is not None:
+        pass  # the dataset's own ground truth (its tolerance applied)
+    elif cfg.ground_truth is not None:
         gt = load_ground_truth(cfg.ground_truth, n_ref, n_query, widen=cfg.tolerance or 0.0)
         source["ground_truth"] = cfg.ground_truth + (
             f", widened by {cfg.tolerance} frames" if cfg.tolerance else "")
@@ -468,7 +498,7 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
         gt = alignment_ranges(n_ref, n_query, cfg.tolerance, offset=cfg.gt_offset)  # sparse
         source["ground_truth"] = f"index alignment, tolerance {cfg.tolerance}" + (
             f", offset {cfg.gt_offset}" if cfg.gt_offset else "")
-    if selected and cfg.reference is not None and gt is not None:
+    if selected and (cfg.reference is not None or cfg.dataset is not None) and gt is not None:
         gt = selected_ground_truth(gt, ref, query)
     if selected:
         source["selection"] = {"start": cfg.start, "stop": cfg.stop,
@@ -488,6 +518,26 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
                      f"side), resized to {key}: the halves change shape (set --image-size or "
                      f"--neural-input-size to {fh}x{fw}, or a size of that shape)", notes)
     return ref, query, gt, source
+
+
+def open_place_dataset(cfg: EvalConfig):
+    """``--dataset NAME --root DIR [--reference-split A --query-split B]`` -> PlaceDataset."""
+    from torchseq.datasets import DatasetError, open_dataset
+
+    given = [f for f in ("reference", "query", "ground_truth") if getattr(cfg, f) is not None]
+    if given:
+        flags = ", ".join(f"--{f.replace('_', '-')}" for f in given)
+        raise UsageError(f"--dataset gives the reference, query and ground truth; drop {flags}")
+    if cfg.root is None:
+        raise UsageError("--dataset needs --root, the folder of its local copy")
+    kwargs = {}
+    if str(cfg.dataset).lower().replace("_", "-") == "brisbane-event":
+        kwargs["events"] = event_frame_options(cfg)
+    try:
+        return open_dataset(cfg.dataset, cfg.root, cfg.reference_split, cfg.query_split,
+                            cfg.tolerance, **kwargs)
+    except (DatasetError, ValueError, OSError) as err:
+        raise UsageError(f"--dataset: {str(err).splitlines()[0]}") from err
 
 
 def check_descriptor_pair(ref: Traverse, query: Traverse) -> None:
@@ -840,9 +890,12 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
     cfg = s.run
     device = resolve_device(cfg.device)
     event_frame_options(cfg)  # checked before any work
+    inputs = {"--reference": cfg.reference, "--query": cfg.query}
+    if cfg.dataset is not None:
+        inputs = {"--dataset": cfg.dataset}
     for point in (s, *points):  # event flags with no event file would be silently ignored
-        check_event_flags_apply(point.run, {"--reference": cfg.reference, "--query": cfg.query},
-                                point.given)
+        if str(cfg.dataset).lower().replace("_", "-") != "brisbane-event":
+            check_event_flags_apply(point.run, inputs, point.given)
     frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "eval", cfg.overwrite)
     torch.manual_seed(cfg.seed)
