@@ -24,7 +24,6 @@ streaming loaders) and the ``(R, Q)`` ground truth.
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -235,27 +234,15 @@ def read_nmea(path: Path) -> np.ndarray:
     return track[np.sort(first)]
 
 
-def _metres(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``(A, B)`` distances in metres between ``(A, 2)`` and ``(B, 2)`` lat/lon (degrees)."""
-    lat0 = math.radians(float(np.mean(np.r_[a[:, 0], b[:, 0]])))
-    scale = np.array([111_320.0, 111_320.0 * math.cos(lat0)])  # equirectangular, city scale
-    d = (a[:, None, :] - b[None, :, :]) * scale
-    return np.sqrt((d ** 2).sum(-1))
+def gps_positions(track: np.ndarray, seconds_of_day: np.ndarray) -> np.ndarray:
+    """``(T, 3)`` ECEF metres at UTC seconds of day (NaN outside the track: no place).
 
+    The one interpolation and the one geodesy of :mod:`torchseq.events.positions`.
+    """
+    from torchseq.events.positions import geodetic_to_ecef, positions_at
 
-def gps_ground_truth(reference_positions: np.ndarray, query_positions: np.ndarray,
-                     metres: float) -> np.ndarray:
-    """``(R, Q)`` bool: reference and query frames within ``metres`` of each other."""
-    return _metres(np.asarray(reference_positions), np.asarray(query_positions)) <= metres
-
-
-def _positions(track: np.ndarray, seconds_of_day: np.ndarray) -> np.ndarray:
-    """``(T, 2)`` lat/lon at UTC seconds of day; NaN outside the track (no place)."""
-    t = track[:, 0]
-    pos = np.stack([np.interp(seconds_of_day, t, track[:, 1]),
-                    np.interp(seconds_of_day, t, track[:, 2])], 1)
-    pos[(seconds_of_day < t[0]) | (seconds_of_day > t[-1])] = np.nan
-    return pos
+    return positions_at(seconds_of_day, track[:, 0], geodetic_to_ecef(track[:, 1],
+                                                                       track[:, 2]))
 
 
 # Unix time (s) of each recording's start, for copies whose timestamps start at 0 (the
@@ -333,10 +320,11 @@ def brisbane_event(root, reference_split: str | None = None, query_split: str | 
     tracks = [read_nmea(_brisbane_nmea(root, s)) for s in splits]
     ref, query = (EventTraverse(f, events) for f in files)
     metres = 25.0 if tolerance is None else float(tolerance)
-    pos = [_positions(track, window_times(f, s, len(d), events.window_ms))
+    from torchseq.events.positions import ground_truth_within
+
+    pos = [gps_positions(track, window_times(f, s, len(d), events.window_ms))
            for track, f, s, d in zip(tracks, files, splits, (ref, query))]
-    with np.errstate(invalid="ignore"):
-        gt = gps_ground_truth(pos[0], pos[1], metres)
+    gt = ground_truth_within(pos[0], pos[1], metres)
     return PlaceDataset(name, root, ref, query, gt, f"GPS, within {metres:g} m", None,
                         metres, splits)
 
