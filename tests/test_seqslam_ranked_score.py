@@ -69,3 +69,18 @@ def test_engine_keeps_ranked_scores_in_order():
     assert (np.diff(s[rows], axis=1) >= 0).all()  # best first
     ok = res.matches.reference.numpy() >= 0
     np.testing.assert_allclose(s[ok, 0], res.best_score.numpy()[ok])
+
+
+@pytest.mark.parametrize("edges", [False, True])
+def test_banded_runs_keep_the_same_ranked_scores(edges):
+    """A long route's banded run (no full matrices) ranks with the full run's scores."""
+    rng = np.random.default_rng(2)
+    ref, query = rng.random((90, 12)), rng.random((70, 12))
+    full = SeqSLAM(SeqSLAMConfig(ds=6, edges=edges, keep_matrices=True)).match_descriptors(
+        ref, query)
+    band = SeqSLAM(SeqSLAMConfig(ds=6, edges=edges, keep_matrices=False,
+                                 max_chunk_elements=3000)).match_descriptors(ref, query)
+    assert band.kernels["matrices"] == "banded"
+    np.testing.assert_array_equal(band.ranked.numpy(), full.ranked.numpy())
+    np.testing.assert_allclose(band.ranked_score.numpy(), full.ranked_score.numpy(),
+                               rtol=1e-9, atol=1e-9)

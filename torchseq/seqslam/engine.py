@@ -42,7 +42,7 @@ class SeqSLAMResult:
         ranked_score: ``(Q, top_k)`` trajectory score of each ranked reference (lower is
             better, NaN where ``ranked`` is ``-1``) for recall@K with ties
             (:func:`torchseq.metrics.recall_at_ks`); None where the run does not keep it
-            (banded and candidate runs).
+            (candidate runs).
     """
 
     matches: Matches
@@ -169,7 +169,8 @@ class SeqSLAM(nn.Module):
                 best_score=out["best"].to(dtype).cpu(), seconds=seconds,
                 kernels={"difference": out["kernel"], "threads": out["threads"],
                          "matrices": "banded"},
-                preview=out["preview"].cpu())
+                preview=out["preview"].cpu(),
+                ranked_score=out["ranked_score"].to(dtype).cpu())
         seconds = {}
         threads = {}
         t0 = t = time.perf_counter()
