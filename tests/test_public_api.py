@@ -12,15 +12,28 @@ PUBLIC = {
         "load_event_frames", "load_ground_truth", "load_traverse", "make_demo", "metrics",
         "patch_normalise", "preprocess", "read_events", "resize", "to_grey", "write_aedat2",
         "write_npz",
+        "PlaceDataset", "load_descriptors", "open_dataset",
     ],
     "torchseq.metrics": [
         "PRCurve", "auc", "correct", "coverage", "evaluate", "precision_recall_curve",
         "recall_at_100_precision", "recall_at_k",
+        "RECALL_KS", "RecallAtK", "recall_at_ks", "recall_table", "sequence_vs_single",
+        "tie_ranks",
+    ],
+    "torchseq.descriptors": [
+        "DescriptorError", "as_descriptors", "describe", "descriptor_kind", "load_descriptors",
+        "load_hook", "neural_config", "neural_input", "save_descriptors",
+    ],
+    "torchseq.datasets": [
+        "DATASETS", "DatasetError", "EventTraverse", "FrameFolder", "PlaceDataset",
+        "brisbane_event", "gardens_point", "nordland", "open_dataset", "read_nmea",
+        "vpr_bench", "window_times", "gps_positions",
     ],
     "torchseq.seqslam": [
         "SeqSLAM", "SeqSLAMConfig", "SeqSLAMResult", "StreamingMatch", "StreamingSeqSLAM",
         "difference_matrix", "enhance_contrast", "search", "trajectory_offsets", "velocities",
         "CandidateIndex", "CandidateSeqSLAM", "StreamingState",
+        "SingleFrameResult", "single_frame",
     ],
     "torchseq.layers": [
         "KWinnersTakeAll", "MaskedLinear", "OutputRing", "RingParams", "RingState",

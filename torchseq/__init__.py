@@ -3,7 +3,9 @@
 import types as _types
 
 from torchseq import metrics, preprocess
+from torchseq.datasets import PlaceDataset, open_dataset
 from torchseq.demo import DemoRoute, make_demo
+from torchseq.descriptors import load_descriptors
 from torchseq.events import (
     EventFormatError,
     EventStream,
@@ -64,4 +66,7 @@ __all__ = [
     "to_grey",
     "write_aedat2",
     "write_npz",
+    "PlaceDataset",
+    "load_descriptors",
+    "open_dataset",
 ]

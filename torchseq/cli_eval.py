@@ -27,6 +27,15 @@ from torchseq.cli_help import organise_help
 from torchseq.cli_presets import apply_preset, preset_config, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
+from torchseq.descriptors import (
+    DescriptorError,
+    describe,
+    descriptor_kind,
+    load_descriptors,
+    load_hook,
+    neural_config,
+    neural_input,
+)
 from torchseq.frontend import (
     EVENT_FIELDS,
     EVENT_HELP,
@@ -90,11 +99,19 @@ class EvalConfig(EventFlags):
     device: str = "cpu"
     tensorboard: bool = True
     progress: bool = True
+    descriptor: str | None = None
+    descriptor_batch: int = 64
+    dataset: str | None = None
+    root: str | None = None
+    reference_split: str | None = None
+    query_split: str | None = None
 
 
 HELP = {
-    "reference": "reference traverse: image folder, video, frame array (.npy/.npz) or event file "
-                 "(.aedat, .aedat4, .raw, event .npy/.npz, .csv); default: the built-in demo",
+    "reference": "reference traverse: image folder, video, frame array (.npy/.npz), event file "
+                 "(.aedat, .aedat4, .raw, event .npy/.npz, .csv) or descriptors ((T, D) .npy, "
+                 ".npz/.h5 with 'descriptors', a folder of VPR-methods-evaluation .gfeat "
+                 "files); default: the built-in demo",
     "query": "query traverse, same kinds as --reference (required with --reference)",
     "ground_truth": "ground truth: CSV 'query,references', (reference x query) 0/1 .npy matrix, "
                     "or VPR-Bench per-query .npy of admissible indices; with --tolerance it is "
@@ -124,6 +141,18 @@ HELP = {
     "device": "cpu, cuda or auto",
     "tensorboard": "write TensorBoard logs",
     "progress": "show progress bars",
+    "descriptor": "descriptor hook 'module:callable': a function or nn.Module mapping (B, H, W) "
+                  "float32 grey frames (0..255) to (B, D) descriptors, run on --device while "
+                  "the frames stream in; the engines then match descriptors (SeqSLAM with "
+                  "--metric)",
+    "descriptor_batch": "frames per call of the --descriptor hook",
+    "dataset": "a dataset's local copy under --root (nothing is downloaded): nordland, "
+               "gardens-point, vpr-bench or brisbane-event; gives reference, query and "
+               "ground truth (--tolerance: frames, or metres for brisbane-event)",
+    "root": "the --dataset folder",
+    "reference_split": "--dataset split of the reference (nordland: a season folder; "
+                       "default: the dataset's own, e.g. summer)",
+    "query_split": "--dataset split of the query (default: the dataset's own, e.g. winter)",
     # SeqSLAMConfig fields whose docstring reads poorly as a flag
     "ds": "SeqSLAM sequence length in frames (rounded up to even)",
     "image_size": "SeqSLAM image size HxW after resizing",
@@ -133,7 +162,7 @@ LIMITS = {
     "tolerance": (0.0, 1e9), "gt_offset": (-1e9, 1e9), "target_precision": (0.0, 1.0),
     "demo_frames": (2, 20_000), "demo_speed": (0.01, 100.0), "seed": (0, 2 ** 32 - 1),
     "start": (0, 2 ** 40), "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40),
-    "max_frames": (1, 2 ** 40),
+    "max_frames": (1, 2 ** 40), "descriptor_batch": (1, 2 ** 20),
 }
 THUMBNAIL = 160  # longer side of the frames kept for plots
 SEQSLAM_LIMITS = {
@@ -242,7 +271,17 @@ def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[s
     default = EvalConfig()
     demo = [f"--{k.replace('_', '-')}" for k in ("demo_frames", "demo_speed")
             if getattr(cfg, k) != getattr(default, k)]
-    no_truth = cfg.reference is not None and cfg.ground_truth is None and cfg.tolerance is None
+    split = [f"--{k.replace('_', '-')}" for k in ("root", "reference_split", "query_split")
+             if getattr(cfg, k) is not None]
+    if split and cfg.dataset is None:
+        raise UsageError(f"{', '.join(split)} belong{'s' if len(split) == 1 else ''} to "
+                         f"--dataset; give --dataset NAME or drop "
+                         f"{'it' if len(split) == 1 else 'them'}")
+    if demo and cfg.dataset is not None:
+        raise UsageError(f"{', '.join(demo)} shape the built-in demo route, not --dataset; "
+                         f"drop {'it' if len(demo) == 1 else 'them'}")
+    no_truth = (cfg.reference is not None and cfg.ground_truth is None and cfg.tolerance is None
+                and cfg.dataset is None)
     if no_truth and cfg.target_precision != default.target_precision:
         raise UsageError("--target-precision picks an operating point from the ground truth, "
                          "and this run has none (--ground-truth or --tolerance); drop it or "
@@ -330,8 +369,9 @@ class Traverse:
     """A loaded traverse: frames at each size an engine needs, thumbnails for plots, facts."""
 
     frames: dict
-    thumbnail: torch.Tensor
+    thumbnail: torch.Tensor | None
     info: dict
+    descriptors: torch.Tensor | None = None  # (T, D) for a traverse of descriptors
 
     def __len__(self) -> int:
         return int(self.info["n_frames"])
@@ -342,11 +382,13 @@ class Traverse:
 
 
 def needed_sizes(settings: list[Settings], model=None) -> dict:
-    """Every frame size the run's engines read, by key."""
+    """Every frame size the run's engines read, by key.
+
+    SeqSLAM's size always: its descriptors are the single-frame baseline of every run.
+    """
     sizes = {}
     for s in settings:
-        if s.run.engine in ("seqslam", "both"):
-            sizes[size_key(s.seqslam.image_size)] = tuple(s.seqslam.image_size)
+        sizes[size_key(s.seqslam.image_size)] = tuple(s.seqslam.image_size)
         if s.run.engine in ("neural", "both"):
             size = model.config.input_size if model is not None else s.neural.input_size
             sizes[size_key(size)] = tuple(size)
@@ -354,7 +396,27 @@ def needed_sizes(settings: list[Settings], model=None) -> dict:
 
 
 def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -> Traverse:
-    """One traverse, shrunk frame by frame to ``sizes`` (a library error names it)."""
+    """One traverse, shrunk frame by frame to ``sizes`` (a library error names it).
+
+    A descriptor file (:func:`torchseq.descriptors.descriptor_kind`) is read as ``(T, D)``
+    descriptors; with ``--descriptor`` the hook describes the frames as they stream in.
+    """
+    name = "demo" if not isinstance(source, (str, Path)) else source
+    try:
+        if cfg.descriptor is not None:
+            return describe_traverse(source, cfg, select)
+        if isinstance(source, (str, Path)) and Path(source).exists() and \
+                descriptor_kind(source) is not None:
+            desc = load_descriptors(source)
+            keep = list(select.validate().indices(len(desc)))
+            if not keep:
+                raise DescriptorError(f"{source}: no descriptor in the selected range "
+                                      f"({len(desc)} rows)")
+            return Traverse({}, None, {"n_frames": len(keep), "frame_size": None,
+                                       "indices": keep, "n_total": len(desc), "events": False,
+                                       "descriptor_dim": int(desc.shape[1])}, desc[keep])
+    except (ValueError, OSError) as err:
+        raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
     try:
         frames, info = load_traverse_sizes(source, sizes, event_frame_options(cfg),
                                            cfg.progress, select, thumbnail=THUMBNAIL)
@@ -363,6 +425,30 @@ def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -
         raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
     return Traverse({k: v for k, v in frames.items() if k != "thumbnail"},
                     frames["thumbnail"], info)
+
+
+def describe_traverse(source, cfg: EvalConfig, select) -> Traverse:
+    """A traverse described by the ``--descriptor`` hook as its frames stream (thumbnails kept)."""
+    from torchseq.preprocess import resize
+    from torchseq.sources import iter_traverse, thumbnail_size
+
+    hook = load_hook(cfg.descriptor)
+    thumbs, sizes, total = [], [], {}
+
+    def keep(frame: torch.Tensor) -> None:
+        if not sizes:
+            sizes.append(tuple(int(v) for v in frame.shape))
+        size = thumbnail_size(sizes[0], THUMBNAIL)
+        thumbs.append(resize(frame[None], size)[0].round().clamp(0, 255).to(torch.uint8))
+
+    frames = iter_traverse(source, event_frame_options(cfg), cfg.progress, select, total)
+    desc = describe(frames, hook, resolve_device(cfg.device), cfg.descriptor_batch, keep)
+    n = len(desc)
+    return Traverse({}, torch.stack(thumbs), {
+        "n_frames": n, "frame_size": list(sizes[0]),
+        "indices": list(range(select.start, select.start + n * select.step, select.step)),
+        "n_total": total.get("n_total"), "events": bool(total.get("events")),
+        "descriptor_dim": int(desc.shape[1]), "descriptor_hook": cfg.descriptor}, desc)
 
 
 def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
@@ -375,7 +461,14 @@ def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
 def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
     """Reference and query traverses, ``(R, Q)`` ground truth (or None) and a description."""
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
-    if cfg.reference is None and cfg.query is None:
+    if cfg.dataset is not None:
+        ds = open_place_dataset(cfg)
+        ref = load_traverse_for(ds.reference.path, "reference", cfg, sizes, select)
+        query = load_traverse_for(ds.query.path, "query", cfg, sizes, select)
+        gt = ds.ground_truth
+        source = {"dataset": ds.name, "root": str(ds.root), "reference": ds.splits[0],
+                  "query": ds.splits[1], "ground_truth": ds.description}
+    elif cfg.reference is None and cfg.query is None:
         demo = make_demo(n_reference=cfg.demo_frames, speed=cfg.demo_speed, seed=cfg.seed)
         ref = load_traverse_for(demo.reference, "reference", cfg, sizes, select)
         query = load_traverse_for(demo.query, "query", cfg, sizes, select)
@@ -387,6 +480,10 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
         ref = load_traverse_for(cfg.reference, "reference", cfg, sizes, select)
         query = load_traverse_for(cfg.query, "query", cfg, sizes, select)
         gt, source = None, {"reference": cfg.reference, "query": cfg.query}
+        check_descriptor_pair(ref, query)
+        if ref.descriptors is not None:
+            source["descriptors"] = {"dim": ref.info["descriptor_dim"],
+                                     "hook": cfg.descriptor}
     selected = select != FrameSelection()
     totals = (ref.info["n_total"], query.info["n_total"])
     if selected and (cfg.ground_truth is not None or cfg.tolerance is not None) and None in totals:
@@ -394,7 +491,9 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
                          "cannot be matched to --start/--stop/--frame-step; convert it to "
                          "images or drop the selection")
     n_ref, n_query = totals if selected else (len(ref), len(query))
-    if cfg.ground_truth is not None:
+    if cfg.dataset is not None:
+        pass  # the dataset's own ground truth (its tolerance applied)
+    elif cfg.ground_truth is not None:
         gt = load_ground_truth(cfg.ground_truth, n_ref, n_query, widen=cfg.tolerance or 0.0)
         source["ground_truth"] = cfg.ground_truth + (
             f", widened by {cfg.tolerance} frames" if cfg.tolerance else "")
@@ -402,13 +501,15 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
         gt = alignment_ranges(n_ref, n_query, cfg.tolerance, offset=cfg.gt_offset)  # sparse
         source["ground_truth"] = f"index alignment, tolerance {cfg.tolerance}" + (
             f", offset {cfg.gt_offset}" if cfg.gt_offset else "")
-    if selected and cfg.reference is not None and gt is not None:
+    if selected and (cfg.reference is not None or cfg.dataset is not None) and gt is not None:
         gt = selected_ground_truth(gt, ref, query)
     if selected:
         source["selection"] = {"start": cfg.start, "stop": cfg.stop,
                                "frame_step": cfg.frame_step, "max_frames": cfg.max_frames}
     two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
     for what, t in (("reference", ref), ("query", query)):
+        if t.descriptors is not None:
+            continue
         fh, fw = t.info["frame_size"]
         for key, (h, w) in sizes.items():
             if h > fh or w > fw:
@@ -420,6 +521,37 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
                      f"side), resized to {key}: the halves change shape (set --image-size or "
                      f"--neural-input-size to {fh}x{fw}, or a size of that shape)", notes)
     return ref, query, gt, source
+
+
+def open_place_dataset(cfg: EvalConfig):
+    """``--dataset NAME --root DIR [--reference-split A --query-split B]`` -> PlaceDataset."""
+    from torchseq.datasets import DatasetError, open_dataset
+
+    given = [f for f in ("reference", "query", "ground_truth") if getattr(cfg, f) is not None]
+    if given:
+        flags = ", ".join(f"--{f.replace('_', '-')}" for f in given)
+        raise UsageError(f"--dataset gives the reference, query and ground truth; drop {flags}")
+    if cfg.root is None:
+        raise UsageError("--dataset needs --root, the folder of its local copy")
+    kwargs = {}
+    if str(cfg.dataset).lower().replace("_", "-") == "brisbane-event":
+        kwargs["events"] = event_frame_options(cfg)
+    try:
+        return open_dataset(cfg.dataset, cfg.root, cfg.reference_split, cfg.query_split,
+                            cfg.tolerance, **kwargs)
+    except (DatasetError, ValueError, OSError) as err:
+        raise UsageError(f"--dataset: {str(err).splitlines()[0]}") from err
+
+
+def check_descriptor_pair(ref: Traverse, query: Traverse) -> None:
+    """Both traverses descriptors of one size, or both frames."""
+    if (ref.descriptors is None) != (query.descriptors is None):
+        which = "reference" if ref.descriptors is not None else "query"
+        raise UsageError(f"the {which} traverse holds descriptors and the other frames: give "
+                         f"descriptors for both (or frames for both)")
+    if ref.descriptors is not None and ref.descriptors.shape[1] != query.descriptors.shape[1]:
+        raise UsageError(f"reference descriptors have {ref.descriptors.shape[1]} values, query "
+                         f"descriptors {query.descriptors.shape[1]}: they must be the same size")
 
 
 def run_seqslam(s: Settings, ref, query, device, notes: Notes):
@@ -438,15 +570,33 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
         raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
                          + hint)
     size = s.seqslam.image_size
-    result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
-                                                     progress=s.run.progress)
+    config = ranked_config(s.seqslam)
+    engine = SeqSLAM(config, device=device)
+    if ref.descriptors is not None:
+        result = engine.match_descriptors(ref.descriptors, query.descriptors,
+                                          progress=s.run.progress)
+    else:
+        result = engine.match(ref.at(size), query.at(size), progress=s.run.progress)
     # plots draw the engine's reduced copy (area averages, at most 1024 a side; the whole
     # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
     # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)
     matrix = result.preview if result.preview is not None else result.enhanced
-    return {"matches": result.matches, "ranked": result.ranked, "matrix": matrix,
+    return {"matches": result.matches, "ranked": result.ranked,
+            "ranked_score": result.ranked_score, "matrix": matrix,
             "matrix_shape": (len(ref), len(query)), "matrix_reduced": result.enhanced is None,
-            "seconds": result.seconds["total"], "parameters": to_jsonable(s.seqslam)}
+            "seconds": result.seconds["total"], "parameters": to_jsonable(config)}
+
+
+RANKED = max(metrics.RECALL_KS) + 1  # candidates ranked: recall@20 and the tie past it
+
+
+def ranked_config(config: SeqSLAMConfig) -> SeqSLAMConfig:
+    """The run's SeqSLAM config with at least :data:`RANKED` ranked candidates.
+
+    ``top_k`` only sizes the ranked list (it changes no match); metrics.json's recall@20
+    needs 20 candidates and one more to see a tie at the 20th.
+    """
+    return dataclasses.replace(config, top_k=max(config.top_k, RANKED))
 
 
 def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
@@ -458,7 +608,8 @@ def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
             frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames))}
         if ref.info.get("events"):
             source["events"] = to_jsonable(event_frame_options(cfg))
-    return {**source, "n_frames": len(ref), "frame_size": list(ref.info["frame_size"])}
+    size = ref.info["frame_size"]
+    return {**source, "n_frames": len(ref), "frame_size": None if size is None else list(size)}
 
 
 # event settings that change no frame (the same events either way, or a complete file read)
@@ -486,7 +637,7 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
         if was != now:
             problems.append(f"it learnt {learnt.get('source')}, this reference is "
                             f"{this['source']}")
-        if learnt.get("frame_size") not in (None, this["frame_size"]):
+        if learnt.get("frame_size") not in (None, this["frame_size"]) and this["frame_size"]:
             fs = learnt["frame_size"]
             problems.append(f"its frames were {fs[0]}x{fs[1]}, these are "
                             f"{this['frame_size'][0]}x{this['frame_size'][1]}")
@@ -516,10 +667,17 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
         problem = checkpoint_mismatch(model, describe_reference(cfg, ref))
         if problem:
             warn(PROG, problem, notes)
+    elif ref.descriptors is not None:
+        model = NeuralSeqSLAM(neural_config(s.neural, ref.descriptors.shape[1]), device=device)
+        model.fit(neural_input(ref.descriptors), progress=cfg.progress)
     else:
         model = NeuralSeqSLAM(s.neural, device=device)
         model.fit(ref.at(s.neural.input_size), progress=cfg.progress)
     size = model.config.input_size
+    if ref.descriptors is not None and tuple(size) != (1, ref.descriptors.shape[1]):
+        raise UsageError(f"the checkpoint's L1 takes {size[0]}x{size[1]} inputs, not "
+                         f"{ref.descriptors.shape[1]}-value descriptors (train it on these "
+                         f"descriptors)")
     fit_seconds = time.perf_counter() - start
     n_ref = int(model.unit_to_reference[-1, 1])
     per_unit = n_ref / model.n_units
@@ -531,12 +689,15 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
              f"unit stands for about {per_unit:.1f} frames ({how}; raise --neural-n-output "
              f"for a finer place resolution)", notes)
     t0 = time.perf_counter()
-    result = model.run(query.at(size), progress=cfg.progress)
+    result = model.run(query.at(size) if query.descriptors is None else
+                       neural_input(query.descriptors), progress=cfg.progress)
     run_seconds = time.perf_counter() - t0
-    k = min(10, model.n_units)
-    ranked = model.unit_centre.cpu()[result.activity.topk(k, dim=1).indices]
+    k = min(RANKED, model.n_units)
+    top = result.activity.topk(k, dim=1)  # activity: higher is better, as the confidence
+    ranked = model.unit_centre.cpu()[top.indices]
     preset = None if cfg.checkpoint else preset_name(cfg.neural_preset)
-    return {"matches": result.matches, "ranked": ranked, "activity": result.activity,
+    return {"matches": result.matches, "ranked": ranked, "ranked_score": top.values,
+            "activity": result.activity,
             "seconds": run_seconds, "fit_seconds": fit_seconds, "preset": preset,
             "parameters": to_jsonable(model.config), "model_bytes": int(model.model_bytes()),
             "frames_per_unit": per_unit}
@@ -561,7 +722,7 @@ def engine_metrics(r: dict, gt, target_precision: float) -> dict:
         m = {"recall_at_1": None, "auc": None, "recall_at_100_precision": None,
              "n_queries": len(r["matches"]), "coverage": metrics.coverage(r["matches"])}
     else:
-        m = metrics.evaluate(r["matches"], gt, r["ranked"])
+        m = metrics.evaluate(r["matches"], gt, r["ranked"], r.get("ranked_score"))
         m["operating_point"] = metrics.operating_point(r["matches"], gt, target_precision)
     m.update({k: r[k] for k in ("seconds", "fit_seconds", "model_bytes", "frames_per_unit",
                                 "preset", "parameters") if k in r})
@@ -574,17 +735,48 @@ def config_dict(s: Settings) -> dict:
             "neural": to_jsonable(s.neural)}
 
 
-def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes) -> dict:
-    """Write metrics.json, matches.csv, plots and TensorBoard logs; return the metrics."""
+SINGLE_FRAME_RULE = ("each query's nearest reference by the run's --metric on the same "
+                     "descriptors (SeqSLAM's own for frames), no contrast enhancement, no "
+                     "sequence (ds = 1)")
+
+
+def single_frame_baseline(s: Settings, ref: Traverse, query: Traverse, device):
+    """Single-frame matches on the run's descriptors (:func:`torchseq.seqslam.single_frame`)."""
+    from torchseq.seqslam.single import single_frame
+
+    if ref.descriptors is not None:
+        r, q = ref.descriptors, query.descriptors
+    else:
+        engine = SeqSLAM(s.seqslam, device=device)
+        size = s.seqslam.image_size
+        r, q = engine.descriptors(ref.at(size)), engine.descriptors(query.at(size))
+    return single_frame(r.to(device), q.to(device), s.seqslam.metric, RANKED,
+                        s.seqslam.max_chunk_elements)
+
+
+def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes,
+           single=None) -> dict:
+    """Write metrics.json, matches.csv, plots and TensorBoard logs; return the metrics.
+
+    ``single``: the single-frame baseline (:func:`single_frame_baseline`), reported beside
+    each engine with the share of queries the sequence makes worse (needs ground truth).
+    """
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
                "warnings": warning_list(notes), VERSIONS_KEY: versions()}
+    if single is not None and gt is not None:
+        summary["single_frame"] = {
+            "rule": SINGLE_FRAME_RULE, "metric": s.seqslam.metric,
+            **metrics.evaluate(single.matches, gt, single.ranked, single.ranked_score)}
     curves = {}
     for name, r in results.items():
         summary[name] = engine_metrics(r, gt, s.run.target_precision)
         if gt is not None:
             curves[name] = metrics.precision_recall_curve(r["matches"], gt)
+            if single is not None:
+                summary[name]["versus_single_frame"] = metrics.sequence_vs_single(
+                    r["matches"], single.matches, gt)
     write_json(out / "metrics.json", summary)
     write_text(out / "matches.csv", matches_csv(results))
     write_text(out / "config.json",
@@ -600,6 +792,8 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
         figures["neural_activity"] = plots.plot_activity_raster(
             results["neural"]["activity"], title="neural output activity over the query")
     for name, r in results.items():
+        if ref.thumbnail is None or query.thumbnail is None:
+            break  # descriptor files: no frames to show
         figures[f"{name}_matched_pairs"] = plots.plot_matched_pairs(
             ref.thumbnail, query.thumbnail, r["matches"], gt,
             title=f"{name}: query (top) and matched reference")
@@ -701,9 +895,12 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
     cfg = s.run
     device = resolve_device(cfg.device)
     event_frame_options(cfg)  # checked before any work
+    inputs = {"--reference": cfg.reference, "--query": cfg.query}
+    if cfg.dataset is not None:
+        inputs = {"--dataset": cfg.dataset}
     for point in (s, *points):  # event flags with no event file would be silently ignored
-        check_event_flags_apply(point.run, {"--reference": cfg.reference, "--query": cfg.query},
-                                point.given)
+        if str(cfg.dataset).lower().replace("_", "-") != "brisbane-event":
+            check_event_flags_apply(point.run, inputs, point.given)
     frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "eval", cfg.overwrite)
     torch.manual_seed(cfg.seed)
@@ -711,19 +908,50 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
     if cfg.checkpoint and cfg.engine in ("neural", "both"):
         model = load_model(cfg.checkpoint, device)
     ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes)
+    if ref.descriptors is not None and cfg.engine != "neural" and cfg.preset is None:
+        default = SeqSLAMConfig()
+        typed = [f"--{k.replace('_', '-')}" for k in ("image_size", "patch_size",
+                                                      "preprocessing")
+                 if any(getattr(p.seqslam, k) != getattr(default, k) for p in (s, *points))]
+        if typed:
+            raise UsageError(f"{', '.join(typed)} shape{'s' if len(typed) == 1 else ''} "
+                             f"SeqSLAM's own descriptors, and this run matches given "
+                             f"descriptors; drop {'it' if len(typed) == 1 else 'them'}")
+    if ref.descriptors is not None and cfg.engine != "seqslam" and model is None:
+        preset = preset_config(cfg.neural_preset)
+        typed = [f"--neural-{k.replace('_', '-')}" for k in ("input_size", "patch_size")
+                 if any(getattr(p.neural, k) != getattr(preset, k) for p in (s, *points))]
+        if typed:
+            raise UsageError(f"{', '.join(typed)} ha{'s' if len(typed) == 1 else 've'} no "
+                             f"effect on descriptors: the network's L1 takes the "
+                             f"{ref.info['descriptor_dim']} values of each descriptor")
     if grid:
         return sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
     results = run_engines(s, ref, query, device, notes, model)
-    summary = report(s, ref, query, gt, source, results, out, notes)
+    single = single_frame_baseline(s, ref, query, device) if gt is not None else None
+    summary = report(s, ref, query, gt, source, results, out, notes, single)
     for name in results:
-        m = summary[name]
-        r1 = "n/a (no ground truth)" if m.get("recall_at_1") is None else \
-            f"{m['recall_at_1']:.3f}"
-        auc = "" if m.get("auc") is None else f", AUC {m['auc']:.3f}"
-        print(f"{name}: recall@1 {r1}{auc} over {m['n_queries']} queries "
-              f"({m['seconds']:.2f} s)")
+        print(summary_line(name, summary[name]))
     print(f"wrote {out / 'metrics.json'}, {out / 'matches.csv'} and plots to {out}")
     return 0
+
+
+def summary_line(name: str, m: dict) -> str:
+    """One engine's line: recall@1 (ties both ways), single frame, share made worse, AUC."""
+    if m.get("recall_at_1") is None:
+        return (f"{name}: recall@1 n/a (no ground truth) over {m['n_queries']} queries "
+                f"({m['seconds']:.2f} s)")
+    text = f"{name}: recall@1 {m['recall_at_1']:.3f}"
+    rec = m.get("recall", {}).get("queries_with_a_true_match")
+    if rec and rec["ties_for"]["1"] != rec["ties_against"]["1"]:
+        text += f" (ties {rec['ties_against']['1']:.3f}..{rec['ties_for']['1']:.3f})"
+    vs = m.get("versus_single_frame")
+    if vs:
+        text += (f", single frame {vs['single_frame_recall_at_1']:.3f}, made worse "
+                 f"{100 * vs['made_worse']:.1f}% / better {100 * vs['made_better']:.1f}% "
+                 f"of queries")
+    return (f"{text}, AUC {m['auc']:.3f} over {m['n_queries']} queries "
+            f"({m['seconds']:.2f} s)")
 
 
 def cli(argv: list[str] | None = None, prog: str | None = None) -> int:

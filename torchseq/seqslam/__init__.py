@@ -7,6 +7,7 @@ from torchseq.seqslam.difference import difference_matrix
 from torchseq.seqslam.engine import SeqSLAM, SeqSLAMResult
 from torchseq.seqslam.enhance import enhance_contrast
 from torchseq.seqslam.search import search, trajectory_offsets, velocities
+from torchseq.seqslam.single import SingleFrameResult, single_frame
 from torchseq.seqslam.streaming import StreamingMatch, StreamingSeqSLAM, StreamingState
 
 __all__ = [
@@ -23,4 +24,6 @@ __all__ = [
     "search",
     "trajectory_offsets",
     "velocities",
+    "SingleFrameResult",
+    "single_frame",
 ]

@@ -59,7 +59,7 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
         progress: unused per band (kept for the signature of the full path).
 
     Returns:
-        dict with ``match``, ``best``, ``ratio`` ``(Q,)``, ``ranked (Q, top_k)``,
+        dict with ``match``, ``best``, ``ratio`` ``(Q,)``, ``ranked``, ``ranked_score (Q, top_k)``,
         ``preview`` ``(R', Q')``, ``kernel``, ``threads`` and ``seconds``.
     """
     import time
@@ -104,6 +104,7 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
     best = torch.full((n_query,), math.nan, dtype=torch.float64, device=dev)
     second = torch.full((n_query,), math.nan, dtype=torch.float64, device=dev)
     ranked = torch.full((n_query, c.top_k), -1, dtype=torch.int64, device=dev)
+    ranked_score = torch.full((n_query, c.top_k), math.nan, dtype=torch.float64, device=dev)
     # the preview reduced along R band by band (torchseq.area); the finite counts are kept
     # only once a band holds a non-finite entry (until then every weight is 1)
     rows = torch.empty(n_query, min(n_ref, PREVIEW_SIDE), dtype=torch.float32, device=dev)
@@ -122,9 +123,11 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
         if weights is not None:
             weights[c0 - half:c1 + half] = 1.0 if part.weights is None else part.weights
         t = time.perf_counter()
-        m, b, s, r = search_scores(e.double(), *args)
+        rs = torch.empty(e.shape[1], c.top_k, dtype=torch.float64, device=dev)
+        m, b, s, r = search_scores(e.double(), *args, ranked_score=rs)
         own = slice(half, half + c1 - c0)
         match[c0:c1], best[c0:c1], second[c0:c1], ranked[c0:c1] = m[own], b[own], s[own], r[own]
+        ranked_score[c0:c1] = rs[own]
         seconds["search"] += time.perf_counter() - t
     shift = -(ds + 1) * low
     if c.edges:  # the first and last 3 ds / 2 columns again, shifted as the full path does
@@ -132,11 +135,14 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
         for q0, take in ((0, slice(0, half)), (n_query - n_edge, slice(n_edge - half, n_edge))):
             e = enhanced_columns(q0, q0 + n_edge) - low
             t = time.perf_counter()
-            m, b, s, r = search_scores(e.double(), *args[:-1], workers, True)
+            rs = torch.empty(e.shape[1], c.top_k, dtype=torch.float64, device=dev)
+            m, b, s, r = search_scores(e.double(), *args[:-1], workers, True, rs)
             q = slice(q0 + take.start, q0 + take.stop)
             match[q], ranked[q] = m[take], r[take]
+            ranked_score[q] = rs[take] - shift  # undone below
             best[q], second[q] = b[take] - shift, s[take] - shift  # undone below
             seconds["search"] += time.perf_counter() - t
     return {"match": match, "best": best + shift, "ratio": uniqueness_ratio(best, second, shift),
-            "ranked": ranked, "preview": finish(Partial(rows, weights), PREVIEW_SIDE) - low,
+            "ranked": ranked, "ranked_score": ranked_score + shift,
+            "preview": finish(Partial(rows, weights), PREVIEW_SIDE) - low,
             "kernel": kernel, "threads": workers, "seconds": seconds}

@@ -39,6 +39,10 @@ class SeqSLAMResult:
             ``"banded"``.
         preview: ``(R', Q')`` reduced copy of the enhanced matrix on CPU (area averages,
             at most 1024 on a side) for plots, or None.
+        ranked_score: ``(Q, top_k)`` trajectory score of each ranked reference (lower is
+            better, NaN where ``ranked`` is ``-1``) for recall@K with ties
+            (:func:`torchseq.metrics.recall_at_ks`); None where the run does not keep it
+            (candidate runs).
     """
 
     matches: Matches
@@ -49,6 +53,7 @@ class SeqSLAMResult:
     seconds: dict = field(default_factory=dict)
     kernels: dict = field(default_factory=dict)
     preview: torch.Tensor | None = None
+    ranked_score: torch.Tensor | None = None
 
 
 def _sync(device: torch.device) -> None:
@@ -166,7 +171,8 @@ class SeqSLAM(nn.Module):
                 best_score=out["best"].to(dtype).cpu(), seconds=seconds,
                 kernels={"difference": out["kernel"], "threads": out["threads"],
                          "matrices": "banded"},
-                preview=out["preview"].cpu())
+                preview=out["preview"].cpu(),
+                ranked_score=out["ranked_score"].to(dtype).cpu())
         seconds = {}
         threads = {}
         t0 = t = time.perf_counter()
@@ -183,9 +189,11 @@ class SeqSLAM(nn.Module):
         seconds["enhance"] = time.perf_counter() - t
         t = time.perf_counter()
         threads["search"] = resolve_threads(c.threads)
+        ranked_score = torch.empty(query.shape[0], c.top_k, dtype=enhanced.dtype,
+                                   device=self.device)
         match, best, ratio, ranked = search(enhanced, ds, self.speeds, c.rwindow, c.top_k,
                                             c.max_chunk_elements, progress, c.match_rule,
-                                            threads["search"], c.edges)
+                                            threads["search"], c.edges, ranked_score)
         _sync(self.device)
         seconds["search"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
@@ -194,7 +202,7 @@ class SeqSLAM(nn.Module):
             difference=diff.cpu(), enhanced=enhanced.cpu(), ranked=ranked.cpu(),
             best_score=best.cpu(), seconds=seconds,
             kernels={"difference": kernel, "threads": threads, "matrices": "full"},
-            preview=preview(enhanced).cpu())
+            preview=preview(enhanced).cpu(), ranked_score=ranked_score.cpu())
 
     def forward(self, reference: torch.Tensor, query: torch.Tensor) -> SeqSLAMResult:
         """Same as :meth:`match`."""

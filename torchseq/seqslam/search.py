@@ -176,10 +176,12 @@ def _offsets_of(centre, starts: torch.Tensor, ds: int) -> torch.Tensor:
 def _rank(
     scores: torch.Tensor, ds: int, n_ref: int, rwindow: int, top_k: int,
     centre=None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`rank_scores` with the best score outside the window in place of the ratio.
 
     ``centre`` may also be a function of ``(C, m)`` starts (see :func:`_offsets_of`).
+    A fifth result: ``(C, top_k)`` the ranked references' scores (their best start's; NaN
+    where the reference is ``-1``).
     """
     rows, n_starts = scores.shape
     start = scores.argmin(dim=1)  # first minimum: ties -> lowest start
@@ -193,9 +195,9 @@ def _rank(
         cand, vals = _top_starts(scores, m)
         shift = _offsets_of(centre, cand, ds)
         place = torch.where(torch.isfinite(vals), (cand + shift).clamp_max(n_ref - 1), -1)
-        ranked, found = _first_distinct(place, top_k)
+        ranked, found, ranked_vals = _first_distinct(place, top_k, vals)
         if m == n_starts or bool(((found >= top_k) | (place[:, -1] < 0)).all()):
-            return start, best, second, ranked
+            return start, best, second, ranked, ranked_vals
         m = min(2 * m, n_starts)
 
 
@@ -209,10 +211,12 @@ def _top_starts(scores: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tenso
     return cand.gather(1, order), vals.gather(1, order)
 
 
-def _first_distinct(place: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _first_distinct(place: torch.Tensor, k: int, vals: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per row, the first ``k`` distinct places ``>= 0`` in order, and how many it holds.
 
-    Returns ``(C, k)`` places (``-1`` padded) and ``(C,)`` counts of distinct places.
+    Returns ``(C, k)`` places (``-1`` padded), ``(C,)`` counts of distinct places and
+    ``(C, k)`` the ``vals`` of the places kept (NaN padded).
     Starts that report the same place (``match_at="trajectory"``: ``s + floor(v ds/2)`` with
     each start's own velocity, or clamped to ``R - 1``) count once, at their best-ranked
     start; without this a top-10 list repeats places (corridor: 7 distinct of 10).
@@ -225,9 +229,11 @@ def _first_distinct(place: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Te
     rank = keep.cumsum(1) - 1
     sel = keep & (rank < k)
     out = place.new_full((rows, k), -1)
+    out_vals = vals.new_full((rows, k), math.nan)
     r, c = sel.nonzero(as_tuple=True)
     out[r, rank[r, c]] = place[r, c]
-    return out, keep.sum(1)
+    out_vals[r, rank[r, c]] = vals[r, c]
+    return out, keep.sum(1), out_vals
 
 
 def rank_scores(
@@ -253,7 +259,7 @@ def rank_scores(
         start. Ties go to the lower start: the best start is the first minimum, and the
         ranking is a stable sort's, also where ties straddle the K-th place.
     """
-    start, best, second, ranked = _rank(scores, ds, n_ref, rwindow, top_k, centre)
+    start, best, second, ranked, _ = _rank(scores, ds, n_ref, rwindow, top_k, centre)
     return start, best, uniqueness_ratio(best, second), ranked
 
 
@@ -268,6 +274,7 @@ def search(
     match_at: str = "start",
     threads: int = 1,
     edges: bool = False,
+    ranked_score: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Match every query by its best trajectory (OpenSeqSLAM's ``findMatches``).
 
@@ -288,6 +295,9 @@ def search(
             reporting the start row ``s``; query ``N > Q - 1 - ds/2`` from its trailing
             window (``N - ds .. N``), reporting the end row ``s + floor(ds v_best)``; both
             clamped to ``R - 1``.
+        ranked_score: a ``(Q, top_k)`` tensor that receives each ranked reference's
+            trajectory score (the best start reporting it; NaN where ``ranked`` is ``-1``),
+            for recall@K with ties (:func:`torchseq.metrics.recall_at_ks`); None: not kept.
 
     Returns:
         ``match (Q,)`` int64 reference (``-1`` when unscored or no finite trajectory),
@@ -296,7 +306,7 @@ def search(
     """
     match, best, second, ranked = search_scores(enhanced, ds, speeds, rwindow, top_k,
                                                 max_chunk_elements, progress, match_at,
-                                                threads, edges)
+                                                threads, edges, ranked_score)
     return match, best, uniqueness_ratio(best, second), ranked
 
 
@@ -311,6 +321,7 @@ def search_scores(
     match_at: str = "start",
     threads: int = 1,
     edges: bool = False,
+    ranked_score: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`search`, returning the best score outside the exclusion window instead of the ratio.
 
@@ -340,6 +351,11 @@ def search_scores(
     best_score = torch.full((n_query,), math.nan, dtype=dtype, device=dev)
     second_score = torch.full((n_query,), math.nan, dtype=dtype, device=dev)
     ranked = torch.full((n_query, top_k), -1, dtype=torch.int64, device=dev)
+    if ranked_score is not None:
+        if tuple(ranked_score.shape) != (n_query, top_k):
+            raise ValueError(f"ranked_score must be ({n_query}, {top_k}), got "
+                             f"{tuple(ranked_score.shape)}")
+        ranked_score.fill_(math.nan)
     budget = max_chunk_elements
     if dev.type != "cuda":
         budget = min(budget, CPU_BLOCK_ELEMENTS)
@@ -355,13 +371,16 @@ def search_scores(
         if by_velocity:
             def centre(starts):
                 return half[start_velocity(d_t, c0, ds, offsets, starts)]
-        start, best, second, rank = _rank(scores, ds, n_ref, rwindow, top_k, centre)
+        start, best, second, rank, rank_vals = _rank(scores, ds, n_ref, rwindow, top_k,
+                                                     centre)
         ok = torch.isfinite(best)
         shift = _offsets_of(centre, start[:, None], ds)[:, 0]
         match[c0:c1] = torch.where(ok, (start + shift).clamp_max(n_ref - 1), -1)
         best_score[c0:c1] = best
         second_score[c0:c1] = second
         ranked[c0:c1] = rank
+        if ranked_score is not None:
+            ranked_score[c0:c1] = rank_vals.to(ranked_score)
         bar.update(c1 - c0)
 
     run_blocks(block, range(first, stop, rows), threads, dev)
@@ -379,7 +398,10 @@ def search_scores(
             scores, best_v = trajectory_scores(d_t, centres[0], centres[-1] + 1, ds, offsets,
                                                with_velocity=True)
             centre = ends[best_v] if end else torch.zeros_like(best_v)
-            start, best, second, rank = _rank(scores, ds, n_ref, rwindow, top_k, centre)
+            start, best, second, rank, rank_vals = _rank(scores, ds, n_ref, rwindow, top_k,
+                                                         centre)
+            if ranked_score is not None:
+                ranked_score[queries[0]:queries[-1] + 1] = rank_vals.to(ranked_score)
             q = torch.arange(queries[0], queries[-1] + 1, device=dev)
             shift = centre.gather(1, start[:, None])[:, 0]
             match[q] = torch.where(torch.isfinite(best), (start + shift).clamp_max(n_ref - 1), -1)

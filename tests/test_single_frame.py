@@ -1,0 +1,89 @@
+"""Single frame against sequence: the nearest-neighbour baseline and the queries made worse."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from conftest import shared_data
+from seqslam_oracle import oracle_difference
+
+from torchseq import cli_eval, metrics
+from torchseq.frontend import run_main
+from torchseq.matches import Matches
+from torchseq.seqslam.single import single_frame
+
+
+@pytest.mark.parametrize("metric", ["l1", "l2", "cosine"])
+def test_single_frame_equals_a_loop(metric):
+    rng = np.random.default_rng(0)
+    ref = rng.integers(0, 4, (30, 6)).astype(np.float64)  # ties between references
+    query = rng.integers(0, 4, (17, 6)).astype(np.float64)
+    if metric == "cosine":  # exact ties would hang on the last bit of a division
+        ref, query = ref + rng.random(ref.shape), query + rng.random(query.shape)
+    d = oracle_difference(ref, query, metric)
+    got = single_frame(torch.tensor(ref), torch.tensor(query), metric, top_k=5,
+                       max_chunk_elements=64)  # several blocks of queries
+    for q in range(17):
+        order = sorted(range(30), key=lambda r: (d[r, q], r))[:5]  # ties: lower index
+        assert got.ranked[q].tolist() == order
+        np.testing.assert_allclose(got.ranked_score[q].numpy(), d[order, q], atol=1e-9)
+        assert int(got.matches.reference[q]) == order[0]
+    short = single_frame(torch.tensor(ref[:3]), torch.tensor(query), metric, top_k=5)
+    assert (short.ranked[:, 3:] == -1).all() and short.ranked_score[:, 3:].isnan().all()
+
+
+def test_sequence_vs_single_equals_a_loop():
+    rng = np.random.default_rng(1)
+    gt = np.zeros((20, 40), bool)
+    for q in range(40):
+        if q % 5:
+            gt[q // 2, q] = True
+    seq = np.where(rng.random(40) < 0.6, np.arange(40) // 2, rng.integers(0, 20, 40))
+    seq[:3] = -1
+    one = np.where(rng.random(40) < 0.5, np.arange(40) // 2, rng.integers(0, 20, 40))
+    out = metrics.sequence_vs_single(Matches(torch.tensor(seq), torch.rand(40), True),
+                                     Matches(torch.tensor(one), torch.rand(40), True), gt)
+    pos = [q for q in range(40) if gt[:, q].any()]
+    ok = lambda m, q: m[q] >= 0 and gt[m[q], q]  # noqa: E731
+    worse = sum(1 for q in pos if ok(one, q) and not ok(seq, q))
+    better = sum(1 for q in pos if ok(seq, q) and not ok(one, q))
+    assert out["n_made_worse"] == worse and out["n_made_better"] == better
+    assert out["made_worse"] == pytest.approx(worse / len(pos))
+    assert out["single_frame_recall_at_1"] == pytest.approx(
+        sum(ok(one, q) for q in pos) / len(pos))
+    assert out["n_without_sequence_match"] == sum(1 for q in pos if seq[q] < 0)
+    assert out["n_queries"] == len(pos) and worse > 0 and better > 0
+
+
+def test_eval_reports_single_frame_beside_the_sequence(tmp_path, capsys):
+    root = shared_data("corridor")
+    out = tmp_path / "o"
+    assert run_main(cli_eval.main, "eval.py", [
+        "--reference", str(root / "ref"), "--query", str(root / "query"), "--engine",
+        "seqslam", "--ground-truth", str(root / "ground_truth.csv"), "--out", str(out),
+        "--no-tensorboard", "--no-progress"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    from torchseq import load_traverse
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+
+    engine = SeqSLAM(SeqSLAMConfig())
+    size = SeqSLAMConfig().image_size
+    r = engine.descriptors(load_traverse(root / "ref", progress=False, size=size)).numpy()
+    q = engine.descriptors(load_traverse(root / "query", progress=False, size=size)).numpy()
+    d = oracle_difference(r, q, "l1")
+    nearest = d.argmin(0)
+    gt = np.zeros((111, 111), bool)
+    for j in range(111):
+        gt[max(0, j - 2):j + 3, j] = True
+    want = float(np.mean(gt[nearest, np.arange(111)]))
+    assert m["single_frame"]["recall_at_1"] == pytest.approx(want)
+    vs = m["seqslam"]["versus_single_frame"]
+    assert vs["single_frame_recall_at_1"] == pytest.approx(want)
+    seq = np.array([int(x["reference"]) if x["reference"] else -1 for x in
+                    __import__("csv").DictReader(open(out / "matches.csv"))])
+    worse = sum(1 for j in range(111) if gt[nearest[j], j] and not (seq[j] >= 0 and
+                                                                    gt[seq[j], j]))
+    assert vs["n_made_worse"] == worse
+    line = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("seqslam:")][0]
+    assert f"single frame {want:.3f}, made worse {100 * worse / 111:.1f}%" in line
