@@ -400,3 +400,42 @@ def test_layout_errors():
     ref = torch.zeros(10, 4)
     with pytest.raises(ValueError, match="layout must be one of"):
         cm.CandidateSeqSLAM(ref, SeqSLAMConfig(candidates=2), layout="banded")
+
+
+@pytest.mark.parametrize("over", [{}, dict(ds=5, vmin=0.5, vmax=1.5, rwindow=3)])
+def test_streaming_reuses_tiles_of_earlier_steps(over, monkeypatch):
+    """Each step computes only the tiles its window did not have: stepping with the cache
+    gives bit for bit the decisions of stepping without it (every tile recomputed, as before
+    the cache), for two streams at once, and computes far fewer tiles."""
+    rng = np.random.default_rng(18)
+    ref, query = route(rng, 300, 40, 0.9)
+    other = route(np.random.default_rng(19), 300, 40, 1.1)[1]
+    frames = torch.stack([torch.tensor(query), torch.tensor(other)], 1)  # (T, 2, D)
+    engine = StreamingSeqSLAM(torch.tensor(ref), SeqSLAMConfig(candidates=4, **over),
+                              descriptors=True)
+    computed = []
+    table = engine.candidate.table
+
+    def counting(columns, keys):
+        computed.append(len(keys))
+        return table(columns, keys)
+
+    monkeypatch.setattr(engine.candidate, "table", counting)
+    cached, fresh = None, None
+    n_cached = n_fresh = 0
+    for t in range(len(frames)):
+        a, cached = engine.step(frames[t], cached)
+        n_cached += sum(computed)
+        computed.clear()
+        if fresh is not None:
+            fresh = fresh._replace(tiles=None)  # forget every tile: all recomputed
+        b, fresh = engine.step(frames[t], fresh)
+        n_fresh += sum(computed)
+        computed.clear()
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+        assert cached.tiles.serial == t + 1
+        assert (cached.tiles.keys.diff() > 0).all()
+    ds = engine.ds
+    assert n_cached < n_fresh / 3, (n_cached, n_fresh)  # one stream, ds 10: 400 of 3300
+    assert int((cached.tiles.keys // (2 * -(-300 // cm.TILE_ROWS))).min()) >= len(frames) - ds

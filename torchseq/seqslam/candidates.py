@@ -235,6 +235,17 @@ class TileTable:
             self.difference = d.gather(1, local).masked_fill_(outside, math.inf)
         self.seconds["enhance"] += time.perf_counter() - t
 
+    @classmethod
+    def from_values(cls, keys: torch.Tensor, values: torch.Tensor, n_tiles: int) -> TileTable:
+        """A table of already computed enhanced tiles (``keys`` sorted, ``values (n, 32)``).
+
+        Its ``difference`` is None: only :meth:`lookup` and :meth:`block_values` use it.
+        """
+        table = cls.__new__(cls)
+        table.keys, table.values, table.n_tiles = keys, values, n_tiles
+        table.difference, table.seconds = None, {"difference": 0.0, "enhance": 0.0}
+        return table
+
     def lookup(self, column: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         """Enhanced values at ``(column, row)`` (broadcast); ``inf`` where ``row < 0``.
 
