@@ -22,14 +22,23 @@ offset ``floor(ds vmax)``):
   every entry is evaluated and the result is the exact mode's (tested against the engine and
   the loop oracle).
 
-Implementation: the bands of a block of centres are laid side by side along the reference
-axis, each in compact coordinates (gaps between band rows shortened to ``G`` rows of inf, with
-``G > M`` and ``G > rwindow / 2``, so no trajectory crosses from one band into another and
-starts closer than the uniqueness window keep their true distance) and followed by ``G`` inf
-rows. :func:`~torchseq.seqslam.search.trajectory_scores` then scores all of them at once and
+Implementation (``layout="shared"``, the default): consecutive windows share ``ds`` of their
+``ds + 1`` columns, so a block of up to :data:`CENTRES_PER_BLOCK` consecutive centres is laid
+out over one compact reference axis (:func:`shared_layout`): every row within ``M`` of a
+candidate of the block's columns, in order, with runs farther apart than ``G`` separated by
+``G`` empty (inf) positions, ``G > M`` and ``G > rwindow / 2`` (so a trajectory from a
+candidate start stays inside its run, and starts closer than the uniqueness window keep their
+true distance). Each column's values are looked up once per block, each difference tile and
+its enhancement are computed once for every window that needs them (:class:`TileTable`), the
+candidate starts of all windows are marked by one scatter, and
+:func:`~torchseq.seqslam.search.trajectory_scores` scores every window of the block as the
+exact mode scores its centres (shifted slices of the query-major block), then
 :func:`~torchseq.seqslam.search.rank_scores` ranks them (its ``centre`` argument maps compact
-positions back to reference rows), so the score, velocity, tie, uniqueness and top-K rules are
-the exact mode's own code.
+positions back to reference rows): the score, velocity, tie, uniqueness and top-K rules are
+the exact mode's own code. A block whose rows exceed :data:`SHARE_RATIO` times its middle
+window's (scattered proposals) is halved, down to one window. ``layout="per-window"`` gives
+each window its own band layout (the first implementation); both give the same results bit
+for bit (tested).
 """
 
 from __future__ import annotations
