@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_candidates.py --recall        # real routes (shared data)
     .venv/bin/python benchmarks/bench_candidates.py --scale         # 10^4 .. 10^6 references
     .venv/bin/python benchmarks/bench_candidates.py --scale --sizes 10000 --kinds flat,ivf
+    .venv/bin/python benchmarks/bench_candidates.py --reuse   # issue 24: route, crossover, scale
 
 One thread (torch and FAISS). Each scale run (size, index kind) is its own subprocess so its
 peak RSS is clean. Synthetic descriptors: D = 2048 integers in 127 +- 8 (as patch
@@ -214,6 +215,100 @@ def scale_table(sizes, kinds, k, n_query) -> list[str]:
     return lines
 
 
+# ----------------------------------------------------------------------------- reuse (issue 24)
+def nordland(double: bool):
+    """Nordland-b descriptors: summer reference, winter query (1,788 places); ``double``:
+    summer + winter against winter + summer (3,576). Ground truth: index +- 2."""
+    import torch
+
+    from torchseq.seqslam import SeqSLAM
+    from torchseq.sources import load_traverse
+
+    engine = SeqSLAM()
+    s = engine.descriptors(load_traverse(DATA / "nordland-b" / "summer", progress=False))
+    w = engine.descriptors(load_traverse(DATA / "nordland-b" / "winter", progress=False))
+    ref, query = (torch.cat([s, w]), torch.cat([w, s])) if double else (s, w)
+    n = len(query)
+    truth = (np.arange(n) + len(s)) % n if double else np.arange(n)
+    gt = np.abs(np.arange(len(ref))[:, None] - truth[None, :]) <= 2
+    return ref, query, gt
+
+
+def timed(fn):
+    """(result, wall s, CPU s) of ``fn()``."""
+    t, cpu = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, time.perf_counter() - t, time.process_time() - cpu
+
+
+def route_table(double: bool, k: int, ds: int) -> list[str]:
+    """Exact mode and candidate mode (shared and per-window layouts) on the Nordland route."""
+    from torchseq.metrics import evaluate
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+    from torchseq.seqslam.candidates import CandidateSeqSLAM
+
+    one_thread()
+    ref, query, gt = nordland(double)
+    lines = [f"Nordland-b, {len(ref)} references x {len(query)} queries, ds = {ds}, one thread",
+             "", "| mode | wall s | CPU s | CPU / exact | stages, CPU-loaded wall s | recall@1 "
+             "(+-2) | same match as exact | identical to per-window |",
+             "|---|---:|---:|---:|---|---:|---:|---:|"]
+    exact, w0, c0 = timed(lambda: SeqSLAM(SeqSLAMConfig(ds=ds, candidates=0))
+                          .match_descriptors(ref, query))
+    rows = [("exact", exact, w0, c0)]
+    config = SeqSLAMConfig(ds=ds, candidates=k)
+    shared = CandidateSeqSLAM(ref, config)  # index built once, outside the timings
+    for layout in ("shared", "per-window"):
+        engine = CandidateSeqSLAM(ref, config, index=shared.index, layout=layout)
+        res, w, c = timed(lambda: engine.match_descriptors(query))
+        rows.append((f"candidates, K = {k}, {layout}", res, w, c))
+    base = rows[2][1]
+    for name, res, w, c in rows:
+        stages = ", ".join(f"{key} {v:.1f}" for key, v in res.seconds.items()
+                           if key not in ("index", "total"))
+        same = float((res.matches.reference == exact.matches.reference).float().mean())
+        ident = "" if name == "exact" else str(all(
+            torch_equal(a, b) for a, b in ((res.matches.reference, base.matches.reference),
+                                           (res.ranked, base.ranked),
+                                           (res.matches.score, base.matches.score),
+                                           (res.best_score, base.best_score))))
+        lines.append(f"| {name} | {w:.1f} | {c:.1f} | {c / c0:.2f} | {stages} | "
+                     f"{evaluate(res.matches, gt)['recall_at_1']:.3f} | {same:.3f} | {ident} |")
+        print(lines[-1], flush=True)
+    return lines
+
+
+def torch_equal(a, b) -> bool:
+    import torch
+
+    return bool(torch.equal(a.nan_to_num(-1.0), b.nan_to_num(-1.0)))
+
+
+def crossover_table(sizes, n_query: int, k: int, ds: int) -> list[str]:
+    """CPU ms per query of both modes on synthetic routes of growing length."""
+    import torch
+
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+    from torchseq.seqslam.candidates import CandidateSeqSLAM
+
+    one_thread()
+    lines = [f"Synthetic routes, {n_query} queries, ds = {ds}, K = {k}, one thread", "",
+             "| references | exact CPU ms / query | candidates CPU ms / query (index built "
+             "outside) | exact / candidates |", "|---:|---:|---:|---:|"]
+    for n in sizes:
+        ref, query, _ = synthetic(n, n_query)
+        ref_t, query_t = torch.from_numpy(ref), torch.from_numpy(query)
+        _, _, ce = timed(lambda: SeqSLAM(SeqSLAMConfig(ds=ds, candidates=0))
+                         .match_descriptors(ref_t.float(), query_t))
+        engine = CandidateSeqSLAM(ref_t, SeqSLAMConfig(ds=ds, candidates=k))
+        _, _, cc = timed(lambda: engine.match_descriptors(query_t))
+        lines.append(f"| {n} | {1e3 * ce / n_query:.2f} | {1e3 * cc / n_query:.2f} | "
+                     f"{ce / cc:.2f} |")
+        print(lines[-1], flush=True)
+    return lines
+
+
+
 def main() -> None:
     if sys.argv[1:2] == ["--child"]:
         n, kind, k, q = sys.argv[2:6]
@@ -226,6 +321,10 @@ def main() -> None:
     p.add_argument("--kinds", default="exact,flat,ivf,hnsw")
     p.add_argument("--k", type=int, default=10)
     p.add_argument("--queries", type=int, default=1000)
+    p.add_argument("--reuse", action="store_true",
+                   help="issue 24: Nordland route, crossover and query rate at 10^5, 10^6")
+    p.add_argument("--double", action="store_true", help="the 3,576-place Nordland route")
+    p.add_argument("--crossover-sizes", type=int, nargs="+", default=[300, 1000, 3000])
     args = p.parse_args()
     import torch
 
@@ -236,6 +335,11 @@ def main() -> None:
         print("\n".join(recall_table()) + "\n")
     if args.scale:
         print("\n".join(scale_table(args.sizes, args.kinds.split(","), args.k, args.queries)))
+    if args.reuse:
+        out = route_table(args.double, 100, 20) + [""]
+        out += crossover_table(args.crossover_sizes, 200, 100, 20) + [""]
+        out += scale_table([100_000, 1_000_000], ["ivf"], 10, 300)
+        print("\n" + "\n".join(out))
 
 
 if __name__ == "__main__":

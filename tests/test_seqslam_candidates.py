@@ -339,3 +339,103 @@ def test_refined_candidates_are_the_exact_top_k():
     assert (d[:, 1:] >= d[:, :-1]).all()  # nearest first
     with pytest.raises(ValueError, match="refine"):
         cm.CandidateSeqSLAM(ref, config, index=ivf.index, refine=0)
+
+
+def assert_same_result(got, want):
+    """Bit for bit: matches, uniqueness, ranked, best scores and the evaluated entries."""
+    np.testing.assert_array_equal(got.matches.reference, want.matches.reference)
+    np.testing.assert_array_equal(got.ranked, want.ranked)
+    np.testing.assert_array_equal(got.matches.score, want.matches.score)  # NaN == NaN here
+    np.testing.assert_array_equal(got.best_score, want.best_score)
+    for a, b in ((got.enhanced, want.enhanced), (got.difference, want.difference)):
+        assert a.is_coalesced()
+        np.testing.assert_array_equal(a.indices(), b.indices())
+        np.testing.assert_array_equal(a.values(), b.values())
+
+
+SHARED_CASES = ([({}, k, blocks) for k in (1, 6, 200)
+                 for blocks in ("default", "small", "one window")]
+                + [(over, 6, "small") for over in CONFIGS[1:] + [dict(rwindow=60)]])
+
+
+@pytest.mark.parametrize(("over", "k", "blocks"), SHARED_CASES)
+def test_shared_layout_equals_per_window(over, k, blocks, monkeypatch):
+    """The shared layout (each block of consecutive windows on one axis) gives bit for bit the
+    per-window layout's results: K = 1 (scattered), a few, and K >= R (every entry), blocks
+    of the default size, of 5 centres (many block boundaries) and of one window (every block
+    halved down to one, as scattered proposals make them)."""
+    if blocks == "small":
+        monkeypatch.setattr(cm, "CENTRES_PER_BLOCK", 5)
+    if blocks == "one window":
+        monkeypatch.setattr(cm, "SHARE_RATIO", 0)
+    rng = np.random.default_rng(16 + k)
+    ref, query = (torch.tensor(x) for x in route(rng, 200, 45, 0.9,
+                                                 integer=over.get("enhance_window") != 0))
+    config = SeqSLAMConfig(candidates=k, **over)
+    want = cm.CandidateSeqSLAM(ref, config, layout="per-window").match_descriptors(query)
+    engine = cm.CandidateSeqSLAM(ref, config)
+    got = engine.match_descriptors(query)
+    assert want.kernels == {"layout": "per-window"}
+    assert got.kernels["layout"] == "shared" and engine.layout == "shared"
+    windows = 45 - config.sequence_length
+    assert got.kernels["blocks"] == {"default": 1, "small": -(-windows // 5),
+                                     "one window": windows}[blocks]
+    assert_same_result(got, want)
+
+
+def test_shared_layout_on_a_long_smooth_route():
+    """A 3000-frame reference whose neighbours look alike (the index's candidates agree from
+    one query to the next, as on a real route): shared and per-window results identical."""
+    rng = np.random.default_rng(17)
+    ref, query = (torch.tensor(x) for x in smooth_route(rng, 3000, 90))
+    config = SeqSLAMConfig(candidates=20)
+    a = cm.CandidateSeqSLAM(ref, config, layout="per-window")
+    want = a.match_descriptors(query)
+    got = cm.CandidateSeqSLAM(ref, config, index=a.index).match_descriptors(query)
+    assert_same_result(got, want)
+    assert (got.matches.reference[5:-5] == torch.arange(1005, 1085)).all()
+
+
+def test_layout_errors():
+    ref = torch.zeros(10, 4)
+    with pytest.raises(ValueError, match="layout must be one of"):
+        cm.CandidateSeqSLAM(ref, SeqSLAMConfig(candidates=2), layout="banded")
+
+
+@pytest.mark.parametrize("over", [{}, dict(ds=5, vmin=0.5, vmax=1.5, rwindow=3)])
+def test_streaming_reuses_tiles_of_earlier_steps(over, monkeypatch):
+    """Each step computes only the tiles its window did not have: stepping with the cache
+    gives bit for bit the decisions of stepping without it (every tile recomputed, as before
+    the cache), for two streams at once, and computes far fewer tiles."""
+    rng = np.random.default_rng(18)
+    ref, query = route(rng, 300, 40, 0.9)
+    other = route(np.random.default_rng(19), 300, 40, 1.1)[1]
+    frames = torch.stack([torch.tensor(query), torch.tensor(other)], 1)  # (T, 2, D)
+    engine = StreamingSeqSLAM(torch.tensor(ref), SeqSLAMConfig(candidates=4, **over),
+                              descriptors=True)
+    computed = []
+    table = engine.candidate.table
+
+    def counting(columns, keys):
+        computed.append(len(keys))
+        return table(columns, keys)
+
+    monkeypatch.setattr(engine.candidate, "table", counting)
+    cached, fresh = None, None
+    n_cached = n_fresh = 0
+    for t in range(len(frames)):
+        a, cached = engine.step(frames[t], cached)
+        n_cached += sum(computed)
+        computed.clear()
+        if fresh is not None:
+            fresh = fresh._replace(tiles=None)  # forget every tile: all recomputed
+        b, fresh = engine.step(frames[t], fresh)
+        n_fresh += sum(computed)
+        computed.clear()
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+        assert cached.tiles.serial == t + 1
+        assert (cached.tiles.keys.diff() > 0).all()
+    ds = engine.ds
+    assert n_cached < n_fresh / 3, (n_cached, n_fresh)  # one stream, ds 10: 400 of 3300
+    assert int((cached.tiles.keys // (2 * -(-300 // cm.TILE_ROWS))).min()) >= len(frames) - ds

@@ -22,14 +22,23 @@ offset ``floor(ds vmax)``):
   every entry is evaluated and the result is the exact mode's (tested against the engine and
   the loop oracle).
 
-Implementation: the bands of a block of centres are laid side by side along the reference
-axis, each in compact coordinates (gaps between band rows shortened to ``G`` rows of inf, with
-``G > M`` and ``G > rwindow / 2``, so no trajectory crosses from one band into another and
-starts closer than the uniqueness window keep their true distance) and followed by ``G`` inf
-rows. :func:`~torchseq.seqslam.search.trajectory_scores` then scores all of them at once and
+Implementation (``layout="shared"``, the default): consecutive windows share ``ds`` of their
+``ds + 1`` columns, so a block of up to :data:`CENTRES_PER_BLOCK` consecutive centres is laid
+out over one compact reference axis (:func:`shared_layout`): every row within ``M`` of a
+candidate of the block's columns, in order, with runs farther apart than ``G`` separated by
+``G`` empty (inf) positions, ``G > M`` and ``G > rwindow / 2`` (so a trajectory from a
+candidate start stays inside its run, and starts closer than the uniqueness window keep their
+true distance). Each column's values are looked up once per block, each difference tile and
+its enhancement are computed once for every window that needs them (:class:`TileTable`), the
+candidate starts of all windows are marked by one scatter, and
+:func:`~torchseq.seqslam.search.trajectory_scores` scores every window of the block as the
+exact mode scores its centres (shifted slices of the query-major block), then
 :func:`~torchseq.seqslam.search.rank_scores` ranks them (its ``centre`` argument maps compact
-positions back to reference rows), so the score, velocity, tie, uniqueness and top-K rules are
-the exact mode's own code.
+positions back to reference rows): the score, velocity, tie, uniqueness and top-K rules are
+the exact mode's own code. A block whose rows exceed :data:`SHARE_RATIO` times its middle
+window's (scattered proposals) is halved, down to one window. ``layout="per-window"`` gives
+each window its own band layout (the first implementation); both give the same results bit
+for bit (tested).
 """
 
 from __future__ import annotations
@@ -37,8 +46,10 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from tqdm import tqdm
 
 from torchseq._checks import check_finite, check_not_empty, check_shape
@@ -61,6 +72,18 @@ TILE_ROWS = 32
 PAIR_BLOCK_ELEMENTS = 2**19
 # Query centres whose bands are laid out and scored together.
 CENTRES_PER_BLOCK = 64
+# A tile needed by at least this many query columns has its reference rows converted once
+# and met by all of them (no per-key gather of D-dimensional rows).
+TILE_SHARED_COLUMNS = 8
+# Layouts of candidate mode's search (``CandidateSeqSLAM(layout=...)``): "shared" lays the
+# windows of consecutive centres over one compact axis (each difference tile, enhanced value
+# and candidate position computed once for all windows that use it); "per-window" gives
+# every window its own band layout (the first implementation, kept as the reference).
+LAYOUTS = ("shared", "per-window")
+# A block of consecutive centres shares one layout while its rows number at most this many
+# times those of one window (its middle one); wider blocks are halved. Windows whose
+# candidates agree (a matched route) share almost all rows; scattered proposals do not.
+SHARE_RATIO = 4
 
 
 def resolve_candidates(config: SeqSLAMConfig, n_ref: int, n_query: int) -> int:
@@ -187,14 +210,32 @@ class TileTable:
         self.values = torch.empty(len(keys), TILE_ROWS, dtype=dtype, device=keys.device)
         self.difference = torch.empty_like(self.values)
         self.seconds = {"difference": 0.0, "enhance": 0.0}
-        block = max(1, PAIR_BLOCK_ELEMENTS // (length * dim))
         t = time.perf_counter()
         d = torch.empty(len(keys), length, dtype=dtype, device=keys.device)  # (n, L)
-        for t0 in range(0, len(keys), block):  # cache-sized blocks of gathered rows
-            sl = slice(t0, t0 + block)
-            rows = lo[sl, None] + torch.arange(length, device=keys.device)  # (c, L)
+        # tiles that many columns need: their rows are converted once and met by every column
+        # (a slice, no gather); the rest: their rows gathered per key
+        count = torch.bincount(tile, minlength=self.n_tiles)
+        shared = count[tile] >= TILE_SHARED_COLUMNS
+        if bool(shared.any()):
+            at = shared.nonzero()[:, 0]
+            at = at[torch.sort(tile[at], stable=True).indices]  # grouped by tile
+            runs = torch.unique_consecutive(tile[at], return_counts=True)
+            block = max(1, PAIR_BLOCK_ELEMENTS // (length * dim))
+            i0 = 0
+            for tl, n in zip(runs[0].tolist(), runs[1].tolist()):
+                r0 = int(lo[at[i0]])
+                ref = reference[r0:r0 + length].to(dtype)[None]  # (1, L, D)
+                for b0 in range(i0, i0 + n, block):
+                    idx = at[b0:min(b0 + block, i0 + n)]
+                    d[idx] = pair_differences(ref, columns[col[idx]][:, None, :], metric)
+                i0 += n
+        rest = (~shared).nonzero()[:, 0]
+        block = max(1, PAIR_BLOCK_ELEMENTS // (length * dim))
+        for t0 in range(0, len(rest), block):  # cache-sized blocks of gathered rows
+            idx = rest[t0:t0 + block]
+            rows = lo[idx, None] + torch.arange(length, device=keys.device)  # (c, L)
             ref = reference[rows.reshape(-1)].to(dtype).view(-1, length, dim)
-            d[sl] = pair_differences(ref, columns[col[sl]][:, None, :], metric)
+            d[idx] = pair_differences(ref, columns[col[idx]][:, None, :], metric)
         self.seconds["difference"] += time.perf_counter() - t
         t = time.perf_counter()
         if len(keys):  # one call: every tile is a column of its own (L, n) matrix
@@ -202,6 +243,17 @@ class TileTable:
             self.values = e.gather(1, local).masked_fill_(outside, math.inf)
             self.difference = d.gather(1, local).masked_fill_(outside, math.inf)
         self.seconds["enhance"] += time.perf_counter() - t
+
+    @classmethod
+    def from_values(cls, keys: torch.Tensor, values: torch.Tensor, n_tiles: int) -> TileTable:
+        """A table of already computed enhanced tiles (``keys`` sorted, ``values (n, 32)``).
+
+        Its ``difference`` is None: only :meth:`lookup` and :meth:`block_values` use it.
+        """
+        table = cls.__new__(cls)
+        table.keys, table.values, table.n_tiles = keys, values, n_tiles
+        table.difference, table.seconds = None, {"difference": 0.0, "enhance": 0.0}
+        return table
 
     def lookup(self, column: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         """Enhanced values at ``(column, row)`` (broadcast); ``inf`` where ``row < 0``.
@@ -220,6 +272,42 @@ class TileTable:
             raise RuntimeError("candidate mode looked up a tile it did not compute")
         val = self.values[slot, r % TILE_ROWS]
         return val.masked_fill_(rows < 0, math.inf)
+
+    def block_values(self, columns: torch.Tensor, block: SharedBlock) -> torch.Tensor:
+        """Enhanced values of ``columns (n,)`` at the positions of ``block``: ``(n, W)``.
+
+        ``inf`` wherever ``block.needed`` is False (those tiles may not be computed).
+
+        Raises:
+            RuntimeError: a needed tile was never computed (an internal error).
+        """
+        n, width = len(columns), len(block.rows)
+        if len(self.keys) == 0 or width == 0:
+            return torch.full((n, width), math.inf, dtype=self.values.dtype,
+                              device=self.values.device)
+        key = columns[:, None] * self.n_tiles + block.tiles[None]  # (n, T)
+        slot = torch.searchsorted(self.keys, key).clamp_max(len(self.keys) - 1)
+        slot = torch.where(self.keys[slot] == key, slot, -1)
+        slot = F.pad(slot, (0, 1), value=-1)[:, block.tile_of]  # (n, W)
+        if bool((block.needed & (slot < 0)).any()):
+            raise RuntimeError("candidate mode looked up a tile it did not compute")
+        val = self.values[slot.clamp_min(0), block.rows.clamp_min(0) % TILE_ROWS]
+        return val.masked_fill_(~block.needed, math.inf)
+
+
+def shared_tile_keys(columns: torch.Tensor, block: SharedBlock, n_tiles: int) -> torch.Tensor:
+    """Distinct keys ``column * n_tiles + tile`` of the entries a :class:`SharedBlock` needs.
+
+    Args:
+        columns: ``(C + ds,)`` int64 column id of each of the block's columns.
+        block: the layout.
+        n_tiles: tiles of the reference.
+    """
+    n_t = len(block.tiles)
+    hit = torch.zeros(len(columns), n_t + 1, dtype=torch.int32, device=columns.device)
+    hit.index_add_(1, block.tile_of, block.needed.to(torch.int32))
+    col, t = hit[:, :n_t].nonzero(as_tuple=True)
+    return (columns[col] * n_tiles + block.tiles[t]).unique()
 
 
 def band_tile_keys(rows: torch.Tensor, columns: torch.Tensor, n_tiles: int) -> torch.Tensor:
@@ -247,7 +335,7 @@ def score_bands(values: torch.Tensor, rows: torch.Tensor, is_start: torch.Tensor
         rwindow: uniqueness exclusion window.
         top_k: ranked candidates kept.
         report: which row a start reports: ``"start"`` (``s + ds/2``), ``"trajectory"``
-            (``s + floor(v ds/2)``) or ``"end"`` (``s + floor(v ds)``, streaming).
+            (``s + floor(v ds/2)``) or ``"end"`` (``s + floor(ds v)``, streaming).
 
     Returns:
         ``match (C,)``, ``best (C,)``, ``uniqueness (C,)``, ``ranked (C, top_k)``, best start
@@ -256,8 +344,38 @@ def score_bands(values: torch.Tensor, rows: torch.Tensor, is_start: torch.Tensor
     n_c, width = rows.shape
     scores, best_v = trajectory_scores(values.reshape(ds + 1, n_c * width), ds // 2,
                                        ds // 2 + 1, ds, offsets, with_velocity=True)
-    scores = scores[0, :-1].view(n_c, width).masked_fill(~is_start, math.inf)
+    scores = scores[0, :-1].view(n_c, width)
     best_v = best_v[0, :-1].view(n_c, width)
+    return rank_bands(scores, best_v, rows, is_start, ds, offsets, n_ref, rwindow, top_k,
+                      report)
+
+
+def rank_bands(scores: torch.Tensor, best_v: torch.Tensor, rows: torch.Tensor,
+               is_start: torch.Tensor, ds: int, offsets: list[list[int]], n_ref: int,
+               rwindow: int, top_k: int, report: str) -> tuple[torch.Tensor, ...]:
+    """Rank the scored positions of ``C`` compact layouts.
+
+    The second half of :func:`score_bands`, shared with :func:`score_shared`.
+
+    Args:
+        scores: ``(C, W)`` best trajectory score of each position (any value where not
+            ``is_start``: it is set to inf).
+        best_v: ``(C, W)`` int64 index of each position's best velocity.
+        rows: ``(C, W)`` (or ``(W,)``, one layout for all) reference row per position.
+        is_start: ``(C, W)`` True at candidate starts.
+        ds: even sequence length.
+        offsets: per velocity, the row offsets of the ``ds + 1`` steps.
+        n_ref: reference frames ``R``.
+        rwindow: uniqueness exclusion window.
+        top_k: ranked candidates kept.
+        report: ``"start"``, ``"trajectory"`` or ``"end"`` (see :func:`score_bands`).
+
+    Returns:
+        As :func:`score_bands`.
+    """
+    n_c, width = scores.shape
+    rows = rows.expand(n_c, width)
+    scores = scores.masked_fill(~is_start, math.inf)
     if report == "start":
         offset = torch.full_like(rows, ds // 2)
     else:
@@ -271,6 +389,120 @@ def score_bands(values: torch.Tensor, rows: torch.Tensor, is_start: torch.Tensor
                         -1)
     first = torch.where(ok, rows.gather(1, start[:, None])[:, 0], -1)
     return match, best, ratio, ranked, first, best_v.gather(1, start[:, None])[:, 0]
+
+
+class SharedBlock(NamedTuple):
+    """``C`` consecutive windows laid out over one compact reference axis.
+
+    Made by :func:`shared_layout`.
+
+    Attributes:
+        rows: ``(W,)`` int64 reference row of each position (``-1``: empty).
+        is_start: ``(C, W)`` bool, the candidate starts of each window.
+        needed: ``(C + ds, W)`` bool, the entries some window of the block uses: column ``j``
+            at the band rows of the windows that contain it.
+        tiles: ``(T,)`` int64 distinct reference tiles of the layout's rows, increasing.
+        tile_of: ``(W,)`` int64 index into ``tiles`` of each position (``T`` where empty).
+    """
+
+    rows: torch.Tensor
+    is_start: torch.Tensor
+    needed: torch.Tensor
+    tiles: torch.Tensor
+    tile_of: torch.Tensor
+
+
+def union_rows(cand: torch.Tensor, n_ref: int, reach: int) -> torch.Tensor:
+    """Sorted distinct rows ``r + d`` in ``0 .. R - 1``, ``r`` a candidate, ``|d| <= reach``."""
+    c = cand[cand >= 0].unique()
+    r = (c[:, None] + torch.arange(-reach, reach + 1, device=cand.device)).reshape(-1)
+    return r[(r >= 0) & (r < n_ref)].unique()
+
+
+def shared_layout(cand: torch.Tensor, offsets: list[list[int]], n_ref: int, span: int,
+                  gap: int) -> SharedBlock:
+    """One compact layout for the windows of ``C`` consecutive centres.
+
+    The layout holds every row within ``M = span - 1`` of a candidate of the block's columns
+    (a superset of every window's band: a start ``s = r - floor(k v)`` of candidate ``r`` has
+    its band ``s .. s + M`` inside ``r - M .. r + M``), in increasing order, with ``gap``
+    empty positions before the first row, between runs of rows farther apart than ``gap``,
+    and after the last. Since every band lies inside one run, a trajectory from a true start
+    moves along positions exactly as along rows, and ``is_start`` marks, per window, the
+    positions ``pos(r) - floor(k v)`` of its candidates (a start below row 0 lands in the
+    leading gap, which is empty). Distances up to ``gap`` are kept, longer ones stay
+    ``>= gap`` (so ``gap > rwindow / 2`` keeps the uniqueness window exact).
+
+    Args:
+        cand: ``(C + ds, K)`` int64 candidates of the block's columns (``-1``: none).
+        offsets: per velocity, the row offsets of the ``ds + 1`` steps.
+        n_ref: reference frames ``R``.
+        span: rows per start (``M + 1``).
+        gap: empty positions between runs (``> M`` and ``> rwindow / 2``).
+
+    Returns:
+        :class:`SharedBlock`.
+    """
+    dev = cand.device
+    ds = len(offsets[0]) - 1
+    n_c = cand.shape[0] - ds
+    rows_u = union_rows(cand, n_ref, span - 1)  # (N,)
+    if len(rows_u) == 0:
+        empty = torch.zeros(n_c, 0, dtype=torch.bool, device=dev)
+        none = torch.zeros(0, dtype=torch.int64, device=dev)
+        return SharedBlock(none, empty, torch.zeros(n_c + ds, 0, dtype=torch.bool,
+                                                    device=dev), none, none)
+    step = (rows_u[1:] - rows_u[:-1]).clamp(max=gap)
+    pos = gap + torch.cat([torch.zeros_like(rows_u[:1]), step.cumsum(0)])
+    width = int(pos[-1]) + 1 + gap
+    rows = torch.full((width,), -1, dtype=torch.int64, device=dev)
+    rows[pos] = rows_u
+    ok = cand >= 0
+    cpos = pos[torch.searchsorted(rows_u, cand.clamp_min(0))]  # (C + ds, K)
+    off = torch.tensor(offsets, device=dev).T  # (ds + 1, V)
+    win = cpos.unfold(0, ds + 1, 1).permute(0, 2, 1)  # (C, ds + 1, K)
+    win_ok = ok.unfold(0, ds + 1, 1).permute(0, 2, 1)
+    s = win[:, :, None, :] - off[None, :, :, None]  # (C, ds + 1, V, K), all >= gap - M > 0
+    s = s.masked_fill(~win_ok[:, :, None, :], width).reshape(n_c, -1)
+    is_start = torch.zeros(n_c, width + 1, dtype=torch.bool, device=dev)
+    is_start.scatter_(1, s, True)
+    is_start = is_start[:, :width] & (rows >= 0)
+    # band: positions p with a start in p - M .. p; needed: column j in windows j - ds .. j
+    cs = F.pad(is_start.to(torch.int32).cumsum(1), (span, 0))
+    band = (cs[:, span:] - cs[:, :-span]) > 0  # (C, W)
+    cb = F.pad(band.to(torch.int32).cumsum(0), (0, 0, 1, 0))  # (C + 1, W)
+    j = torch.arange(n_c + ds, device=dev)
+    needed = (cb[j.clamp(max=n_c - 1) + 1] - cb[(j - ds).clamp(min=0)]) > 0
+    needed &= rows >= 0
+    tile = torch.where(rows >= 0, rows // TILE_ROWS, -1)
+    tiles = tile[tile >= 0].unique()
+    tile_of = torch.where(rows >= 0, torch.searchsorted(tiles, tile.clamp_min(0)), len(tiles))
+    return SharedBlock(rows, is_start, needed, tiles, tile_of)
+
+
+def score_shared(values: torch.Tensor, block: SharedBlock, ds: int, offsets: list[list[int]],
+                 n_ref: int, rwindow: int, top_k: int, report: str) -> tuple[torch.Tensor, ...]:
+    """Score and rank the windows of a :class:`SharedBlock`.
+
+    Args:
+        values: ``(C + ds, W)`` enhanced values of the block's columns at its positions
+            (``inf`` where not ``block.needed``).
+        block: the layout.
+        ds: even sequence length.
+        offsets: per velocity, the row offsets of the ``ds + 1`` steps.
+        n_ref: reference frames ``R``.
+        rwindow: uniqueness exclusion window.
+        top_k: ranked candidates kept.
+        report: ``"start"``, ``"trajectory"`` or ``"end"`` (see :func:`score_bands`).
+
+    Returns:
+        As :func:`score_bands`, one entry per window.
+    """
+    n_c = block.is_start.shape[0]
+    scores, best_v = trajectory_scores(values, ds // 2, ds // 2 + n_c, ds, offsets,
+                                       with_velocity=True)
+    return rank_bands(scores[:, :-1], best_v[:, :-1], block.rows, block.is_start, ds,
+                      offsets, n_ref, rwindow, top_k, report)
 
 
 class CandidateSeqSLAM:
@@ -288,13 +520,19 @@ class CandidateSeqSLAM:
         index_options: keyword arguments of :class:`CandidateIndex`.
         refine: an approximate index proposes ``refine * K`` references, re-ranked exactly
             (see :meth:`search`); 1 = take its K as they are.
+        layout: ``"shared"`` (default) or ``"per-window"``, see :data:`LAYOUTS`; both give
+            the same results (tested), ``result.kernels["layout"]`` says which ran.
     """
 
     def __init__(self, reference: torch.Tensor, config: SeqSLAMConfig | None = None,
                  candidates: int | None = None, index: str | CandidateIndex = "auto",
                  device: torch.device | str | None = None, dtype: torch.dtype | None = None,
-                 index_options: dict | None = None, refine: int = 4) -> None:
+                 index_options: dict | None = None, refine: int = 4,
+                 layout: str = "shared") -> None:
         self.config = (config or SeqSLAMConfig()).validate()
+        if layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+        self.layout = layout
         k = candidates if candidates is not None else self.config.candidates
         if k is None or isinstance(k, bool) or int(k) < 1:
             raise ValueError(f"candidate mode needs candidates K >= 1, got {k!r}")
@@ -384,6 +622,30 @@ class CandidateSeqSLAM:
                 ds + 1, device=cand.device)
             yield c0, c1, cols, rows, is_start
 
+    def shared_blocks(self, cand: torch.Tensor, c0: int = 0, c1: int | None = None):
+        """Yield ``(c0, c1, SharedBlock)`` for the windows of consecutive centres.
+
+        Window ``i`` holds columns ``i .. i + ds`` of ``cand (Q, K)``; windows ``c0 .. c1 - 1``
+        are split into blocks of at most :data:`CENTRES_PER_BLOCK`, halved while a block's
+        rows exceed :data:`SHARE_RATIO` times its middle window's (down to one window).
+        """
+        ds = self.ds
+        c1 = cand.shape[0] - ds if c1 is None else c1
+        todo = [(b0, min(b0 + CENTRES_PER_BLOCK, c1))
+                for b0 in range(c0, c1, CENTRES_PER_BLOCK)][::-1]
+        reach = self.span - 1
+        while todo:
+            b0, b1 = todo.pop()
+            part = cand[b0:b1 + ds]
+            if b1 - b0 > 1:
+                mid = (b0 + b1) // 2
+                one = len(union_rows(cand[mid:mid + ds + 1], self.n_ref, reach))
+                if len(union_rows(part, self.n_ref, reach)) > SHARE_RATIO * max(one, 1):
+                    half = (b0 + b1) // 2
+                    todo += [(half, b1), (b0, half)]
+                    continue
+            yield b0, b1, shared_layout(part, self.offsets, self.n_ref, self.span, self.gap)
+
     def match_descriptors(self, query: torch.Tensor, progress: bool = False):
         """Match ``(Q, D)`` query descriptors (as :meth:`SeqSLAM.match_descriptors`).
 
@@ -391,19 +653,74 @@ class CandidateSeqSLAM:
             :class:`~torchseq.seqslam.engine.SeqSLAMResult` whose ``difference`` and
             ``enhanced`` are sparse ``(R, Q)`` COO tensors of the evaluated entries (whole
             tiles of :data:`TILE_ROWS` rows around the bands); ``seconds`` adds ``"index"``
-            (building it, not in ``"total"``), ``"candidates"`` (querying it) and ``"bands"``.
+            (building it, not in ``"total"``), ``"candidates"`` (querying it) and ``"bands"``;
+            ``kernels["layout"]`` is the layout that ran.
         """
-        from torchseq.seqslam.engine import SeqSLAMResult
-
-        c, ds = self.config, self.ds
+        c = self.config
         query = torch.as_tensor(query)
         check_not_empty(query, "query descriptors")
         check_shape(query, ("Q", self.reference.shape[1]), "query descriptors")
         check_finite(query, "query descriptors")
         n_query = query.shape[0]
-        if n_query < ds + 1:
-            raise ValueError(f"need at least ds + 1 = {ds + 1} query frames for ds = {c.ds}, "
-                             f"got {n_query}")
+        if n_query < self.ds + 1:
+            raise ValueError(f"need at least ds + 1 = {self.ds + 1} query frames for ds = "
+                             f"{c.ds}, got {n_query}")
+        if self.layout == "per-window":
+            return self._match_per_window(query, progress)
+        from torchseq.seqslam.engine import SeqSLAMResult
+
+        ds = self.ds
+        seconds = {"index": self.index_seconds}
+        t0 = t = time.perf_counter()
+        cand = self.search(query)
+        seconds["candidates"] = time.perf_counter() - t
+        t = time.perf_counter()
+        n_tiles = -(-self.n_ref // TILE_ROWS)
+        blocks, keys = [], []
+        for b0, b1, block in self.shared_blocks(cand):
+            cols = torch.arange(b0, b1 + ds, device=cand.device)
+            blocks.append((b0, b1, cols, block))
+            keys.append(shared_tile_keys(cols, block, n_tiles))
+        seconds["bands"] = time.perf_counter() - t
+        query = query.to(self.device, self.dtype)
+        table = self.table(query, torch.cat(keys).unique())
+        seconds.update(table.seconds)
+        t = time.perf_counter()
+        floor = math.inf  # minimum over the evaluated band entries (OpenSeqSLAM's global min)
+        for _, _, cols, block in blocks:
+            if bool(block.needed.any()):
+                floor = min(floor, float(table.block_values(cols, block).min()))
+        floor = floor if math.isfinite(floor) else 0.0  # nothing evaluated: no match anywhere
+        dev = self.device
+        match = torch.full((n_query,), -1, dtype=torch.int64, device=dev)
+        best_score = torch.full((n_query,), math.nan, dtype=self.dtype, device=dev)
+        uniqueness = torch.full_like(best_score, math.nan)
+        ranked = torch.full((n_query, c.top_k), -1, dtype=torch.int64, device=dev)
+        for b0, b1, cols, block in tqdm(blocks, desc="candidate search", disable=not progress,
+                                        leave=False):
+            if len(block.rows) == 0:
+                continue
+            vals = table.block_values(cols, block) - floor
+            out = score_shared(vals, block, ds, self.offsets, self.n_ref, c.rwindow, c.top_k,
+                               c.match_rule)
+            sl = slice(b0 + ds // 2, b1 + ds // 2)
+            match[sl], best_score[sl], uniqueness[sl], ranked[sl] = out[:4]
+        seconds["search"] = time.perf_counter() - t
+        seconds["total"] = time.perf_counter() - t0
+        table.values -= floor
+        difference, enhanced = self._sparse(table, n_query)
+        return SeqSLAMResult(
+            matches=Matches(match.cpu(), uniqueness.cpu(), lower_is_better=True),
+            difference=difference, enhanced=enhanced, ranked=ranked.cpu(),
+            best_score=best_score.cpu(), seconds=seconds,
+            kernels={"layout": "shared", "blocks": len(blocks)})
+
+    def _match_per_window(self, query: torch.Tensor, progress: bool):
+        """:meth:`match_descriptors` with every window in its own layout (checked query)."""
+        from torchseq.seqslam.engine import SeqSLAMResult
+
+        c, ds = self.config, self.ds
+        n_query = query.shape[0]
         seconds = {"index": self.index_seconds}
         t0 = t = time.perf_counter()
         cand = self.search(query)
@@ -444,7 +761,7 @@ class CandidateSeqSLAM:
         return SeqSLAMResult(
             matches=Matches(match.cpu(), uniqueness.cpu(), lower_is_better=True),
             difference=difference, enhanced=enhanced, ranked=ranked.cpu(),
-            best_score=best_score.cpu(), seconds=seconds)
+            best_score=best_score.cpu(), seconds=seconds, kernels={"layout": "per-window"})
 
     def _sparse(self, table: TileTable, n_query: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The table's entries as sparse ``(R, Q)`` COO tensors on CPU (raw, enhanced)."""
@@ -452,7 +769,10 @@ class CandidateSeqSLAM:
         row = (table.keys % table.n_tiles)[:, None] * TILE_ROWS + torch.arange(
             TILE_ROWS, device=table.keys.device)
         keep = row < self.n_ref
-        idx = torch.stack([row[keep], col[keep]]).cpu()
+        row, col = row[keep], col[keep]
+        order = (row * n_query + col).argsort()  # distinct entries: sorted is coalesced
+        idx = torch.stack([row[order], col[order]]).cpu()
         size = (self.n_ref, n_query)
-        return tuple(torch.sparse_coo_tensor(idx, v[keep].cpu(), size, check_invariants=False)
-                     .coalesce() for v in (table.difference, table.values))
+        return tuple(torch.sparse_coo_tensor(idx, v[keep][order].cpu(), size,
+                                             check_invariants=False, is_coalesced=True)
+                     for v in (table.difference, table.values))

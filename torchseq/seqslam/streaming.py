@@ -66,6 +66,23 @@ class StreamingMatch(NamedTuple):
     velocity: torch.Tensor
 
 
+class TileCache(NamedTuple):
+    """Candidate mode: the enhanced tiles already computed for the trailing frames.
+
+    An enhanced tile (``TILE_ROWS`` reference rows of one query frame) depends only on that
+    frame's descriptor, so each is computed once and reused by the next ``ds`` steps.
+
+    Attributes:
+        keys: ``(N,)`` int64 sorted ``(serial * B + stream) * n_tiles + tile``.
+        values: ``(N, TILE_ROWS)`` enhanced values (no minimum subtracted).
+        serial: frames seen per stream (the serial the next frame gets).
+    """
+
+    keys: torch.Tensor
+    values: torch.Tensor
+    serial: int
+
+
 class StreamingState(NamedTuple):
     """The trailing window of ``B`` streams (``n <= ds + 1`` frames seen so far, capped).
 
@@ -75,11 +92,13 @@ class StreamingState(NamedTuple):
             mode); ``(B, n, 0)`` in candidate mode.
         candidates: ``(B, n, K)`` int64 candidate references (candidate mode); ``(B, n, 0)``
             in exact mode.
+        tiles: candidate mode's :class:`TileCache` (None: none computed yet, or exact mode).
     """
 
     descriptors: torch.Tensor
     columns: torch.Tensor
     candidates: torch.Tensor
+    tiles: TileCache | None = None
 
 
 class StreamingSeqSLAM(nn.Module):
@@ -193,7 +212,12 @@ class StreamingSeqSLAM(nn.Module):
             cols = state.columns[:, -keep:]
             new = self.candidate.search(desc)[:, None]
             cands = torch.cat([state.candidates[:, -keep:], new], 1)
-        state = StreamingState(descs, cols, cands)
+        tiles = state.tiles
+        if self.candidate is not None:
+            tiles = tiles or TileCache(torch.zeros(0, dtype=torch.int64, device=desc.device),
+                                       desc.new_zeros(0, TILE_ROWS), 0)
+            tiles = tiles._replace(serial=tiles.serial + 1)  # the new frame's serial + 1
+        state = StreamingState(descs, cols, cands, tiles)
         if descs.shape[1] < self.ds + 1:
             none = torch.full((b,), -1, dtype=torch.int64)
             nan = torch.full((b,), math.nan, dtype=torch.float64)
@@ -201,7 +225,8 @@ class StreamingSeqSLAM(nn.Module):
         if self.candidate is None:
             out = self._score_exact(cols)
         else:
-            out = self._score_candidates(descs, cands)
+            out, tiles = self._score_candidates(descs, cands, tiles)
+            state = state._replace(tiles=tiles)
         match, _, ratio, _, first, vel = out
         speeds = torch.tensor(self.speeds, dtype=torch.float64)
         ok = match >= 0
@@ -219,19 +244,44 @@ class StreamingSeqSLAM(nn.Module):
         return score_bands(values, rows, rows >= 0, self.ds, self.offsets, n_ref,
                            self.config.rwindow, 1, "end")
 
-    def _score_candidates(self, descs: torch.Tensor, cands: torch.Tensor):
-        """Score ``B`` windows of candidates ``(B, ds + 1, K)`` from their band values."""
+    def _score_candidates(self, descs: torch.Tensor, cands: torch.Tensor,
+                          cache: TileCache) -> tuple[tuple, TileCache]:
+        """Score ``B`` windows of candidates ``(B, ds + 1, K)`` from their band values.
+
+        Tiles of earlier frames come from ``cache`` (computed by earlier steps); only the
+        missing ones are computed. Returns the scores and the cache for the next step (the
+        tiles of the frames still in its window).
+        """
         cand = self.candidate
         b, n = descs.shape[:2]
+        n_tiles = -(-cand.n_ref // TILE_ROWS)
         rows, is_start = cand.bands(cands)
         column_ids = torch.arange(b * n, device=descs.device).view(b, n)
-        keys = band_tile_keys(rows, column_ids, -(-cand.n_ref // TILE_ROWS))
-        table: TileTable = cand.table(descs.reshape(b * n, -1), keys)
-        values = table.lookup(column_ids.T[:, :, None], rows[None])  # (ds + 1, B, W)
-        floor = values.amin(dim=2, keepdim=True)  # each column's minimum over the band rows
-        values = values - torch.where(torch.isfinite(floor), floor, 0.0)
-        return score_bands(values, rows, is_start, self.ds, self.offsets, cand.n_ref,
-                           self.config.rwindow, 1, "end")
+        keys = band_tile_keys(rows, column_ids, n_tiles)  # sorted, (b * n + i) * n_tiles + t
+        col, tile = keys // n_tiles, keys % n_tiles
+        first = cache.serial - n  # serial of the window's first frame
+        serial_keys = ((first + col % n) * b + col // n) * n_tiles + tile
+        values = descs.new_empty(len(keys), TILE_ROWS)
+        hit = torch.zeros(len(keys), dtype=torch.bool, device=keys.device)
+        if len(cache.keys):
+            slot = torch.searchsorted(cache.keys, serial_keys).clamp_max(len(cache.keys) - 1)
+            hit = cache.keys[slot] == serial_keys
+            values[hit] = cache.values[slot[hit]]
+        if bool((~hit).any()):
+            table: TileTable = cand.table(descs.reshape(b * n, -1), keys[~hit])
+            values[~hit] = table.values
+        table = TileTable.from_values(keys, values, n_tiles)
+        vals = table.lookup(column_ids.T[:, :, None], rows[None])  # (ds + 1, B, W)
+        floor = vals.amin(dim=2, keepdim=True)  # each column's minimum over the band rows
+        vals = vals - torch.where(torch.isfinite(floor), floor, 0.0)
+        out = score_bands(vals, rows, is_start, self.ds, self.offsets, cand.n_ref,
+                          self.config.rwindow, 1, "end")
+        # keep the tiles of frames the next window still holds (serials >= serial - ds)
+        all_keys = torch.cat([cache.keys, serial_keys[~hit]])
+        all_values = torch.cat([cache.values, values[~hit]])
+        keep = all_keys // (b * n_tiles) >= cache.serial - self.ds
+        order = all_keys[keep].argsort()
+        return out, TileCache(all_keys[keep][order], all_values[keep][order], cache.serial)
 
     def run(self, query: torch.Tensor) -> Matches:
         """Stream a whole traverse ``(Q, H, W)`` (or ``(Q, D)`` descriptors) as one stream."""
