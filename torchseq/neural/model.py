@@ -430,7 +430,7 @@ def _warn_self_check(figure: float, n_frames: int, n_units: int) -> None:
                   f"{SELF_CHECK_FLOOR}): expect a collapse on a real query (nordland-b, 1,788 "
                   "frames on 555 units: self-check 0.86, recall@1 0.25); raise n_output "
                   "towards the route's length (there: one unit per frame, recall@1 0.59) or, "
-                  "for a query at the reference's speed, ring_decay=0.998 (there: 0.64, 3 "
+                  "for a query at the reference's speed, ring_decay=0.998 (there: 0.66, 3 "
                   "seeds; it costs queries at other speeds) (docs/results/neural-long-routes.md)",
                   stacklevel=4)
 
