@@ -42,7 +42,9 @@ def test_fit_warning_is_in_train_json(tmp_path, capsys):
     assert "train.py: warning: a route of 40 frames on 4 output units" in err
     assert "UserWarning" not in err
     saved = json.loads((out / "train.json").read_text())
-    assert len(saved["warnings"]) == 1 and "10.0 frames per unit" in saved["warnings"][0]
+    # and fit's self-check (issue 20): units of 10 frames do not separate the reference
+    assert len(saved["warnings"]) == 2 and "10.0 frames per unit" in saved["warnings"][0]
+    assert saved["warnings"][1].startswith("self-check: only")
     assert saved["reference"]["n_frames"] == 40 and saved["n_units"] == 4
     assert saved["model_bytes"] > 0 and saved["fit_seconds"] > 0
 

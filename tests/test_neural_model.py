@@ -282,7 +282,7 @@ def test_the_engine_times_nothing():
 
     assert [f.name for f in dataclasses.fields(NeuralResult)] == ["matches", "activity"]
     assert [f.name for f in dataclasses.fields(NeuralFitLog)] == [
-        "winners", "evidence", "unit_to_reference"]
+        "winners", "evidence", "unit_to_reference", "self_check"]
     import torchseq.neural.model as model_module
 
     assert not hasattr(model_module, "time")

@@ -246,12 +246,13 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
     log = model.fit(frames, progress=cfg.progress)
     seconds = time.perf_counter() - start
     model.save(out / "model.pt", extra={"train_config": to_jsonable(cfg),
-                                        "reference": reference})
+                                        "reference": reference, "self_check": log.self_check})
     write_text(out / "config.json", config_text({"train": cfg, "model": ncfg,
                                                  VERSIONS_KEY: versions()}) + "\n")
     summary = {"reference": reference, "neural_preset": preset_name(cfg.neural_preset),
                "fit_seconds": seconds, VERSIONS_KEY: versions(),
-               "model_bytes": int(model.model_bytes()), "n_units": int(model.n_units)}
+               "model_bytes": int(model.model_bytes()), "n_units": int(model.n_units),
+               "self_check": log.self_check}
     write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
     log_training(cfg, ncfg, model, log, out)
     print(f"trained on {len(frames)} reference frames in {seconds:.2f} s "

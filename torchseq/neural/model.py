@@ -35,6 +35,7 @@ from torchseq.neural.memory import seqslam_bytes
 from torchseq.neural.progress import Progress, as_progress
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
+from torchseq.neural.selfcheck import SELF_CHECK_FLOOR, disturbed, self_recall
 from torchseq.neural.velocity import VelocityState, VelocityTracker, adaptive_step
 from torchseq.preprocess import patch_normalise, quantise_input, resize, to_grey, zscore_blocks
 
@@ -64,6 +65,7 @@ class NeuralSeqSLAM(nn.Module):
         self.l3: MaskedLinear | None = None
         self.ring: OutputRing | None = None
         self._inference: NeuralInference | None = None  # set by fold(): step uses it
+        self.self_check: float | None = None  # set by fit (selfcheck.py)
         self._run_modules: dict = {}  # run's own inference modules, by l1 dtype
         self.register_state_dict_post_hook(_drop_derived)
 
@@ -184,7 +186,7 @@ class NeuralSeqSLAM(nn.Module):
     # ------------------------------------------------------------------ learning
     @torch.no_grad()
     def fit(self, reference: torch.Tensor, progress: bool | Progress | None = None,
-            log: bool = True) -> NeuralFitLog:
+            log: bool = True, check: bool = True) -> NeuralFitLog:
         """Learn a route from one pass over its reference traverse (local rules, no backprop).
 
         Units are recruited along the route in order (unit ``u`` stands for a contiguous
@@ -199,6 +201,10 @@ class NeuralSeqSLAM(nn.Module):
                 (a tensor or a NumPy array).
             progress: a callback ``(frames done, frames in all)`` (``True``: a tqdm bar).
             log: also compute the reference evidence raster (a second feed-forward pass).
+            check: the self-check (:mod:`torchseq.neural.selfcheck`, one more feed-forward
+                pass): the share of the reference frames, lightly disturbed, whose winning unit
+                holds them, kept as :attr:`self_check` and in the log; under
+                :data:`~torchseq.neural.selfcheck.SELF_CHECK_FLOOR` it warns once.
 
         Returns:
             :class:`NeuralFitLog`.
@@ -233,7 +239,17 @@ class NeuralSeqSLAM(nn.Module):
             parts = [self.evidence(self.code(self.encode(reference[lo:hi])))
                      for lo, hi in _chunks(t_len, cfg.chunk)]
             evidence = torch.cat(parts).cpu()
-        return NeuralFitLog(unit_of_frame, evidence, spans)
+        self.self_check = self._self_check(reference) if check else None
+        if check:
+            _warn_self_check(self.self_check, t_len, n_units)
+        return NeuralFitLog(unit_of_frame, evidence, spans, self.self_check)
+
+    def _self_check(self, reference: torch.Tensor) -> float:
+        """:func:`~torchseq.neural.selfcheck.self_recall` of the reference, disturbed."""
+        gen = torch.Generator().manual_seed(self.config.seed % 2**63)
+        units = [self.l3(self.code(disturbed(self.encode(reference[lo:hi]), gen))).argmax(1)
+                 for lo, hi in _chunks(reference.shape[0], self.config.chunk)]
+        return self_recall(torch.cat(units), self.unit_to_reference)
 
     # ------------------------------------------------------------------ recognition
     def inference(self, kernels: str | dict = "auto") -> NeuralInference:
@@ -388,7 +404,9 @@ def _warn_coarse_units(n_frames: int, n_units: int, readout: str) -> None:
 
     Measured on demo routes (docs/results/neural.md, "Long routes"): 5.4 frames per unit cost the
     centre readout a fifth of its recall@1 (the interpolating readout keeps it); 36 frames
-    per unit fail both (a unit's weights then average views that share nothing).
+    per unit fail both (a unit's weights then average views that share nothing). On a real
+    route (nordland-b, ``experiments/neural_long_route.py``) much less suffices: 3.2 frames
+    per unit take recall@1 from 0.59 (one unit per frame) to 0.25, interpolating or not.
     """
     per_unit = n_frames / n_units
     if per_unit <= 1 or (readout == "interpolate" and per_unit <= COARSE_UNIT_FRAMES):
@@ -401,7 +419,24 @@ def _warn_coarse_units(n_frames: int, n_units: int, readout: str) -> None:
                   "neighbours' activity")
     warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
                   f"{per_unit:.1f} frames per unit, so readout {readout!r} places are no finer "
-                  f"than that; {advice} (docs/results/neural.md, Long routes)", stacklevel=4)
+                  f"than that; {advice}. Expected effect, measured on a real route "
+                  f"(nordland-b, 1,788 frames, summer -> winter): recall@1 0.25 at 3.2 frames "
+                  f"per unit (interpolate 0.27) against 0.59 at one, 0.12 at 6.4 "
+                  f"(docs/results/neural-long-routes.md)", stacklevel=4)
+
+
+def _warn_self_check(figure: float, n_frames: int, n_units: int) -> None:
+    """Say once when the model separates its own reference poorly (see ``selfcheck.py``)."""
+    if figure >= SELF_CHECK_FLOOR:
+        return
+    warnings.warn(f"self-check: only {figure:.2f} of the reference frames, lightly disturbed, "
+                  f"win their own output unit ({n_frames} frames on {n_units} units; below "
+                  f"{SELF_CHECK_FLOOR}): expect a collapse on a real query (nordland-b, 1,788 "
+                  "frames on 555 units: self-check 0.86, recall@1 0.25); raise n_output "
+                  "towards the route's length (there: one unit per frame, recall@1 0.59) or, "
+                  "for a query at the reference's speed, ring_decay=0.998 (there: 0.66, 3 "
+                  "seeds; it costs queries at other speeds) (docs/results/neural-long-routes.md)",
+                  stacklevel=4)
 
 
 def _warn_adaptive_units(n_frames: int, n_units: int, ring_velocity: str) -> None:

@@ -48,8 +48,11 @@ class NeuralFitLog:
         evidence: ``(T, N)`` normalised feed-forward evidence of each reference frame after
             learning (a raster; its argmax should equal ``winners``).
         unit_to_reference: ``(N, 2)`` int64 first and one-past-last reference frame per unit.
+        self_check: share of the reference frames, lightly disturbed, whose winning unit holds
+            them (:mod:`torchseq.neural.selfcheck`); None when ``fit(check=False)``.
     """
 
     winners: torch.Tensor
     evidence: torch.Tensor
     unit_to_reference: torch.Tensor
+    self_check: float | None = None
