@@ -61,7 +61,7 @@ class StreamRuntime(IntegerRuntime):
         self.l3_int8 = None
         if np.abs(w3).max(initial=0) <= 127 and p["k"] * 127 < EXACT_F32:
             self.l3_int8 = Int8Linear.create(torch.from_numpy(np.ascontiguousarray(w3, np.int8)),
-                                             torch.ones(p["n_units"]), 1.0, 0)
+                                             torch.ones(p["n_units"]), 1.0, 0, x_max=1)
 
     def hidden(self, x: np.ndarray, chunk: int = 16) -> np.ndarray:
         """L1 sums ``(B, M)`` int32: the int8 GEMM when every ``|x| <= 127``, else NumPy's."""

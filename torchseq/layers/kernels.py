@@ -154,7 +154,7 @@ class Int8Linear:
     oneDNN's int8 GEMM (``torch.ops.onednn.qlinear_pointwise``, the kernel behind PyTorch's
     x86 quantisation; VNNI/AMX where the CPU has them) with int32 accumulation. Build with
     :meth:`create`, which returns None when the operator is missing or does not reproduce a
-    float32 product of the same integers on a check batch.
+    float32 product of the same integers on a check batch drawn from the inputs it will be fed.
 
     Args:
         n: ``(N, K)`` int8 weights (``|n| <= 64`` keeps pairs of products inside int16 on
@@ -178,14 +178,20 @@ class Int8Linear:
 
     @classmethod
     def create(cls, n: torch.Tensor, scale: torch.Tensor, x_scale: float,
-               x_zero: int) -> Int8Linear | None:
-        """An :class:`Int8Linear`, or None when the int8 GEMM is unavailable or inexact here."""
+               x_zero: int, x_max: int = 255) -> Int8Linear | None:
+        """An :class:`Int8Linear`, or None when the int8 GEMM is unavailable or inexact here.
+
+        ``x_max`` is the largest input it will be fed (1 for a binary k-WTA code): the check
+        batch spans ``0..x_max``. On CPUs without VNNI the kernel adds pairs of products in
+        int16, so rows up to 127 are exact on a binary code but may saturate on bytes.
+        """
         if not hasattr(torch.ops.onednn, "qlinear_pointwise"):
             return None
         try:
             lin = cls(n, scale, x_scale, x_zero)
             gen = torch.Generator().manual_seed(0)
-            x = torch.randint(0, 256, (37, n.shape[1]), generator=gen, dtype=torch.uint8)
+            x = torch.randint(0, int(x_max) + 1, (37, n.shape[1]), generator=gen,
+                              dtype=torch.uint8)
             got = lin(x)
         except (RuntimeError, NotImplementedError, TypeError, ValueError, AttributeError):
             return None  # an optional kernel: any failure means the float path

@@ -215,7 +215,7 @@ class NeuralInference(nn.Module):
         n1, step1 = l1  # columns to block-major order: the input order
         n1 = n1[:, block_order(*cfg.input_size, cfg.patch_size)].contiguous()
         self.l1_int8 = Int8Linear.create(n1, torch.full((n1.shape[0],), step1), 1.0 / steps, 128)
-        self.l3_int8 = Int8Linear.create(*l3, 1.0, 0)
+        self.l3_int8 = Int8Linear.create(*l3, 1.0, 0, x_max=1)  # the binary k-WTA code
 
     # ------------------------------------------------------------------ the stages
     def evidence(self, frames: torch.Tensor, grey: torch.Tensor | None = None) -> torch.Tensor:
