@@ -23,6 +23,7 @@ import torch
 
 from torchseq import metrics, plots
 from torchseq.atomic import write_json, write_text
+from torchseq.cli_map import check_map_flags, map_seqslam_config, map_traverse, run_seqslam_map
 from torchseq.cli_presets import apply_preset, preset_config, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
@@ -88,6 +89,9 @@ class EvalConfig(EventFlags):
     device: str = "cpu"
     tensorboard: bool = True
     progress: bool = True
+    map: str | None = None
+    shards: int | None = None
+    ray_address: str | None = None
 
 
 HELP = {
@@ -122,6 +126,12 @@ HELP = {
     "device": "cpu, cuda or auto",
     "tensorboard": "write TensorBoard logs",
     "progress": "show progress bars",
+    "map": "reference map folder (torchseq map build) to match against instead of "
+           "--reference: its descriptors and index, no reference images read",
+    "shards": "spread --map over this many Ray actors, each holding its part (candidate "
+              "mode: needs --candidates K)",
+    "ray_address": "Ray cluster to run --shards on (default: a local cluster started for "
+                   "this run and stopped after it)",
     # SeqSLAMConfig fields whose docstring reads poorly as a flag
     "ds": "SeqSLAM sequence length in frames (rounded up to even)",
     "image_size": "SeqSLAM image size HxW after resizing",
@@ -131,7 +141,7 @@ LIMITS = {
     "tolerance": (0.0, 1e9), "gt_offset": (-1e9, 1e9), "target_precision": (0.0, 1.0),
     "demo_frames": (2, 20_000), "demo_speed": (0.01, 100.0), "seed": (0, 2 ** 32 - 1),
     "start": (0, 2 ** 40), "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40),
-    "max_frames": (1, 2 ** 40),
+    "max_frames": (1, 2 ** 40), "shards": (1, 10 ** 5),
 }
 THUMBNAIL = 160  # longer side of the frames kept for plots
 SEQSLAM_LIMITS = {
@@ -188,6 +198,9 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
     check_ranges(cfg, LIMITS)
     if cfg.engine not in ENGINES:
         raise UsageError(f"--engine must be one of {', '.join(ENGINES)}, got {cfg.engine!r}")
+    check_map_flags(cfg)
+    if cfg.map is not None and cfg.engine == "both":
+        cfg.engine = "seqslam"  # a map holds SeqSLAM descriptors only
     if cfg.reference is None and (cfg.demo_frames - 1) / cfg.demo_speed + 1 > MAX_DEMO_QUERY:
         raise UsageError(f"the demo query would have more than {MAX_DEMO_QUERY} frames; lower "
                          f"--demo-frames or raise --demo-speed")
@@ -197,6 +210,8 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
     if cfg.preset is not None:
         two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
         scfg = seqslam_preset(cfg.preset, scfg, two_channel)
+    if cfg.map is not None:
+        scfg = map_seqslam_config(cfg.map, scfg)
     # a neural seed of its own (a replayed config.json holds the run's --seed there)
     neural_seed_given = args.neural_seed is not None and args.neural_seed != cfg.seed
     if args.neural_seed is None:
@@ -378,6 +393,10 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
         query = load_traverse_for(demo.query, "query", cfg, sizes, select)
         gt = selected_ground_truth(demo.ground_truth, ref, query)
         source = {"reference": "demo", "query": "demo", "ground_truth": "demo (exact)"}
+    elif cfg.map is not None:  # the reference is the map's: no frames read
+        ref = map_traverse(cfg.map, Traverse)
+        query = load_traverse_for(cfg.query, "query", cfg, sizes, select)
+        gt, source = None, {"reference": f"map {cfg.map}", "query": cfg.query}
     elif cfg.reference is None or cfg.query is None:
         raise UsageError("give both --reference and --query (or neither, for the demo)")
     else:
@@ -434,6 +453,8 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
                 hint = f": the query recording is shorter than one {w:g} ms window"
         raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
                          + hint)
+    if s.run.map is not None:
+        return run_seqslam_map(s, query, device, s.run.progress)
     size = s.seqslam.image_size
     result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
                                                      progress=s.run.progress)
@@ -586,7 +607,7 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     write_text(out / "matches.csv", matches_csv(results))
     write_text(out / "config.json", config_text(config_dict(s)) + "\n")
     figures = {}
-    if "seqslam" in results:
+    if "seqslam" in results and results["seqslam"]["matrix"] is not None:
         r = results["seqslam"]
         figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
             r["matrix"], r["matches"], gt, "SeqSLAM contrast-enhanced difference matrix"
@@ -596,6 +617,8 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
         figures["neural_activity"] = plots.plot_activity_raster(
             results["neural"]["activity"], title="neural output activity over the query")
     for name, r in results.items():
+        if ref.thumbnail is None:  # a map holds no reference images
+            continue
         figures[f"{name}_matched_pairs"] = plots.plot_matched_pairs(
             ref.thumbnail, query.thumbnail, r["matches"], gt,
             title=f"{name}: query (top) and matched reference")
