@@ -76,13 +76,17 @@ def band_geometry(config: SeqSLAMConfig) -> tuple[list[list[int]], int, int]:
 def edge_rows(start: int, stop: int, n_ref: int, span: int, window: int) -> tuple[int, int]:
     """Rows ``lo .. hi - 1`` a shard of starts ``start .. stop - 1`` reads (with edge rows).
 
-    Band rows reach ``stop + span - 2``; the tile table reads whole tiles of ``TILE_ROWS``
-    rows and ``window / 2`` rows either side of each (a tile more either side for margin).
+    Band rows reach ``stop + span - 2``. The tile table computes whole tiles of ``TILE_ROWS``
+    rows, each from ``length = min(R, TILE_ROWS + 2 (window // 2))`` rows starting at
+    ``clamp(tile * TILE_ROWS - window // 2, 0, R - length)``; these are the rows of the
+    first and last tile's.
     """
     half = window // 2 if window else 0
-    lo = (start // TILE_ROWS - 1) * TILE_ROWS - half
-    hi = (-(-(stop + span) // TILE_ROWS) + 1) * TILE_ROWS + half
-    return max(0, lo), min(n_ref, hi)
+    length = min(n_ref, TILE_ROWS + 2 * half)
+    first, last = start // TILE_ROWS, min(stop + span - 2, n_ref - 1) // TILE_ROWS
+    lo = min(max(0, first * TILE_ROWS - half), n_ref - length)
+    hi = max(min(n_ref - length, max(0, last * TILE_ROWS - half)), 0) + length
+    return lo, hi
 
 
 def shard_ranges(ref_map: ReferenceMap, n_shards: int) -> list[tuple[int, int]]:
