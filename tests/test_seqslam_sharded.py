@@ -78,6 +78,39 @@ def test_approximate_index_refined_on_the_shards(tmp_path):
     assert_same(sharded.match_descriptors(query), one.match_descriptors(query))
 
 
+def robots(sharded, queries, steps=None):
+    """Step every query traverse as one robot of a batch; per step the (B,) decisions."""
+    state, out = None, []
+    for t in range(steps or len(queries[0])):
+        match, state = sharded.step(torch.stack([q[t] for q in queries]), state)
+        out.append(match)
+    return [torch.stack([getattr(x, f) for x in out]) for f in out[0]._fields]
+
+
+@pytest.mark.parametrize("over", [{}, dict(ds=5, vmin=0.5, vmax=1.5, rwindow=3)])
+def test_streams_equal_streaming_candidate_mode(tmp_path, over):
+    """Several robots, one state each: StreamingSeqSLAM's candidate-mode decisions."""
+    from torchseq.seqslam import StreamingSeqSLAM
+
+    ref, query, m = make_map(tmp_path, over, n_query=30)
+    other = torch.tensor(route(np.random.default_rng(13), 200, 30, 1.1)[1], dtype=torch.float32)
+    config = SeqSLAMConfig(candidates=3, **over)
+    sharded = sm.ShardedSeqSLAM(m, config, 4, use_ray=False)
+    got = robots(sharded, [query, other])
+    one = StreamingSeqSLAM(ref, config, descriptors=True)
+    for b, q in enumerate((query, other)):
+        state, want = None, []
+        for t in range(len(q)):
+            match, state = one.step(q[t][None], state)
+            want.append(match)
+        for f, g in zip(want[0]._fields, got):
+            np.testing.assert_array_equal(g[:, b], torch.cat([getattr(w, f) for w in want]),
+                                          err_msg=f)
+    assert (got[0] >= 0).sum() > 30
+    with pytest.raises(ValueError, match="state must come from"):
+        sharded.step(query[:3], sharded.initial_state(2))
+
+
 def test_edge_rows_are_needed(tmp_path, monkeypatch):
     """Without its edge rows a shard cannot score trajectories that leave it: refused."""
     ref, query, m = make_map(tmp_path, {})
@@ -140,6 +173,10 @@ def test_ray_actors_equal_one_machine_and_survive_killed_actors(tmp_path, ray_cl
         got = sharded.match_descriptors(query)
         assert killed == [1, 0]
         assert_same(got, want)
+        local = sm.ShardedSeqSLAM(m, config, 2, use_ray=False)  # robots: streams on Ray
+        for g, w in zip(robots(sharded, [query, query.flip(0)], 20),
+                        robots(local, [query, query.flip(0)], 20)):
+            np.testing.assert_array_equal(g, w)
         after = ray_cluster.get([w.ready.remote() for w in sharded.workers])
         assert after[0]["pid"] != pids[0] and after[1]["pid"] != pids[1]  # restarted
         assert after[0]["error"] is None and after[0]["rows"] > 0  # reloaded from the map

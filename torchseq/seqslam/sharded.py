@@ -38,6 +38,7 @@ import math
 import os
 import time
 from dataclasses import asdict
+from typing import NamedTuple
 
 import torch
 
@@ -61,8 +62,21 @@ from torchseq.seqslam.search import (
     trajectory_scores,
     velocities,
 )
+from torchseq.seqslam.streaming import StreamingMatch
 
 DEFAULT_BATCH = 4 * CENTRES_PER_BLOCK  # query centres per task
+
+
+class ShardedStreamState(NamedTuple):
+    """The trailing windows of ``B`` streams (``n <= ds + 1`` frames so far).
+
+    Attributes:
+        descriptors: ``(B, n, D)`` query descriptors.
+        candidates: ``(B, n, K)`` int64 their candidates.
+    """
+
+    descriptors: torch.Tensor
+    candidates: torch.Tensor
 
 
 def band_geometry(config: SeqSLAMConfig) -> tuple[list[list[int]], int, int]:
@@ -173,8 +187,8 @@ class ShardWorker:
         """Bytes held: descriptor rows, cached tables, and the process's resident set."""
         held = 0 if self.error else self.reference.local.numel() * \
             self.reference.local.element_size()
-        cached = sum(t.values.numel() * t.values.element_size() * 2 for _, _, _, t
-                     in self.cache.values())
+        cached = sum(t.values.numel() * t.values.element_size() * 2
+                     for _, _, _, t, _ in self.cache.values())
         rss = 0
         try:
             with open("/proc/self/statm") as f:
@@ -196,23 +210,44 @@ class ShardWorker:
             out[q0:q0 + step] = pair_differences(ref, q, self.config.metric)
         return out.masked_fill_(~own, math.inf)
 
-    def _table(self, key, query: torch.Tensor, cand: torch.Tensor):
-        """This shard's starts, bands and tile table for the windows of ``query`` columns."""
+    def _table(self, key, columns: torch.Tensor, windows: torch.Tensor, col_ids: torch.Tensor):
+        """This shard's starts, bands and tile table of ``C`` windows (kept under ``key``).
+
+        Args:
+            key: the work's name.
+            columns: ``(n, D)`` query descriptors, one per column id.
+            windows: ``(C, ds + 1, K)`` candidates of each window's columns.
+            col_ids: ``(C, ds + 1)`` column id of each window's columns.
+        """
         if key in self.cache:
             return self.cache[key]
-        ds, n_ref = self.ds, self.n_ref
-        windows = cand.unfold(0, ds + 1, 1).permute(0, 2, 1)  # (C, ds + 1, K)
+        n_ref = self.n_ref
         starts = candidate_starts(windows, self.offsets, n_ref)  # (C, P), padded with R
         own = (starts >= self.start) & (starts < self.stop)
         starts = starts.masked_fill(~own, n_ref).sort(dim=1).values
         starts = starts[:, :max(1, int(own.sum(1).max()))].contiguous()
         rows, is_start = compact_bands(starts, n_ref, self.span, self.gap)
-        cols = torch.arange(len(windows))[:, None] + torch.arange(ds + 1)
-        keys = band_tile_keys(rows, cols, -(-n_ref // TILE_ROWS))
-        table = TileTable(self.reference, query.to(self.dtype), keys, self.config.metric,
+        keys = band_tile_keys(rows, col_ids, -(-n_ref // TILE_ROWS))
+        table = TileTable(self.reference, columns.to(self.dtype), keys, self.config.metric,
                           self.config.enhance_window)
-        self.cache[key] = (starts, rows, is_start, table)
+        self.cache[key] = (starts, rows, is_start, table, col_ids)
         return self.cache[key]
+
+    @staticmethod
+    def _values(entry) -> torch.Tensor:
+        """``(ds + 1, C, W)`` enhanced values of the windows' columns at their band rows."""
+        _, rows, _, table, col_ids = entry
+        return table.lookup(col_ids.T[:, :, None], rows[None])
+
+    def _batch(self, key, query: torch.Tensor, cand: torch.Tensor):
+        windows = cand.unfold(0, self.ds + 1, 1).permute(0, 2, 1)  # (C, ds + 1, K)
+        col_ids = torch.arange(len(windows))[:, None] + torch.arange(self.ds + 1)
+        return self._table(key, query, windows, col_ids)
+
+    def _stream(self, key, descs: torch.Tensor, cands: torch.Tensor):
+        b, n = descs.shape[:2]
+        return self._table(key, descs.reshape(b * n, -1), cands,
+                           torch.arange(b * n).view(b, n))
 
     def floor(self, key, query: torch.Tensor, cand: torch.Tensor) -> float:
         """Minimum enhanced value over this shard's band entries of a batch (inf if none).
@@ -223,26 +258,25 @@ class ShardWorker:
             cand: ``(C + ds, K)`` their candidates (``-1``: none).
         """
         self._check()
-        starts, rows, is_start, table = self._table(key, query, cand)
-        cols = torch.arange(rows.shape[0])[:, None] + torch.arange(self.ds + 1)
-        vals = table.lookup(cols.T[:, :, None], rows[None])
-        return float(vals.min()) if vals.numel() else math.inf
+        values = self._values(self._batch(key, query, cand))
+        return float(values.min()) if values.numel() else math.inf
 
-    def scores(self, key, query: torch.Tensor, cand: torch.Tensor, floor: float
-               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Exact scores of this shard's candidate starts of a batch, ``floor`` removed.
+    def stream_floor(self, key, descs: torch.Tensor, cands: torch.Tensor) -> torch.Tensor:
+        """``(ds + 1, B)`` minimum of each stream's window column over this shard's band rows.
 
-        Returns:
-            ``starts (C, P)`` int64 (sorted, padded with ``R``), ``scores (C, P)`` and
-            ``velocity (C, P)`` int64 best velocity index (ties -> slowest).
+        Args:
+            key: the step's name (its work is kept for :meth:`stream_scores`).
+            descs: ``(B, ds + 1, D)`` each stream's trailing window of descriptors.
+            cands: ``(B, ds + 1, K)`` their candidates.
         """
         self._check()
-        starts, rows, is_start, table = self._table(key, query, cand)
-        self.cache.pop(key)
+        return self._values(self._stream(key, descs, cands)).amin(dim=2)
+
+    def _scores(self, entry, floor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        starts, rows, is_start, _, _ = entry
         n_c, width = rows.shape
         ds = self.ds
-        cols = torch.arange(n_c)[:, None] + torch.arange(ds + 1)
-        values = table.lookup(cols.T[:, :, None], rows[None]) - floor
+        values = self._values(entry) - floor
         scores, best_v = trajectory_scores(values.reshape(ds + 1, n_c * width), ds // 2,
                                            ds // 2 + 1, ds, self.offsets, with_velocity=True)
         valid = starts < self.n_ref
@@ -252,9 +286,33 @@ class ShardWorker:
         vel[valid] = best_v[0, :-1].view(n_c, width)[is_start]
         return starts, out, vel
 
+    def scores(self, key, query: torch.Tensor, cand: torch.Tensor, floor: float
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Exact scores of this shard's candidate starts of a batch, ``floor`` removed.
+
+        A batch whose round-1 work is gone (a restarted actor) is recomputed.
+
+        Returns:
+            ``starts (C, P)`` int64 (sorted, padded with ``R``), ``scores (C, P)`` and
+            ``velocity (C, P)`` int64 best velocity index (ties -> slowest).
+        """
+        self._check()
+        entry = self._batch(key, query, cand)
+        self.cache.pop(key)
+        return self._scores(entry, floor)
+
+    def stream_scores(self, key, descs: torch.Tensor, cands: torch.Tensor,
+                      floor: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`scores` of ``B`` streams' windows, each column's ``(ds + 1, B)`` floor removed."""
+        self._check()
+        entry = self._stream(key, descs, cands)
+        self.cache.pop(key)
+        return self._scores(entry, floor[:, :, None])
+
 
 def rank_merged(starts: torch.Tensor, scores: torch.Tensor, vel: torch.Tensor, n_ref: int,
-                config: SeqSLAMConfig, offsets: list[list[int]], span: int, gap: int):
+                config: SeqSLAMConfig, offsets: list[list[int]], span: int, gap: int,
+                report: str | None = None, top_k: int | None = None):
     """Rank every shard's candidate starts of ``C`` centres as one machine ranks its bands.
 
     Args:
@@ -266,9 +324,14 @@ def rank_merged(starts: torch.Tensor, scores: torch.Tensor, vel: torch.Tensor, n
         offsets: per velocity, the row offsets of the ``ds + 1`` steps.
         span: rows per start's band.
         gap: the compact layout's gap.
+        report: ``"start"``, ``"trajectory"`` or ``"end"`` (streaming); None:
+            ``config.match_rule``.
+        top_k: ranked places kept (None: ``config.top_k``).
 
     Returns:
-        ``match (C,)``, ``best (C,)``, ``uniqueness (C,)``, ``ranked (C, top_k)``.
+        As :func:`~torchseq.seqslam.candidates.score_bands`: ``match (C,)``, ``best (C,)``,
+        ``uniqueness (C,)``, ``ranked (C, top_k)``, best start ``(C,)`` (``-1`` if none) and
+        its velocity index ``(C,)``.
     """
     ds = config.sequence_length
     order = starts.argsort(dim=1)
@@ -280,18 +343,20 @@ def rank_merged(starts: torch.Tensor, scores: torch.Tensor, vel: torch.Tensor, n
     best_v = torch.zeros(rows.shape, dtype=torch.int64)
     best_v[is_start] = vel[valid]
     # as score_bands: position p reports rows[p] + offset[p]
-    report = config.match_rule
+    report = report or config.match_rule
     if report == "start":
         offset = torch.full_like(rows, ds // 2)
     else:
-        offset = torch.tensor([off[ds // 2] for off in offsets])[best_v]
+        step = ds // 2 if report == "trajectory" else ds
+        offset = torch.tensor([off[step] for off in offsets])[best_v]
     shift = rows + offset - torch.arange(rows.shape[1])
-    start, best, ratio, ranked = rank_scores(grid, ds, n_ref, config.rwindow, config.top_k,
-                                             shift)
+    start, best, ratio, ranked = rank_scores(grid, ds, n_ref, config.rwindow,
+                                             top_k or config.top_k, shift)
     ok = torch.isfinite(best)
     match = torch.where(ok, (start + shift.gather(1, start[:, None])[:, 0]).clamp_max(n_ref - 1),
                         -1)
-    return match, best, ratio, ranked
+    first = torch.where(ok, rows.gather(1, start[:, None])[:, 0], -1)
+    return match, best, ratio, ranked, first, best_v.gather(1, start[:, None])[:, 0]
 
 
 class _Local:
@@ -456,13 +521,65 @@ class ShardedSeqSLAM:
             starts, scores, vel = (torch.cat([g[i] for g in got], 1) for i in range(3))
             out = rank_merged(starts, scores, vel, n_ref, c, self.offsets, self.span, self.gap)
             sl = slice(c0 + ds // 2, c1 + ds // 2)
-            match[sl], best_score[sl], uniqueness[sl], ranked[sl] = out
+            match[sl], best_score[sl], uniqueness[sl], ranked[sl] = out[:4]
         seconds["merge"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
         return SeqSLAMResult(
             matches=Matches(match, uniqueness, lower_is_better=True), difference=None,
             enhanced=None, ranked=ranked, best_score=best_score, seconds=seconds,
             kernels={"shards": n_w, "ray": self.use_ray})
+
+    def initial_state(self, batch: int) -> ShardedStreamState:
+        """The state of ``batch`` streams that have seen no frame."""
+        return ShardedStreamState(torch.zeros(batch, 0, self.map.dim, dtype=self.dtype),
+                                  torch.zeros(batch, 0, self.k, dtype=torch.int64))
+
+    def step(self, desc: torch.Tensor, state: ShardedStreamState | None = None
+             ) -> tuple[StreamingMatch, ShardedStreamState]:
+        """One step of ``B`` independent streams (robots), as :meth:`StreamingSeqSLAM.step`.
+
+        Each stream's trailing window of ``ds + 1`` frames is scored on the shards (two
+        rounds: each column's minimum over the window's band rows, then the starts' exact
+        scores); the decisions are :class:`StreamingSeqSLAM`'s in candidate mode.
+
+        Args:
+            desc: ``(B, D)`` one new query descriptor per stream.
+            state: from the previous step (None: the streams start now).
+
+        Returns:
+            ``(StreamingMatch, new state)``.
+        """
+        desc = torch.as_tensor(desc)
+        check_shape(desc, ("B", self.map.dim), "query descriptors")
+        check_not_empty(desc, "query descriptors")
+        check_finite(desc, "query descriptors")
+        b, ds = desc.shape[0], self.config.sequence_length
+        state = self.initial_state(b) if state is None else state
+        if (not isinstance(state, ShardedStreamState) or state.descriptors.shape[0] != b
+                or state.descriptors.shape[2] != desc.shape[1]):
+            raise ValueError(f"state must come from this object's step for {b} streams")
+        desc = desc.to(self.dtype)
+        descs = torch.cat([state.descriptors[:, -ds:], desc[:, None]], 1)
+        cands = torch.cat([state.candidates[:, -ds:], self.search(desc)[:, None]], 1)
+        state = ShardedStreamState(descs, cands)
+        if descs.shape[1] < ds + 1:
+            none = torch.full((b,), -1, dtype=torch.int64)
+            nan = torch.full((b,), math.nan, dtype=torch.float64)
+            return StreamingMatch(none, nan, none.clone(), nan.clone()), state
+        key = ("step", os.getpid(), time.monotonic_ns())
+        d_ref, c_ref = self._put(descs), self._put(cands)
+        floors = self._get([w.stream_floor.remote(key, d_ref, c_ref) for w in self.workers])
+        floor = torch.stack(floors).amin(0)  # (ds + 1, B)
+        floor = torch.where(torch.isfinite(floor), floor, 0.0)
+        parts = self._get([w.stream_scores.remote(key, d_ref, c_ref, floor)
+                           for w in self.workers])
+        starts, scores, vel = (torch.cat([g[i] for g in parts], 1) for i in range(3))
+        match, _, ratio, _, first, vel = rank_merged(
+            starts, scores, vel, self.map.n_places, self.config, self.offsets, self.span,
+            self.gap, report="end", top_k=1)
+        speeds = torch.tensor(velocities(ds, *self.config.velocity_range), dtype=torch.float64)
+        velocity = torch.where(match >= 0, speeds[vel], math.nan)
+        return StreamingMatch(match, ratio.double(), first, velocity), state
 
     def memory(self) -> list[dict]:
         """Per worker: bytes of rows held, cached work and the process's resident set."""
@@ -495,4 +612,5 @@ def _import_ray():
     return ray
 
 
-__all__ = ["ShardWorker", "ShardedSeqSLAM", "edge_rows", "rank_merged", "shard_ranges"]
+__all__ = ["ShardWorker", "ShardedSeqSLAM", "ShardedStreamState", "edge_rows", "rank_merged",
+           "shard_ranges"]
