@@ -484,7 +484,7 @@ class ShardedSeqSLAM:
         if n_query < ds + 1:
             raise ValueError(f"need at least ds + 1 = {ds + 1} query frames for ds = {c.ds}, "
                              f"got {n_query}")
-        query = query.to(self.dtype)
+        query = query.to("cpu", self.dtype)  # the workers compute on their CPUs
         seconds = {}
         t0 = t = time.perf_counter()
         cand = self.search(query)
@@ -558,7 +558,7 @@ class ShardedSeqSLAM:
         if (not isinstance(state, ShardedStreamState) or state.descriptors.shape[0] != b
                 or state.descriptors.shape[2] != desc.shape[1]):
             raise ValueError(f"state must come from this object's step for {b} streams")
-        desc = desc.to(self.dtype)
+        desc = desc.to("cpu", self.dtype)
         descs = torch.cat([state.descriptors[:, -ds:], desc[:, None]], 1)
         cands = torch.cat([state.candidates[:, -ds:], self.search(desc)[:, None]], 1)
         state = ShardedStreamState(descs, cands)
