@@ -202,6 +202,7 @@ def test_released_version_1_map_still_loads():
     np.testing.assert_array_equal(m.index().search(m.descriptors()[:5], 3), want["top3"])
 
 
+@pytest.mark.slow
 def test_cli_build_and_eval_with_map_equal_eval_with_reference(tmp_path, capsys):
     """``torchseq map build`` + ``eval --map`` give the frames route's matches exactly."""
     from torchseq.cli import main
