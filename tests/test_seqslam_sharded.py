@@ -218,3 +218,18 @@ def test_ray_eval_cli_with_shards(tmp_path, ray_cluster, capsys):
     no_k = [a for a in common if a not in ("--candidates", "5")]
     assert main(["eval", *no_k, "--shards", "3", "--out", str(tmp_path / "x")]) == 2
     assert re.search("--shards runs candidate mode", capsys.readouterr().err)
+
+
+def test_unreachable_cluster_is_one_clear_error(tmp_path, monkeypatch):
+    """A Ray start that fails (here: an address nobody listens on) is one RuntimeError line."""
+    ray = pytest.importorskip("ray", reason="sharded matching runs on Ray; not installed")
+    ref, query, m = make_map(tmp_path, {})
+
+    def refuse(**kwargs):
+        raise Exception("The current node timed out during startup.\nmore lines")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", refuse)
+    with pytest.raises(RuntimeError, match=r"could not start or reach the Ray cluster at "
+                       r"10\.0\.0\.1:1: The current node timed out during startup\. \(start"):
+        sm.ShardedSeqSLAM(m, SeqSLAMConfig(candidates=4), 2, address="10.0.0.1:1")

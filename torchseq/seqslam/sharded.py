@@ -428,7 +428,15 @@ class ShardedSeqSLAM:
         else:
             ray = _import_ray()
             if not ray.is_initialized():
-                ray.init(address=address, include_dashboard=False, log_to_driver=False)
+                try:
+                    ray.init(address=address, include_dashboard=False, log_to_driver=False)
+                except Exception as err:  # noqa: BLE001 - Ray raises plain Exception here
+                    where = f"the Ray cluster at {address}" if address else \
+                        "a local Ray cluster"
+                    first = str(err).splitlines()[0] if str(err) else type(err).__name__
+                    raise RuntimeError(f"could not start or reach {where}: {first} (start "
+                                       f"one with 'ray start --head' and pass its address "
+                                       f"as --ray-address / address=)") from err
                 self._started_ray = True
             options = {"num_cpus": 0, **(actor_options or {}),
                        "max_restarts": int(max_restarts), "max_task_retries": int(max_restarts)}
