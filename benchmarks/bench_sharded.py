@@ -2,6 +2,10 @@
 
     .venv/bin/python benchmarks/bench_sharded.py --places 100000 --shards 1,2,4
     .venv/bin/python benchmarks/bench_sharded.py --places 1000000 --shards 2,4 --queries 200
+    .venv/bin/python benchmarks/bench_sharded.py --map MAP --query FRAMES   # real route
+
+``--map``: a map built by ``torchseq map build`` and a query traverse; one-machine candidate
+mode against the sharded path in-process (one worker, no Ray), one thread, side by side.
 
 For each size a map is built once (synthetic descriptors, D = 64 uint8 in 127 +- 8; an AR(1)
 route, coefficient 0.9 per frame; queries a stretch of it at speed 1 with integer noise, sd
@@ -47,6 +51,30 @@ def rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def real_route(map_path: str, query_path: str, k: int) -> None:
+    import faiss
+    import torch
+
+    from torchseq.maps import load_map
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+    from torchseq.seqslam.candidates import CandidateSeqSLAM
+    from torchseq.seqslam.sharded import ShardedSeqSLAM
+    from torchseq.sources import load_traverse
+
+    torch.set_num_threads(1)
+    faiss.omp_set_num_threads(1)
+    m = load_map(map_path)
+    q = SeqSLAM(m.config).descriptors(load_traverse(query_path, progress=False))
+    config = SeqSLAMConfig(candidates=k)
+    a = ShardedSeqSLAM(m, config, 1, use_ray=False).match_descriptors(q)
+    b = CandidateSeqSLAM(m.descriptors(), config, index=m.index()).match_descriptors(q)
+    for name, r in (("ShardedSeqSLAM(use_ray=False), 1 worker", a), ("CandidateSeqSLAM", b)):
+        print(name, {key: round(v, 2) for key, v in r.seconds.items()})
+    print("same matches and rankings:", bool(torch.equal(a.matches.reference,
+                                                         b.matches.reference)
+                                              and torch.equal(a.ranked, b.ranked)))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--places", type=int, nargs="+", default=[100_000])
@@ -58,7 +86,11 @@ def main() -> None:
     p.add_argument("--cpus", type=int, default=2)
     p.add_argument("--index", default="auto")
     p.add_argument("--out", default=None, help="keep the maps here (default: a temp folder)")
+    p.add_argument("--map", default=None, help="real route: a map folder (with --query)")
+    p.add_argument("--query", default=None, help="real route: the query traverse")
     args = p.parse_args()
+    if args.map:
+        return real_route(args.map, args.query, args.candidates)
 
     import faiss
     import ray
