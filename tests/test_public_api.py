@@ -63,6 +63,9 @@ PUBLIC = {
     "torchseq.events.times": ["FLOAT_SECONDS_BELOW", "float_times_to_us", "with_us_times",
                               "float_time_unit", "FloatTimeRule", "UNITS_PER_US"],
     "torchseq.seqslam.config": ["PRESETS", "SeqSLAMConfig"],
+    "torchseq.maps": ["FORMAT", "VERSION", "MapError", "ReferenceMap", "build_map", "load_map"],
+    "torchseq.seqslam.sharded": ["ShardWorker", "ShardedSeqSLAM", "edge_rows", "rank_merged",
+                                 "shard_ranges"],
     "torchseq.neural.fixed_point": [
         "factor_power_of_two", "factor_rows", "integer_weights", "quantise_input", "round_rows",
     ],

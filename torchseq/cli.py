@@ -12,8 +12,9 @@ COMMANDS = {
     "eval": "run a query traverse through SeqSLAM and Neural SeqSLAM and report metrics",
     "train": "learn a Neural SeqSLAM model from a reference traverse",
     "export": "export a Neural SeqSLAM checkpoint to ONNX and integer files and validate them",
+    "map": "build a reference map (descriptors, index, record) once; verify one",
 }
-USAGE = "usage: torchseq [--version] {eval,train,export} [--help] ...\n\n" + "\n".join(
+USAGE = "usage: torchseq [--version] {eval,train,export,map} [--help] ...\n\n" + "\n".join(
     f"  {name:<8}{text}" for name, text in COMMANDS.items()) + (
     "\n\n`torchseq COMMAND --help` lists a command's common flags, `--help-all` all of them.")
 
@@ -36,6 +37,9 @@ def main(argv: list[str] | None = None) -> int:
     if command == "train":
         from torchseq.cli_train import cli
         return cli(rest, prog)
+    if command == "map":
+        from torchseq.cli_map import cli as map_cli
+        return map_cli(rest, prog)
     if command == "export":
         from torchseq.export.cli import main as export_main
         return export_main(rest, prog)

@@ -24,6 +24,7 @@ import torch
 from torchseq import cli_help, metrics, plots
 from torchseq.atomic import write_json, write_text
 from torchseq.cli_help import organise_help
+from torchseq.cli_map import check_map_flags, map_seqslam_config, map_traverse, run_seqslam_map
 from torchseq.cli_presets import apply_preset, preset_config, preset_help, preset_name
 from torchseq.cli_warnings import WarningLog, warning_list
 from torchseq.demo import make_demo
@@ -105,6 +106,9 @@ class EvalConfig(EventFlags):
     root: str | None = None
     reference_split: str | None = None
     query_split: str | None = None
+    map: str | None = None
+    shards: int | None = None
+    ray_address: str | None = None
 
 
 HELP = {
@@ -153,6 +157,12 @@ HELP = {
     "reference_split": "--dataset split of the reference (nordland: a season folder; "
                        "default: the dataset's own, e.g. summer)",
     "query_split": "--dataset split of the query (default: the dataset's own, e.g. winter)",
+    "map": "reference map folder (torchseq map build) to match against instead of "
+           "--reference: its descriptors and index, no reference images read",
+    "shards": "spread --map over this many Ray actors, each holding its part (candidate "
+              "mode: needs --candidates K)",
+    "ray_address": "Ray cluster to run --shards on (default: a local cluster started for "
+                   "this run and stopped after it)",
     # SeqSLAMConfig fields whose docstring reads poorly as a flag
     "ds": "SeqSLAM sequence length in frames (rounded up to even)",
     "image_size": "SeqSLAM image size HxW after resizing",
@@ -163,6 +173,7 @@ LIMITS = {
     "demo_frames": (2, 20_000), "demo_speed": (0.01, 100.0), "seed": (0, 2 ** 32 - 1),
     "start": (0, 2 ** 40), "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40),
     "max_frames": (1, 2 ** 40), "descriptor_batch": (1, 2 ** 20),
+    "shards": (1, 10 ** 5),
 }
 THUMBNAIL = 160  # longer side of the frames kept for plots
 SEQSLAM_LIMITS = {
@@ -220,6 +231,9 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
     check_ranges(cfg, LIMITS)
     if cfg.engine not in ENGINES:
         raise UsageError(f"--engine must be one of {', '.join(ENGINES)}, got {cfg.engine!r}")
+    check_map_flags(cfg)
+    if cfg.map is not None and cfg.engine == "both":
+        cfg.engine = "seqslam"  # a map holds SeqSLAM descriptors only
     if cfg.reference is None and (cfg.demo_frames - 1) / cfg.demo_speed + 1 > MAX_DEMO_QUERY:
         raise UsageError(f"the demo query would have more than {MAX_DEMO_QUERY} frames; lower "
                          f"--demo-frames or raise --demo-speed")
@@ -229,6 +243,8 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
     if cfg.preset is not None:
         two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
         scfg = seqslam_preset(cfg.preset, scfg, two_channel)
+    if cfg.map is not None:
+        scfg = map_seqslam_config(cfg.map, scfg)
     # a neural seed of its own (a replayed config.json holds the run's --seed there)
     neural_seed_given = args.neural_seed is not None and args.neural_seed != cfg.seed
     if args.neural_seed is None:
@@ -474,6 +490,10 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
         query = load_traverse_for(demo.query, "query", cfg, sizes, select)
         gt = selected_ground_truth(demo.ground_truth, ref, query)
         source = {"reference": "demo", "query": "demo", "ground_truth": "demo (exact)"}
+    elif cfg.map is not None:  # the reference is the map's: no frames read
+        ref = map_traverse(cfg.map, Traverse)
+        query = load_traverse_for(cfg.query, "query", cfg, sizes, select)
+        gt, source = None, {"reference": f"map {cfg.map}", "query": cfg.query}
     elif cfg.reference is None or cfg.query is None:
         raise UsageError("give both --reference and --query (or neither, for the demo)")
     else:
@@ -569,6 +589,8 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
                 hint = f": the query recording is shorter than one {w:g} ms window"
         raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
                          + hint)
+    if s.run.map is not None:
+        return run_seqslam_map(s, query, device, s.run.progress)
     size = s.seqslam.image_size
     config = ranked_config(s.seqslam)
     engine = SeqSLAM(config, device=device)
@@ -787,7 +809,7 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     write_text(out / "config.json",
                config_text({**config_dict(s), VERSIONS_KEY: versions()}) + "\n")
     figures = {}
-    if "seqslam" in results:
+    if "seqslam" in results and results["seqslam"]["matrix"] is not None:
         r = results["seqslam"]
         figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
             r["matrix"], r["matches"], gt, "SeqSLAM contrast-enhanced difference matrix"
@@ -798,7 +820,7 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
             results["neural"]["activity"], title="neural output activity over the query")
     for name, r in results.items():
         if ref.thumbnail is None or query.thumbnail is None:
-            break  # descriptor files: no frames to show
+            continue  # descriptor files and maps: no frames to show
         figures[f"{name}_matched_pairs"] = plots.plot_matched_pairs(
             ref.thumbnail, query.thumbnail, r["matches"], gt,
             title=f"{name}: query (top) and matched reference")

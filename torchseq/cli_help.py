@@ -42,7 +42,9 @@ SELECTION = ("--start", "--stop", "--frame-step", "--max-frames")
 EVAL = (
     ("inputs", ("--reference", "--query", "--ground-truth", "--tolerance", "--engine",
                 "--checkpoint", "--config"),
-     ("--gt-offset", *SELECTION, "--demo-frames", "--demo-speed", "--seed")),
+     ("--gt-offset", *SELECTION, "--dataset", "--root", "--reference-split", "--query-split",
+      "--descriptor", "--descriptor-batch", "--map", "--shards", "--ray-address",
+      "--demo-frames", "--demo-speed", "--seed")),
     ("SeqSLAM", ("--preset", "--ds", "--vmin", "--vmax", "--speed-ratio"),
      ("--candidates", "--image-size", "--patch-size", "--metric", "--enhance-window",
       "--speed-tolerance", "--rwindow", "--top-k", "--match-at", "--preprocessing", "--edges")),

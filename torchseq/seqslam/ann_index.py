@@ -148,3 +148,58 @@ class CandidateIndex:
             return torch.empty(0, k, dtype=torch.int64)
         _, idx = self.index.search(_as_float32(query, self._unit), k)
         return torch.from_numpy(idx.astype(np.int64))
+
+    def serialize(self) -> np.ndarray:
+        """The FAISS index as a ``uint8`` array (``faiss.serialize_index``; no pickle).
+
+        :meth:`deserialize` reads it back; reference maps store it as ``.npy``.
+        """
+        return np.asarray(import_faiss().serialize_index(self.index), dtype=np.uint8)
+
+    @classmethod
+    def deserialize(cls, data: np.ndarray, metric: str, kind: str, size: int, dim: int,
+                    nprobe: int | None = None, ef_search: int = 64) -> CandidateIndex:
+        """Rebuild an index from :meth:`serialize`'s bytes, checked against what it must hold.
+
+        Args:
+            data: ``uint8`` bytes.
+            metric: the engine's metric the index was built for.
+            kind: ``"flat"``, ``"ivf"`` or ``"hnsw"`` (as built).
+            size: references it must hold.
+            dim: descriptor length it must take.
+            nprobe: IVF cells scanned per query (None: as stored).
+            ef_search: HNSW search breadth.
+
+        Raises:
+            ValueError: the bytes are not an index of that kind, size and dimension.
+        """
+        if metric not in ("l1", "l2", "cosine"):
+            raise ValueError(f"metric must be l1, l2 or cosine, got {metric!r}")
+        if kind not in INDEX_KINDS[1:]:
+            raise ValueError(f"index kind must be one of {INDEX_KINDS[1:]}, got {kind!r}")
+        faiss = import_faiss()
+        index = faiss.deserialize_index(np.ascontiguousarray(data, dtype=np.uint8))
+        if index.ntotal != size or index.d != dim:
+            raise ValueError(f"index holds {index.ntotal} vectors of {index.d} dimensions, "
+                             f"expected {size} of {dim}")
+        self = cls.__new__(cls)
+        self.kind, self.metric, self.dim, self.size = kind, metric, dim, size
+        self._unit = metric == "cosine"
+        self.ef_search = int(ef_search)
+        if kind != "flat":
+            if not isinstance(index, faiss.IndexPreTransform):
+                raise ValueError(f"a {kind} index is a PCA transform and an inner index")
+            inner = faiss.downcast_index(index.index)
+            want = faiss.IndexIVFFlat if kind == "ivf" else faiss.IndexHNSWFlat
+            if not isinstance(inner, want):
+                raise ValueError(f"inner index is {type(inner).__name__}, not {want.__name__}")
+            if kind == "ivf" and nprobe is not None:
+                inner.nprobe = min(int(nprobe), inner.nlist)
+            self._inner = inner
+        else:
+            want = {"l1": faiss.METRIC_L1, "l2": faiss.METRIC_L2,
+                    "cosine": faiss.METRIC_INNER_PRODUCT}[metric]
+            if index.metric_type != want:
+                raise ValueError(f"flat index metric {index.metric_type} does not fit {metric}")
+        self.index = index
+        return self
