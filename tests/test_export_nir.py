@@ -246,7 +246,7 @@ def test_an_absent_consumer_is_reported_with_its_reason(tiny_file, monkeypatch):
     rep = nir_consumers.compare(sp, path, sp.encode(demo.query[:3]), None,
                                 consumers=("snntorch",))
     assert rep["snntorch"] == {"skipped": "snntorch is not importable (test)"}
-    def broken(name, path, x):
+    def broken(name, path, x, update=None):
         raise RuntimeError("importer changed")
 
     monkeypatch.setattr(nir_consumers, "run_consumer", broken)
@@ -342,7 +342,8 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     from torchseq.export.cli import main
 
     model, demo, *_ = small_setup()
-    model.save(tmp_path / "small.pt")
+    np.save(tmp_path / "ref.npy", demo.reference.numpy())
+    model.save(tmp_path / "small.pt", extra={"reference": {"source": str(tmp_path / "ref.npy")}})
     np.save(tmp_path / "query.npy", demo.query.numpy()[:40])
     np.save(tmp_path / "gt.npy", demo.ground_truth[:, :40].astype(np.int64))
     out = tmp_path / "export"
@@ -354,12 +355,14 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     assert read_nir(out / "model.nir").metadata["format"] == FORMAT
     assert rep["round_trip_equal"] and rep["bytes"] == (out / "model.nir").stat().st_size
     assert report["checks"]["nir_round_trip"] and report["checks"]["nir_consumers_agree"]
-    assert rep["calibration_source"].startswith("the validation query")
+    assert rep["calibration_source"] == f"the checkpoint's reference {tmp_path / 'ref.npy'}"
     for name in ("snntorch", "norse"):
         c = rep["consumers"][name]
         if "skipped" in c:
             continue
-        assert c["agreement"] >= 0.99 and c["time_steps"] == 40 and c["steps_per_frame"] == 1
+        # 40 frames as 2 streams of 20 steps (CONSUMER_SEGMENT = 32), every frame compared
+        assert c["agreement"] >= 0.99 and c["time_steps"] == 20 and c["streams"] == 2
+        assert c["steps_per_frame"] == 1
         assert 0.0 <= c["recall_at_1"] <= 1.0
     assert 0.0 <= rep["spiking"]["agreement_with_rate_model"] <= 1.0
     assert rep["budget"]["neurons"] == 1024 + rep["levels"] * 40
@@ -387,12 +390,50 @@ def test_calibration_frames_follow_the_recorded_reference():
 
     model, demo, sp = tiny()
     frames, src = calibration_frames(model, {"source": "demo", "demo_frames": 30,
-                                             "demo_seed": 2}, False, demo.query)
+                                             "demo_seed": 2})
     assert frames.shape[0] == 30 and "demo reference" in src
-    frames, src = calibration_frames(model, {"source": "ref.mp4"}, False, demo.query)
-    assert frames is demo.query and "ref.mp4" in src
-    frames, src = calibration_frames(model, None, True, demo.query)
-    assert frames is demo.query and "validation query" in src
+    frames, src = calibration_frames(model, {"source": "ref.mp4"}, replayed=demo.reference)
+    assert frames is demo.reference and "ref.mp4" in src
+    frames, src = calibration_frames(model, {"source": "ref.mp4"}, load=lambda: demo.reference)
+    assert frames is demo.reference and "ref.mp4" in src
+
+    def unreadable():
+        raise ValueError("ref.mp4: no such file")
+
+    # never the validation query: without the learnt reference the NIR export is skipped
+    for rec, load in ((None, None), ({"source": "ref.mp4"}, unreadable),
+                      ({"source": "ref.mp4"}, None)):
+        frames, why = calibration_frames(model, rec, load=load)
+        assert frames is None and "never on a validation query" in why
+
+
+@pytest.mark.slow
+def test_the_query_does_not_influence_the_calibration(tmp_path):
+    # a device has no query: the spiking thresholds come from the learnt reference alone,
+    # identical whichever validation query the export is given
+    import json
+
+    from tests.export_helpers import small_setup
+    from torchseq.export.cli import export_checkpoint
+
+    model, demo, *_ = small_setup()
+    np.save(tmp_path / "ref.npy", demo.reference.numpy())
+    model.save(tmp_path / "m.pt", extra={"reference": {"source": str(tmp_path / "ref.npy")}})
+    reps = []
+    for i, (a, b) in enumerate(((0, 30), (30, 60))):
+        np.save(tmp_path / f"q{i}.npy", demo.query.numpy()[a:b])
+        export_checkpoint(tmp_path / "m.pt", tmp_path / f"out{i}", tmp_path / f"q{i}.npy")
+        reps.append(json.loads((tmp_path / f"out{i}" / "validation.json").read_text())["nir"])
+    if "skipped" in reps[0]:
+        pytest.skip(reps[0]["skipped"])
+    assert reps[0]["calibration"] == reps[1]["calibration"]
+    assert reps[0]["calibration"]["reference_frames"] == demo.reference.shape[0]
+    assert "ref.npy" in reps[0]["calibration_source"]
+    # without a recorded reference: skipped with the reason, never calibrated on the query
+    model.save(tmp_path / "bare.pt")
+    export_checkpoint(tmp_path / "bare.pt", tmp_path / "bare", tmp_path / "q0.npy")
+    rep = json.loads((tmp_path / "bare" / "validation.json").read_text())
+    assert "never on a validation query" in rep["nir"]["skipped"]
 
 
 def test_a_consumer_that_fails_fails_the_export_check(monkeypatch, tmp_path):

@@ -73,6 +73,26 @@ def _int(value, name: str, lo: int, hi: int) -> int:
     return value
 
 
+def _recorded_frames(model, ckpt: Path, rec: dict, remedy: str = ""):
+    """The frames of a recorded reference file, checked against what the model learnt."""
+    from torchseq.sources import EventFrameOptions, FrameSelection, load_traverse
+
+    events = rec.get("events") if isinstance(rec.get("events"), dict) else {}
+    select = rec.get("select") if isinstance(rec.get("select"), dict) else {}
+    try:
+        opts = EventFrameOptions(**{k: v for k, v in events.items() if v is not None})
+        frames = load_traverse(rec["source"], events=opts, progress=False,
+                               select=FrameSelection(**select))
+    except (ValueError, TypeError, OSError) as err:
+        raise ExportError(f"{ckpt}: its reference {rec['source']} cannot be loaded "
+                          f"({_first_line(err)}){remedy}") from None
+    n_learnt = int(model.unit_to_reference[-1, 1])
+    if len(frames) != n_learnt:
+        raise ExportError(f"{ckpt}: its reference {rec['source']} now has {len(frames)} "
+                          f"frames, but the model learnt {n_learnt}{remedy}")
+    return frames
+
+
 def _own_reference(model, ckpt: Path):
     """Validation query = the checkpoint's own reference: frames, ground truth, description."""
     from torchseq.ground_truth import alignment_ground_truth
@@ -90,21 +110,8 @@ def _own_reference(model, ckpt: Path):
         return (demo.query, demo.ground_truth, rec,
                 f"the checkpoint's own reference: demo route ({demo.reference.shape[0]} "
                 f"frames), its query traverse", "demo exact ground truth")
-    from torchseq.sources import EventFrameOptions, FrameSelection, load_traverse
-
-    events = rec.get("events") if isinstance(rec.get("events"), dict) else {}
-    select = rec.get("select") if isinstance(rec.get("select"), dict) else {}
-    try:
-        opts = EventFrameOptions(**{k: v for k, v in events.items() if v is not None})
-        frames = load_traverse(rec["source"], events=opts, progress=False,
-                               select=FrameSelection(**select))
-    except (ValueError, TypeError, OSError) as err:
-        raise ExportError(f"{ckpt}: its reference {rec['source']} cannot be loaded for "
-                          f"validation ({_first_line(err)}); give --query") from None
+    frames = _recorded_frames(model, ckpt, rec, "; give --query")
     n_learnt = int(model.unit_to_reference[-1, 1])
-    if len(frames) != n_learnt:
-        raise ExportError(f"{ckpt}: its reference {rec['source']} now has {len(frames)} "
-                          f"frames, but the model learnt {n_learnt}; give --query")
     # a replay: each frame should come back to its own place, up to a unit's span
     tol = math.ceil(n_learnt / model.n_units / 2) if n_learnt > model.n_units else 0
     gt = alignment_ground_truth(n_learnt, n_learnt, tol)
@@ -126,7 +133,8 @@ def _suggested_threshold(model, frames, gt) -> float | None:
 
 
 def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
-                      frame_size: tuple[int, int] | None = None, nir: bool = True) -> bool:
+                      frame_size: tuple[int, int] | None = None, nir: bool = True,
+                      progress: bool = False) -> bool:
     """Export a Neural SeqSLAM checkpoint to every deployment format and validate them.
 
     Args:
@@ -140,8 +148,10 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         frame_size: ``(H0, W0)`` camera frames the integer device takes. None: the recorded
             reference's frame size, else the validation query's (reported in
             ``validation.json`` as ``device_frame_size_source``).
-        nir: also write ``model.nir`` (the spiking model) and validate it in snnTorch and
-            Norse (``docs/nir.md``; needs the ``nir`` extra, else reported as skipped).
+        nir: also write ``model.nir`` (the spiking model, calibrated on the recorded
+            reference only) and validate it in snnTorch and Norse (``docs/nir.md``; needs
+            the ``nir`` extra and the learnt reference, else reported as skipped).
+        progress: show each long step on stderr (:mod:`torchseq.export.progress`).
 
     Returns:
         True when every check passes (see ``validation.json`` ``checks``).
@@ -151,6 +161,7 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
             and no query given.
     """
     from torchseq.export.contract import contract, write_contract
+    from torchseq.export.progress import ExportProgress
     from torchseq.export.validate import (
         FLOAT_ONNX,
         INT_ONNX,
@@ -201,7 +212,9 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     report = {"checkpoint": str(ckpt), "checkpoint_bytes": ckpt.stat().st_size,
               "query_source": source, "ground_truth_source": gt_source,
               "device_frame_size_source": size_source}
-    report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size))
+    steps = ExportProgress(enabled=progress)
+    report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size,
+                                      progress=steps))
     threshold = _suggested_threshold(model, frames, ground_truth)
     report["suggested_confidence_threshold"] = threshold
     graphs = ((FLOAT_ONNX, "float"), (QUANT_ONNX, "float"), (INT_ONNX, "integer"))
@@ -219,9 +232,12 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     elif nir and readout != "centre":  # SpikingSeqSLAM.convert refuses it (no spiking form)
         report["nir"] = {"skipped": f"readout={readout!r} has no spiking (NIR) form; the "
                                     "ONNX and integer files hold it"}
-    elif nir:
-        calib, calib_source = calibration_frames(model, rec, query is not None, frames)
-        report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source)
+    elif nir:  # calibrated on the learnt reference only: a device has no query
+        calib, calib_source = calibration_frames(
+            model, rec, replayed=frames if query is None else None,
+            load=lambda: _recorded_frames(model, ckpt, rec))
+        report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source,
+                                   progress=steps)
     else:
         report["nir"] = {"skipped": "--no-nir"}
     if "checks" in report["nir"]:
@@ -256,6 +272,14 @@ def summary_lines(out_dir) -> list[str]:
                      f"(from {report['device_frame_size_source']})")
     for key, value in report.items():
         if key.endswith("_agreement") or key.endswith("_error") or key == "recall_at_1":
+            outside = report.get(f"{key}_outside_near_ties")
+            if outside is not None and key == "float_onnx_agreement":
+                value = (f"{value} (outside near-ties {outside}; "
+                         f"{report.get('float_onnx_near_ties')} near-ties, "
+                         f"{report.get('float_onnx_near_tie_disagreements')} decided "
+                         f"otherwise; checked: outside near-ties)")
+            elif outside is not None:
+                value = f"{value} (outside near-ties {outside})"
             lines.append(f"{key}: {value}")
     nir = report.get("nir") or {}
     if "skipped" in nir:
@@ -291,6 +315,8 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
                     "takes (default: the checkpoint's reference frame size)")
     ap.add_argument("--no-nir", action="store_true", help="do not write model.nir (the "
                     "spiking model as a NIR graph) nor run it in snnTorch and Norse")
+    ap.add_argument("--no-progress", action="store_true", help="do not show the long steps "
+                    "on stderr (bars on a terminal, one line per step otherwise)")
     return ap
 
 
@@ -302,7 +328,8 @@ def main(argv: list[str] | None = None, prog: str = "torchseq export") -> int:
     try:
         size = parse_size(args.frame_size)
         ok = export_checkpoint(args.checkpoint, args.out, args.query, args.ground_truth,
-                               frame_size=size, nir=not args.no_nir)
+                               frame_size=size, nir=not args.no_nir,
+                               progress=not args.no_progress)
     except (ValueError, OSError, UsageError) as err:
         print(f"{prog}: error: {_first_line(err)}", file=sys.stderr)
         return 2
