@@ -246,7 +246,7 @@ def test_an_absent_consumer_is_reported_with_its_reason(tiny_file, monkeypatch):
     rep = nir_consumers.compare(sp, path, sp.encode(demo.query[:3]), None,
                                 consumers=("snntorch",))
     assert rep["snntorch"] == {"skipped": "snntorch is not importable (test)"}
-    def broken(name, path, x, update=None):
+    def broken(name, path, x, update=None, graph=None):
         raise RuntimeError("importer changed")
 
     monkeypatch.setattr(nir_consumers, "run_consumer", broken)
@@ -314,6 +314,36 @@ class TestBudget:
         assert [r0 for r0, _ in blocks] == [0, 2, 4, 6, 8]
         np.testing.assert_array_equal(np.concatenate([b for _, b in blocks]),
                                       top9 + np.eye(9, dtype=np.float32))
+
+    def test_selection_kernel_counts_as_the_blocks_do(self, tiny_file):
+        # the ring pairs (levels @ l3, levels @ shift) are counted from their operands'
+        # patterns, never multiplied out: the default 500-unit ring's levels @ shift is
+        # 64,000^2 and took 107 s of CPU; the oracle multiplies every product out
+        graph = tiny_file[2]
+        fast, slow = budget(graph), budget(graph, fast=False)
+        assert fast["count_kernels"] == {"input->l2": "row_blocks", "l2->ring": "selection",
+                                         "ring->ring": "selection"}
+        assert set(slow["count_kernels"].values()) == {"row_blocks"}
+        fast.pop("count_kernels"), slow.pop("count_kernels")
+        assert fast == slow
+
+    def test_selection_kernel_refuses_what_it_cannot_count_exactly(self):
+        from torchseq.export.hardware_budget import _counts
+
+        rng = np.random.default_rng(1)
+        rest = rng.integers(-2, 3, (4, 7)).astype(np.float32)
+        sel = np.zeros((9, 4), dtype=np.float32)
+        sel[np.arange(9), rng.integers(0, 4, 9)] = rng.random(9).astype(np.float32) + 0.5
+        sel[5] = 0  # a row that picks nothing
+        tiny = rest * np.float32(1e-30)
+        for top, right, want in ((sel, rest, "selection"),
+                                 (sel * np.float32(1e-20), tiny, "row_blocks"),  # underflow
+                                 (sel + np.float32(0.25), rest, "row_blocks")):  # two per row
+            row, col, kernel = _counts([(top, right, 9)])
+            assert kernel == want
+            nz = (top @ right) != 0  # the plain product
+            np.testing.assert_array_equal(row, nz.sum(1))
+            np.testing.assert_array_equal(col, nz.sum(0))
 
     def test_weight_grid(self):
         from torchseq.export.hardware_budget import weight_grid

@@ -158,9 +158,16 @@ def weight_grid(w: np.ndarray, tol: float = 1e-4) -> str:
 
     if on_grid(w):
         return "int8"
-    if all(on_grid(row) for row in w):
-        return "int8_per_row"
-    return "float"
+    w = np.atleast_2d(w)
+    step = max(1, 2**22 // max(w.shape[1], 1))
+    for r0 in range(0, w.shape[0], step):  # each row on its own grid, a block at a time
+        a = np.abs(w[r0:r0 + step]).astype(np.float64)
+        nz = a != 0
+        low = np.where(nz, a, np.inf).min(axis=1, keepdims=True)
+        q = np.where(nz, a / low, 0.0)  # rows of zeros: 0 (on every grid)
+        if q.max() > 127.0 + tol or np.abs(q - np.rint(q)).max() > tol:
+            return "float"
+    return "int8_per_row"
 
 
 def budget(graph, fast: bool = True) -> dict:

@@ -43,7 +43,7 @@ def available() -> dict[str, str | None]:
 
 
 def run_consumer(name: str, path: str | Path, x: torch.Tensor,
-                 update: Callable[[int], None] | None = None) -> torch.Tensor:
+                 update: Callable[[int], None] | None = None, graph=None) -> torch.Tensor:
     """Import ``path`` into consumer ``name`` and step it over ``x``.
 
     Args:
@@ -52,6 +52,7 @@ def run_consumer(name: str, path: str | Path, x: torch.Tensor,
         x: ``(T, D)`` encoded frames, one time step each, or ``(T, B, D)``: ``B`` streams
             stepped together (each from rest).
         update: called with the steps done after each step (progress), or None.
+        graph: ``read_nir(path)`` when the caller has read it already (None: read here).
 
     Returns:
         ``(T, N * K)`` (or ``(T, B, N * K)``) ring spikes the consumer computed.
@@ -64,7 +65,8 @@ def run_consumer(name: str, path: str | Path, x: torch.Tensor,
     reason = available()[name]
     if reason is not None:
         raise NIRExportError(reason)
-    graph = read_nir(path)  # its metadata checked
+    if graph is None:
+        graph = read_nir(path)  # its metadata checked
     meta = graph_metadata(graph)
     n_out, dt = meta["units"] * meta["levels"], meta["dt"]
     with contextlib.redirect_stdout(io.StringIO()):  # snnTorch's importer prints progress
@@ -121,7 +123,8 @@ def _run_streams(spiking, steps: torch.Tensor, update=None) -> torch.Tensor:
 
 
 def compare(spiking, path: str | Path, x: torch.Tensor, ground_truth=None,
-            consumers=CONSUMERS, segment: int | None = None, progress=None) -> dict:
+            consumers=CONSUMERS, segment: int | None = None, progress=None,
+            graph=None) -> dict:
     """Each consumer's decisions against torchseq's spiking model on the same inputs.
 
     Args:
@@ -137,6 +140,8 @@ def compare(spiking, path: str | Path, x: torch.Tensor, ground_truth=None,
             consumers' dense ``levels`` and ``shift`` products cost nearly as much for one
             stream as for many), and the recall is that of the cut traverse.
         progress: an :class:`~torchseq.export.progress.ExportProgress`, or None.
+        graph: ``read_nir(path)`` when the caller has read it already (None: read once
+            here); every consumer imports that graph.
 
     Returns:
         ``{"torchseq": {recall_at_1, ...}, consumer: {"agreement", "recall_at_1",
@@ -159,7 +164,8 @@ def compare(spiking, path: str | Path, x: torch.Tensor, ground_truth=None,
         out[order] = v[keep]
         return out
 
-    with progress.step("NIR: torchseq spiking model", steps.shape[0]) as update:
+    unit = f"steps of {steps.shape[1]} streams" if steps.shape[1] > 1 else "steps"
+    with progress.step("NIR: torchseq spiking model", steps.shape[0], unit) as update:
         raster = per_frame(_run_streams(spiking, steps, update))
     ref = spiking.decide(spiking.counts(raster))[0].numpy()
 
@@ -178,8 +184,9 @@ def compare(spiking, path: str | Path, x: torch.Tensor, ground_truth=None,
             continue
         t0 = time.perf_counter()
         try:
-            with progress.step(f"NIR: {name}", steps.shape[0]) as update:
-                spikes = per_frame(run_consumer(name, path, steps, update))
+            with progress.step(f"NIR: {name}", steps.shape[0], unit) as update:
+                graph = read_nir(path) if graph is None else graph  # the file, read once
+                spikes = per_frame(run_consumer(name, path, steps, update, graph=graph))
         except Exception as err:  # noqa: BLE001 - a consumer that breaks fails its check
             report[name] = {"failed": f"{type(err).__name__}: {str(err)[:200]}"}
             continue

@@ -118,8 +118,8 @@ def write_nir(spiking, path: str | Path, dt: float = DT):
     nir = require_nir()
     graph = to_nir(spiking, dt)
     path = Path(path)
-    with atomic_path(path) as tmp:
-        nir.write(tmp, graph)
+    with atomic_path(path) as tmp:  # gzip level 1: half the CPU of nir's default 4, +18%
+        nir.write(tmp, graph, compression="gzip", compression_opts=1)
     return graph
 
 

@@ -17,8 +17,8 @@ import torch
 NIR_FILE = "model.nir"
 MIN_CONSUMER_AGREEMENT = 0.99
 # The consumers run the query cut into streams of this many frames, stepped together
-# (nir_consumers.compare): on a 500-frame route 16 streams of 32 steps instead of 500 steps.
-CONSUMER_SEGMENT = 32
+# (nir_consumers.compare): on a 500-frame route 32 streams of 16 steps instead of 500 steps.
+CONSUMER_SEGMENT = 16
 
 
 def calibration_frames(model, recorded: dict | None, replayed=None, load=None):
@@ -113,12 +113,14 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
         sp = SpikingSeqSLAM.convert(model, torch.as_tensor(calib).to(torch.float32))
         path = Path(out_dir) / NIR_FILE
         graph = write_nir(sp, path)
-        same = _roundtrip_equal(graph, read_nir(path))
+        back = read_nir(path)
+        same = _roundtrip_equal(graph, back)
         x = sp.encode(query)
     with progress.step("NIR: rate and spiking models, whole query", int(x.shape[0])):
         rate = model.run(query).matches.reference.numpy()
         ours = sp.run(x, encoded=True)
-    rep = compare(sp, path, x, ground_truth, segment=CONSUMER_SEGMENT, progress=progress)
+    rep = compare(sp, path, x, ground_truth, segment=CONSUMER_SEGMENT, progress=progress,
+                  graph=back)
     refs = ours["reference"].numpy()
     consumers = {k: v for k, v in rep.items() if k != "torchseq"}
     ran = {k: v for k, v in consumers.items() if "skipped" not in v}

@@ -45,8 +45,9 @@ class ExportProgress:
         return bool(isatty and isatty())
 
     @contextmanager
-    def step(self, desc: str, total: int | None = None) -> Iterator[Update]:
-        """A step named ``desc`` of ``total`` frames (None: no count); yields ``update(done)``."""
+    def step(self, desc: str, total: int | None = None,
+             unit: str = "frames") -> Iterator[Update]:
+        """A step named ``desc`` of ``total`` ``unit`` (None: no count); yields ``update(done)``."""
         if not self.enabled:
             yield _noop
             return
@@ -55,7 +56,7 @@ class ExportProgress:
             from tqdm import tqdm
 
             bar = tqdm(total=total if total is not None else 1, desc=f"export: {desc}",
-                       unit="frame" if total is not None else "step", file=self.file,
+                       unit=unit if total is not None else "step", file=self.file,
                        leave=True, dynamic_ncols=True)
             try:
                 yield lambda done: bar.update(done - bar.n)
@@ -64,7 +65,7 @@ class ExportProgress:
             finally:
                 bar.close()
             return
-        count = f" ({total} frames)" if total is not None else ""
+        count = f" ({total} {unit})" if total is not None else ""
         print(f"export: {desc}{count} ...", file=self.file, flush=True)
         yield _noop
         print(f"export: {desc}: done in {time.perf_counter() - t0:.1f} s", file=self.file,
