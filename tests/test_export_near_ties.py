@@ -96,6 +96,9 @@ def test_ties_broken_otherwise_pass_and_are_reported(setup, tmp_path, monkeypatc
     assert rep["float_onnx_agreement_outside_near_ties"] == 1.0
     assert rep["float_onnx_near_ties"] >= 4 and rep["float_onnx_near_tie_disagreements"] == 4
     assert rep["checks"]["float_onnx_agreement"] and "near-tie" in rep["near_tie_rule"]
+    # the quantised graph is reported as approximate, with why, and is not a check
+    assert "approximate" in rep["quant_onnx_note"] and "quant_onnx_agreement" not in rep["checks"]
+    assert "quant_onnx_agreement_outside_near_ties" in rep
 
 
 def test_a_perturbed_weight_still_fails(setup, tmp_path, monkeypatch):
