@@ -15,7 +15,7 @@ import math
 import h5py
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -99,6 +99,11 @@ def test_metadata_that_cannot_be_parsed_is_refused(original, tmp_path_factory, f
 
 @settings(FUZZ, max_examples=30)
 @given(field=st.sampled_from(FIELDS), value=st.one_of(HOSTILE, st.none()))
+@example(field="format", value=np.arange(3))  # the finding: numpy's bare ValueError
+@example(field="format", value=np.array([1.5, 2.0]))
+@example(field="units", value=np.array([20, 20]))
+@example(field="levels", value=6.5)
+@example(field="dt", value=math.nan)
 def test_hostile_metadata_is_refused_or_sound(original, tmp_path_factory, field, value):
     data, sp = original
     path = _mutant(tmp_path_factory, data)
