@@ -121,3 +121,17 @@ def test_a_perturbed_weight_still_fails(setup, tmp_path, monkeypatch):
     assert rep["float_onnx_agreement_outside_near_ties"] < 0.99
     assert rep["float_onnx_near_ties"] < 10  # the fault is not hidden as ties
     json.dumps(rep)
+
+
+def test_the_console_verdict_gives_both_figures(tmp_path):
+    from torchseq.export.cli import summary_lines
+
+    rep = {"query_source": "q", "float_onnx_agreement": 0.986,
+           "float_onnx_agreement_outside_near_ties": 1.0, "float_onnx_near_ties": 9,
+           "float_onnx_near_tie_disagreements": 7, "checks": {"float_onnx_agreement": True},
+           "passed": True}
+    (tmp_path / "validation.json").write_text(json.dumps(rep))
+    lines = summary_lines(tmp_path)
+    assert "float_onnx_agreement: 0.986 (outside near-ties 1.0; 9 near-ties, 7 decided " \
+           "otherwise; checked: outside near-ties)" in lines
+    assert lines[-1] == "PASS"
