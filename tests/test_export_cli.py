@@ -23,7 +23,8 @@ FILES = ("model_float.onnx", "model_quant.onnx", "model_int.tsq", "model_int.onn
 def checkpoint(tmp_path_factory):
     model, demo, *_ = small_setup()
     folder = tmp_path_factory.mktemp("ckpt")
-    model.save(folder / "small.pt")
+    np.save(folder / "ref.npy", demo.reference.numpy())  # the NIR calibrates on it
+    model.save(folder / "small.pt", extra={"reference": {"source": str(folder / "ref.npy")}})
     np.save(folder / "query.npy", demo.query.numpy()[:40])
     np.save(folder / "gt.npy", demo.ground_truth[:, :40].astype(np.int64))
     return folder
@@ -129,8 +130,11 @@ def test_onnx_files_carry_the_device_contract(camera_checkpoint, tmp_path):
 
 
 def test_checkpoint_without_a_recorded_reference_needs_a_query(checkpoint, tmp_path):
+    from torchseq.neural import NeuralSeqSLAM
+
+    NeuralSeqSLAM.load(checkpoint / "small.pt").save(tmp_path / "bare.pt")  # records nothing
     with pytest.raises(ExportError, match="does not record which reference"):
-        export_checkpoint(checkpoint / "small.pt", tmp_path / "o")
+        export_checkpoint(tmp_path / "bare.pt", tmp_path / "o")
 
 
 def test_a_failed_check_exits_1(checkpoint, tmp_path, monkeypatch, capsys):

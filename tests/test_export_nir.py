@@ -393,7 +393,7 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
         # 40 frames as 2 streams of 20 steps (CONSUMER_SEGMENT = 32), every frame compared
         assert c["agreement"] >= 0.99 and c["time_steps"] == 20 and c["streams"] == 2
         assert c["steps_per_frame"] == 1
-        assert 0.0 <= c["recall_at_1"] <= 1.0
+        assert 0.0 <= c["streams_recall_at_1"] <= 1.0 and "recall_at_1" not in c
     assert 0.0 <= rep["spiking"]["agreement_with_rate_model"] <= 1.0
     assert rep["budget"]["neurons"] == 1024 + rep["levels"] * 40
     assert set(rep["chips"]) == set(LIMITS)

@@ -290,8 +290,11 @@ def summary_lines(out_dir) -> list[str]:
                      f"{spiking.get('agreement_with_rate_model')}, recall_at_1 "
                      f"{spiking.get('recall_at_1')}")
         for name, c in nir.get("consumers", {}).items():
-            lines.append(f"nir_{name}: " + (f"agreement {c['agreement']}, recall_at_1 "
-                                            f"{c['recall_at_1']}" if "agreement" in c
+            cut = (f" ({c['streams']} streams of {c['time_steps']} frames)"
+                   if c.get("streams", 1) > 1 else "")
+            lines.append(f"nir_{name}: " + (f"agreement {c['agreement']} with the spiking "
+                                            f"model on the same inputs{cut}, spike agreement "
+                                            f"{c.get('spike_agreement')}" if "agreement" in c
                                             else "; ".join(f"{k}: {v}" for k, v in c.items())))
     lines += [f"warning: {w}" for w in report.get("warnings", [])]
     failed = [k for k, v in report["checks"].items() if not v]

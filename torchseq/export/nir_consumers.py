@@ -146,7 +146,8 @@ def compare(spiking, path: str | Path, x: torch.Tensor, ground_truth=None,
     Returns:
         ``{"torchseq": {recall_at_1, ...}, consumer: {"agreement", "recall_at_1",
         "time_steps", "steps_per_frame", "streams", "differing_frames", "spike_agreement",
-        "seconds"}, {"skipped": reason} (not installed) or {"failed": error} (it raised)}``.
+        "seconds"}, {"skipped": reason} (not installed) or {"failed": error} (it raised)}``;
+        with ``segment`` the recall is ``"streams_recall_at_1"`` (that of the cut query).
     """
     from torchseq.export.progress import QUIET
     from torchseq.metrics import recall_at_k
@@ -176,7 +177,9 @@ def compare(spiking, path: str | Path, x: torch.Tensor, ground_truth=None,
 
     shape = {"time_steps": int(steps.shape[0]), "steps_per_frame": 1,
              "streams": int(steps.shape[1])}
-    report = {"torchseq": {"recall_at_1": recall(ref), **shape}}
+    # a cut query's recall is not the traverse's (each stream starts from rest): named apart
+    recall_key = "recall_at_1" if segment is None else "streams_recall_at_1"
+    report = {"torchseq": {recall_key: recall(ref), **shape}}
     for name in consumers:
         reason = available().get(name, f"unknown consumer {name!r}")
         if reason is not None:
@@ -193,7 +196,7 @@ def compare(spiking, path: str | Path, x: torch.Tensor, ground_truth=None,
         theirs = spiking.decide(spiking.counts(spikes))[0].numpy()
         report[name] = {
             "agreement": float(np.mean(theirs == ref)),
-            "recall_at_1": recall(theirs),
+            recall_key: recall(theirs),
             **shape,
             "differing_frames": [int(i) for i in np.flatnonzero(theirs != ref)],
             "spike_agreement": float((spikes == raster).float().mean()),

@@ -176,9 +176,8 @@ def uint8_warning(grey: torch.Tensor, camera: torch.Tensor, device: np.ndarray,
                 f"on those same uint8 frames")
     return (f"the integer device's uint8 input changes the float model's decisions on "
             f"{share} of the query frames: it takes whole grey levels 0..255 and these "
-            f"frames span {lo:.4g}..{hi:.4g}, not whole grey levels (event frames are event "
-            f"counts or means), so the integer files do not reproduce this model on such "
-            f"frames")
+            f"frames span {lo:.4g}..{hi:.4g}: not grey levels (event frames are event counts "
+            f"or means), so the integer files do not reproduce this model on such frames")
 
 
 def export_and_validate(model, out_dir: str | Path, query: torch.Tensor,
