@@ -170,10 +170,10 @@ def uint8_warning(grey: torch.Tensor, camera: torch.Tensor, device: np.ndarray,
         where = (f"resized from {src} to the device input {dst} and rounded to whole grey "
                  f"levels" if src != dst else "rounded to whole grey levels")
         return (f"the integer device's uint8 input changes the float model's decisions on "
-                f"{share} of the query frames: these are grey images (whole levels "
-                f"0..255), but {where} they move decisions the float model takes by a narrow "
-                f"margin; integer_agreement compares the integer files with the float model "
-                f"on those same uint8 frames")
+                f"{share} of the query frames: these frames hold whole levels 0..255, but "
+                f"{where} they move decisions the float model takes by a narrow margin; "
+                f"integer_agreement compares the integer files with the float model on those "
+                f"same uint8 frames")
     return (f"the integer device's uint8 input changes the float model's decisions on "
             f"{share} of the query frames: it takes whole grey levels 0..255 and these "
             f"frames span {lo:.4g}..{hi:.4g}: not grey levels (event frames are event counts "
