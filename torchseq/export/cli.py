@@ -1,8 +1,9 @@
 """``torchseq export CHECKPOINT --out DIR``: export and validate a Neural SeqSLAM model.
 
 Writes ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``, ``model_int.onnx``,
-``model.nir`` (the spiking model, with the ``nir`` extra; ``docs/nir.md``) and
-``validation.json``; exits 0 when every check passes, 1 when a check fails, 2 on bad input.
+``model.nir`` (the spiking model, with the ``nir`` extra, calibrated on the recorded
+reference only; ``docs/nir.md``) and ``validation.json``; exits 0 when every check passes,
+1 when a check fails, 2 on bad input. Long steps show progress on stderr (``--no-progress``).
 By default the export is validated on the checkpoint's own reference (recorded by
 ``train.py``), replayed as the query; the integer device's camera frame size is
 ``--frame-size`` (default: the reference's frame size), never the validation data's.
