@@ -219,6 +219,43 @@ def test_consumer_runs_the_tiny_graph_spike_for_spike(name, tiny_report):
     assert rep["time_steps"] == tiny_report["torchseq"]["time_steps"]
 
 
+def test_segments_cut_and_pad_like_a_loop(tiny_file):
+    from torchseq.export.nir_consumers import _run_streams, segments
+
+    x = torch.arange(10.0)[:, None].repeat(1, 3)
+    steps, index = segments(x, 4)  # 3 streams of 4 frames: 0-3, 4-7, 8-9 and two pads
+    assert steps.shape == (4, 3, 3) and index.shape == (4, 3)
+    for b in range(3):
+        for t in range(4):
+            f = 4 * b + t
+            if f < 10:
+                assert index[t, b] == f and torch.equal(steps[t, b], x[f])
+            else:
+                assert index[t, b] == -1 and not steps[t, b].any()
+    # torchseq's streams stepped together = each piece run alone from rest
+    sp, demo, graph, path = tiny_file
+    enc = sp.encode(demo.query)
+    steps, index = segments(enc, 8)
+    got = _run_streams(sp, steps)
+    for b in range(steps.shape[1]):
+        frames = index[:, b][index[:, b] >= 0]
+        alone = sp.run(enc[frames], encoded=True, raster=True)["raster"]
+        torch.testing.assert_close(got[:len(frames), b], alone, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("name", ["snntorch", "norse"])
+def test_consumer_runs_streams_spike_for_spike(name, tiny_file):
+    from torchseq.export.nir_consumers import compare
+
+    sp, demo, graph, path = tiny_file
+    rep = compare(sp, path, sp.encode(demo.query), demo.ground_truth, consumers=(name,),
+                  segment=8)
+    r = _consumer_report(name, rep)
+    n = demo.query.shape[0]
+    assert r["spike_agreement"] == 1.0 and r["agreement"] == 1.0
+    assert r["streams"] == -(-n // 8) and "streams_recall_at_1" in r
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["snntorch", "norse"])
 def test_consumer_agrees_on_the_demo(name, demo_report):
@@ -390,8 +427,8 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
         c = rep["consumers"][name]
         if "skipped" in c:
             continue
-        # 40 frames as 2 streams of 20 steps (CONSUMER_SEGMENT = 32), every frame compared
-        assert c["agreement"] >= 0.99 and c["time_steps"] == 20 and c["streams"] == 2
+        # 40 frames as 3 streams of 14 steps (CONSUMER_SEGMENT = 16), every frame compared
+        assert c["agreement"] >= 0.99 and c["time_steps"] == 14 and c["streams"] == 3
         assert c["steps_per_frame"] == 1
         assert 0.0 <= c["streams_recall_at_1"] <= 1.0 and "recall_at_1" not in c
     assert 0.0 <= rep["spiking"]["agreement_with_rate_model"] <= 1.0
