@@ -212,13 +212,16 @@ def test_summary_lines_report_the_nir_validation(tmp_path):
               "checks": {"nir_consumers_agree": False}, "passed": False,
               "nir": {"file": "model.nir",
                       "spiking": {"agreement_with_rate_model": 0.5, "recall_at_1": 0.25},
-                      "consumers": {"snntorch": {"agreement": 0.75, "recall_at_1": 0.5},
+                      "consumers": {"snntorch": {"agreement": 0.75, "streams": 3,
+                                                 "time_steps": 14, "spike_agreement": 0.9,
+                                                 "streams_recall_at_1": 0.5},
                                     "norse": {"skipped": "norse is not installed"}}}}
     (tmp_path / "validation.json").write_text(json.dumps(report))
     lines = summary_lines(tmp_path)
     assert "nir: model.nir, spiking model agreement with the rate model 0.5, recall_at_1 0.25" \
         in lines
-    assert "nir_snntorch: agreement 0.75, recall_at_1 0.5" in lines
+    assert "nir_snntorch: agreement 0.75 with the spiking model on the same inputs (3 streams " \
+           "of 14 frames), spike agreement 0.9" in lines
     assert "nir_norse: skipped: norse is not installed" in lines
     assert lines[-1] == "FAIL: nir_consumers_agree"
     report["nir"] = {"skipped": "--no-nir"}
