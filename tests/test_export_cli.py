@@ -23,7 +23,8 @@ FILES = ("model_float.onnx", "model_quant.onnx", "model_int.tsq", "model_int.onn
 def checkpoint(tmp_path_factory):
     model, demo, *_ = small_setup()
     folder = tmp_path_factory.mktemp("ckpt")
-    model.save(folder / "small.pt")
+    np.save(folder / "ref.npy", demo.reference.numpy())  # the NIR calibrates on it
+    model.save(folder / "small.pt", extra={"reference": {"source": str(folder / "ref.npy")}})
     np.save(folder / "query.npy", demo.query.numpy()[:40])
     np.save(folder / "gt.npy", demo.ground_truth[:, :40].astype(np.int64))
     return folder
@@ -129,8 +130,11 @@ def test_onnx_files_carry_the_device_contract(camera_checkpoint, tmp_path):
 
 
 def test_checkpoint_without_a_recorded_reference_needs_a_query(checkpoint, tmp_path):
+    from torchseq.neural import NeuralSeqSLAM
+
+    NeuralSeqSLAM.load(checkpoint / "small.pt").save(tmp_path / "bare.pt")  # records nothing
     with pytest.raises(ExportError, match="does not record which reference"):
-        export_checkpoint(checkpoint / "small.pt", tmp_path / "o")
+        export_checkpoint(tmp_path / "bare.pt", tmp_path / "o")
 
 
 def test_a_failed_check_exits_1(checkpoint, tmp_path, monkeypatch, capsys):
@@ -208,13 +212,16 @@ def test_summary_lines_report_the_nir_validation(tmp_path):
               "checks": {"nir_consumers_agree": False}, "passed": False,
               "nir": {"file": "model.nir",
                       "spiking": {"agreement_with_rate_model": 0.5, "recall_at_1": 0.25},
-                      "consumers": {"snntorch": {"agreement": 0.75, "recall_at_1": 0.5},
+                      "consumers": {"snntorch": {"agreement": 0.75, "streams": 3,
+                                                 "time_steps": 14, "spike_agreement": 0.9,
+                                                 "streams_recall_at_1": 0.5},
                                     "norse": {"skipped": "norse is not installed"}}}}
     (tmp_path / "validation.json").write_text(json.dumps(report))
     lines = summary_lines(tmp_path)
     assert "nir: model.nir, spiking model agreement with the rate model 0.5, recall_at_1 0.25" \
         in lines
-    assert "nir_snntorch: agreement 0.75, recall_at_1 0.5" in lines
+    assert "nir_snntorch: agreement 0.75 with the spiking model on the same inputs (3 streams " \
+           "of 14 frames), spike agreement 0.9" in lines
     assert "nir_norse: skipped: norse is not installed" in lines
     assert lines[-1] == "FAIL: nir_consumers_agree"
     report["nir"] = {"skipped": "--no-nir"}

@@ -219,6 +219,43 @@ def test_consumer_runs_the_tiny_graph_spike_for_spike(name, tiny_report):
     assert rep["time_steps"] == tiny_report["torchseq"]["time_steps"]
 
 
+def test_segments_cut_and_pad_like_a_loop(tiny_file):
+    from torchseq.export.nir_consumers import _run_streams, segments
+
+    x = torch.arange(10.0)[:, None].repeat(1, 3)
+    steps, index = segments(x, 4)  # 3 streams of 4 frames: 0-3, 4-7, 8-9 and two pads
+    assert steps.shape == (4, 3, 3) and index.shape == (4, 3)
+    for b in range(3):
+        for t in range(4):
+            f = 4 * b + t
+            if f < 10:
+                assert index[t, b] == f and torch.equal(steps[t, b], x[f])
+            else:
+                assert index[t, b] == -1 and not steps[t, b].any()
+    # torchseq's streams stepped together = each piece run alone from rest
+    sp, demo, graph, path = tiny_file
+    enc = sp.encode(demo.query)
+    steps, index = segments(enc, 8)
+    got = _run_streams(sp, steps)
+    for b in range(steps.shape[1]):
+        frames = index[:, b][index[:, b] >= 0]
+        alone = sp.run(enc[frames], encoded=True, raster=True)["raster"]
+        torch.testing.assert_close(got[:len(frames), b], alone, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("name", ["snntorch", "norse"])
+def test_consumer_runs_streams_spike_for_spike(name, tiny_file):
+    from torchseq.export.nir_consumers import compare
+
+    sp, demo, graph, path = tiny_file
+    rep = compare(sp, path, sp.encode(demo.query), demo.ground_truth, consumers=(name,),
+                  segment=8)
+    r = _consumer_report(name, rep)
+    n = demo.query.shape[0]
+    assert r["spike_agreement"] == 1.0 and r["agreement"] == 1.0
+    assert r["streams"] == -(-n // 8) and "streams_recall_at_1" in r
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["snntorch", "norse"])
 def test_consumer_agrees_on_the_demo(name, demo_report):
@@ -246,7 +283,7 @@ def test_an_absent_consumer_is_reported_with_its_reason(tiny_file, monkeypatch):
     rep = nir_consumers.compare(sp, path, sp.encode(demo.query[:3]), None,
                                 consumers=("snntorch",))
     assert rep["snntorch"] == {"skipped": "snntorch is not importable (test)"}
-    def broken(name, path, x):
+    def broken(name, path, x, update=None, graph=None):
         raise RuntimeError("importer changed")
 
     monkeypatch.setattr(nir_consumers, "run_consumer", broken)
@@ -315,6 +352,36 @@ class TestBudget:
         np.testing.assert_array_equal(np.concatenate([b for _, b in blocks]),
                                       top9 + np.eye(9, dtype=np.float32))
 
+    def test_selection_kernel_counts_as_the_blocks_do(self, tiny_file):
+        # the ring pairs (levels @ l3, levels @ shift) are counted from their operands'
+        # patterns, never multiplied out: the default 500-unit ring's levels @ shift is
+        # 64,000^2 and took 107 s of CPU; the oracle multiplies every product out
+        graph = tiny_file[2]
+        fast, slow = budget(graph), budget(graph, fast=False)
+        assert fast["count_kernels"] == {"input->l2": "row_blocks", "l2->ring": "selection",
+                                         "ring->ring": "selection"}
+        assert set(slow["count_kernels"].values()) == {"row_blocks"}
+        fast.pop("count_kernels"), slow.pop("count_kernels")
+        assert fast == slow
+
+    def test_selection_kernel_refuses_what_it_cannot_count_exactly(self):
+        from torchseq.export.hardware_budget import _counts
+
+        rng = np.random.default_rng(1)
+        rest = rng.integers(-2, 3, (4, 7)).astype(np.float32)
+        sel = np.zeros((9, 4), dtype=np.float32)
+        sel[np.arange(9), rng.integers(0, 4, 9)] = rng.random(9).astype(np.float32) + 0.5
+        sel[5] = 0  # a row that picks nothing
+        tiny = rest * np.float32(1e-30)
+        for top, right, want in ((sel, rest, "selection"),
+                                 (sel * np.float32(1e-20), tiny, "row_blocks"),  # underflow
+                                 (sel + np.float32(0.25), rest, "row_blocks")):  # two per row
+            row, col, kernel = _counts([(top, right, 9)])
+            assert kernel == want
+            nz = (top @ right) != 0  # the plain product
+            np.testing.assert_array_equal(row, nz.sum(1))
+            np.testing.assert_array_equal(col, nz.sum(0))
+
     def test_weight_grid(self):
         from torchseq.export.hardware_budget import weight_grid
 
@@ -342,7 +409,8 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     from torchseq.export.cli import main
 
     model, demo, *_ = small_setup()
-    model.save(tmp_path / "small.pt")
+    np.save(tmp_path / "ref.npy", demo.reference.numpy())
+    model.save(tmp_path / "small.pt", extra={"reference": {"source": str(tmp_path / "ref.npy")}})
     np.save(tmp_path / "query.npy", demo.query.numpy()[:40])
     np.save(tmp_path / "gt.npy", demo.ground_truth[:, :40].astype(np.int64))
     out = tmp_path / "export"
@@ -354,13 +422,15 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     assert read_nir(out / "model.nir").metadata["format"] == FORMAT
     assert rep["round_trip_equal"] and rep["bytes"] == (out / "model.nir").stat().st_size
     assert report["checks"]["nir_round_trip"] and report["checks"]["nir_consumers_agree"]
-    assert rep["calibration_source"].startswith("the validation query")
+    assert rep["calibration_source"] == f"the checkpoint's reference {tmp_path / 'ref.npy'}"
     for name in ("snntorch", "norse"):
         c = rep["consumers"][name]
         if "skipped" in c:
             continue
-        assert c["agreement"] >= 0.99 and c["time_steps"] == 40 and c["steps_per_frame"] == 1
-        assert 0.0 <= c["recall_at_1"] <= 1.0
+        # 40 frames as 3 streams of 14 steps (CONSUMER_SEGMENT = 16), every frame compared
+        assert c["agreement"] >= 0.99 and c["time_steps"] == 14 and c["streams"] == 3
+        assert c["steps_per_frame"] == 1
+        assert 0.0 <= c["streams_recall_at_1"] <= 1.0 and "recall_at_1" not in c
     assert 0.0 <= rep["spiking"]["agreement_with_rate_model"] <= 1.0
     assert rep["budget"]["neurons"] == 1024 + rep["levels"] * 40
     assert set(rep["chips"]) == set(LIMITS)
@@ -387,12 +457,50 @@ def test_calibration_frames_follow_the_recorded_reference():
 
     model, demo, sp = tiny()
     frames, src = calibration_frames(model, {"source": "demo", "demo_frames": 30,
-                                             "demo_seed": 2}, False, demo.query)
+                                             "demo_seed": 2})
     assert frames.shape[0] == 30 and "demo reference" in src
-    frames, src = calibration_frames(model, {"source": "ref.mp4"}, False, demo.query)
-    assert frames is demo.query and "ref.mp4" in src
-    frames, src = calibration_frames(model, None, True, demo.query)
-    assert frames is demo.query and "validation query" in src
+    frames, src = calibration_frames(model, {"source": "ref.mp4"}, replayed=demo.reference)
+    assert frames is demo.reference and "ref.mp4" in src
+    frames, src = calibration_frames(model, {"source": "ref.mp4"}, load=lambda: demo.reference)
+    assert frames is demo.reference and "ref.mp4" in src
+
+    def unreadable():
+        raise ValueError("ref.mp4: no such file")
+
+    # never the validation query: without the learnt reference the NIR export is skipped
+    for rec, load in ((None, None), ({"source": "ref.mp4"}, unreadable),
+                      ({"source": "ref.mp4"}, None)):
+        frames, why = calibration_frames(model, rec, load=load)
+        assert frames is None and "never on a validation query" in why
+
+
+@pytest.mark.slow
+def test_the_query_does_not_influence_the_calibration(tmp_path):
+    # a device has no query: the spiking thresholds come from the learnt reference alone,
+    # identical whichever validation query the export is given
+    import json
+
+    from tests.export_helpers import small_setup
+    from torchseq.export.cli import export_checkpoint
+
+    model, demo, *_ = small_setup()
+    np.save(tmp_path / "ref.npy", demo.reference.numpy())
+    model.save(tmp_path / "m.pt", extra={"reference": {"source": str(tmp_path / "ref.npy")}})
+    reps = []
+    for i, (a, b) in enumerate(((0, 30), (30, 60))):
+        np.save(tmp_path / f"q{i}.npy", demo.query.numpy()[a:b])
+        export_checkpoint(tmp_path / "m.pt", tmp_path / f"out{i}", tmp_path / f"q{i}.npy")
+        reps.append(json.loads((tmp_path / f"out{i}" / "validation.json").read_text())["nir"])
+    if "skipped" in reps[0]:
+        pytest.skip(reps[0]["skipped"])
+    assert reps[0]["calibration"] == reps[1]["calibration"]
+    assert reps[0]["calibration"]["reference_frames"] == demo.reference.shape[0]
+    assert "ref.npy" in reps[0]["calibration_source"]
+    # without a recorded reference: skipped with the reason, never calibrated on the query
+    model.save(tmp_path / "bare.pt")
+    export_checkpoint(tmp_path / "bare.pt", tmp_path / "bare", tmp_path / "q0.npy")
+    rep = json.loads((tmp_path / "bare" / "validation.json").read_text())
+    assert "never on a validation query" in rep["nir"]["skipped"]
 
 
 def test_a_consumer_that_fails_fails_the_export_check(monkeypatch, tmp_path):

@@ -67,7 +67,7 @@ TRAIN = (
 )
 EXPORT = (
     ("inputs", ("checkpoint", "--query", "--ground-truth"), ()),
-    ("outputs", ("--out", "--frame-size", "--no-nir"), ()),
+    ("outputs", ("--out", "--frame-size", "--no-nir"), ("--no-progress",)),
 )
 
 CHOICES = {  # flag -> the values it takes, shown as its metavar

@@ -264,7 +264,8 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
         ok = export_checkpoint(out / "model.pt", out / "export",
                                query=export_query(cfg, events),
                                ground_truth=cfg.export_ground_truth,
-                               frame_size=parse_size(cfg.export_frame_size))
+                               frame_size=parse_size(cfg.export_frame_size),
+                               progress=cfg.progress)
         for line in summary_lines(out / "export"):
             print(f"export: {line}")
         summary["export_passed"] = bool(ok)

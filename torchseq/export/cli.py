@@ -1,8 +1,9 @@
 """``torchseq export CHECKPOINT --out DIR``: export and validate a Neural SeqSLAM model.
 
 Writes ``model_float.onnx``, ``model_quant.onnx``, ``model_int.tsq``, ``model_int.onnx``,
-``model.nir`` (the spiking model, with the ``nir`` extra; ``docs/guide/nir.md``) and
-``validation.json``; exits 0 when every check passes, 1 when a check fails, 2 on bad input.
+``model.nir`` (the spiking model, with the ``nir`` extra, calibrated on the recorded
+reference only; ``docs/guide/nir.md``) and ``validation.json``; exits 0 when every check passes,
+1 when a check fails, 2 on bad input. Long steps show progress on stderr (``--no-progress``).
 By default the export is validated on the checkpoint's own reference (recorded by
 ``train.py``), replayed as the query; the integer device's camera frame size is
 ``--frame-size`` (default: the reference's frame size), never the validation data's.
@@ -74,6 +75,26 @@ def _int(value, name: str, lo: int, hi: int) -> int:
     return value
 
 
+def _recorded_frames(model, ckpt: Path, rec: dict, remedy: str = ""):
+    """The frames of a recorded reference file, checked against what the model learnt."""
+    from torchseq.sources import EventFrameOptions, FrameSelection, load_traverse
+
+    events = rec.get("events") if isinstance(rec.get("events"), dict) else {}
+    select = rec.get("select") if isinstance(rec.get("select"), dict) else {}
+    try:
+        opts = EventFrameOptions(**{k: v for k, v in events.items() if v is not None})
+        frames = load_traverse(rec["source"], events=opts, progress=False,
+                               select=FrameSelection(**select))
+    except (ValueError, TypeError, OSError) as err:
+        raise ExportError(f"{ckpt}: its reference {rec['source']} cannot be loaded "
+                          f"({_first_line(err)}){remedy}") from None
+    n_learnt = int(model.unit_to_reference[-1, 1])
+    if len(frames) != n_learnt:
+        raise ExportError(f"{ckpt}: its reference {rec['source']} now has {len(frames)} "
+                          f"frames, but the model learnt {n_learnt}{remedy}")
+    return frames
+
+
 def _own_reference(model, ckpt: Path):
     """Validation query = the checkpoint's own reference: frames, ground truth, description."""
     from torchseq.ground_truth import alignment_ground_truth
@@ -91,21 +112,8 @@ def _own_reference(model, ckpt: Path):
         return (demo.query, demo.ground_truth, rec,
                 f"the checkpoint's own reference: demo route ({demo.reference.shape[0]} "
                 f"frames), its query traverse", "demo exact ground truth")
-    from torchseq.sources import EventFrameOptions, FrameSelection, load_traverse
-
-    events = rec.get("events") if isinstance(rec.get("events"), dict) else {}
-    select = rec.get("select") if isinstance(rec.get("select"), dict) else {}
-    try:
-        opts = EventFrameOptions(**{k: v for k, v in events.items() if v is not None})
-        frames = load_traverse(rec["source"], events=opts, progress=False,
-                               select=FrameSelection(**select))
-    except (ValueError, TypeError, OSError) as err:
-        raise ExportError(f"{ckpt}: its reference {rec['source']} cannot be loaded for "
-                          f"validation ({_first_line(err)}); give --query") from None
+    frames = _recorded_frames(model, ckpt, rec, "; give --query")
     n_learnt = int(model.unit_to_reference[-1, 1])
-    if len(frames) != n_learnt:
-        raise ExportError(f"{ckpt}: its reference {rec['source']} now has {len(frames)} "
-                          f"frames, but the model learnt {n_learnt}; give --query")
     # a replay: each frame should come back to its own place, up to a unit's span
     tol = math.ceil(n_learnt / model.n_units / 2) if n_learnt > model.n_units else 0
     gt = alignment_ground_truth(n_learnt, n_learnt, tol)
@@ -127,7 +135,8 @@ def _suggested_threshold(model, frames, gt) -> float | None:
 
 
 def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
-                      frame_size: tuple[int, int] | None = None, nir: bool = True) -> bool:
+                      frame_size: tuple[int, int] | None = None, nir: bool = True,
+                      progress: bool = False) -> bool:
     """Export a Neural SeqSLAM checkpoint to every deployment format and validate them.
 
     Args:
@@ -141,8 +150,10 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         frame_size: ``(H0, W0)`` camera frames the integer device takes. None: the recorded
             reference's frame size, else the validation query's (reported in
             ``validation.json`` as ``device_frame_size_source``).
-        nir: also write ``model.nir`` (the spiking model) and validate it in snnTorch and
-            Norse (``docs/guide/nir.md``; needs the ``nir`` extra, else reported as skipped).
+        nir: also write ``model.nir`` (the spiking model, calibrated on the recorded
+            reference only) and validate it in snnTorch and Norse (``docs/guide/nir.md``; needs
+            the ``nir`` extra and the learnt reference, else reported as skipped).
+        progress: show each long step on stderr (:mod:`torchseq.export.progress`).
 
     Returns:
         True when every check passes (see ``validation.json`` ``checks``).
@@ -152,6 +163,7 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
             and no query given.
     """
     from torchseq.export.contract import contract, write_contract
+    from torchseq.export.progress import ExportProgress
     from torchseq.export.validate import (
         FLOAT_ONNX,
         INT_ONNX,
@@ -203,7 +215,9 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
               "checkpoint_bytes": ckpt.stat().st_size,
               "query_source": source, "ground_truth_source": gt_source,
               "device_frame_size_source": size_source}
-    report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size))
+    steps = ExportProgress(enabled=progress)
+    report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size,
+                                      progress=steps))
     threshold = _suggested_threshold(model, frames, ground_truth)
     report["suggested_confidence_threshold"] = threshold
     graphs = ((FLOAT_ONNX, "float"), (QUANT_ONNX, "float"), (INT_ONNX, "integer"))
@@ -221,9 +235,12 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     elif nir and readout != "centre":  # SpikingSeqSLAM.convert refuses it (no spiking form)
         report["nir"] = {"skipped": f"readout={readout!r} has no spiking (NIR) form; the "
                                     "ONNX and integer files hold it"}
-    elif nir:
-        calib, calib_source = calibration_frames(model, rec, query is not None, frames)
-        report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source)
+    elif nir:  # calibrated on the learnt reference only: a device has no query
+        calib, calib_source = calibration_frames(
+            model, rec, replayed=frames if query is None else None,
+            load=lambda: _recorded_frames(model, ckpt, rec))
+        report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source,
+                                   progress=steps)
     else:
         report["nir"] = {"skipped": "--no-nir"}
     if "checks" in report["nir"]:
@@ -260,6 +277,14 @@ def summary_lines(out_dir) -> list[str]:
                      f"(from {report['device_frame_size_source']})")
     for key, value in report.items():
         if key.endswith("_agreement") or key.endswith("_error") or key == "recall_at_1":
+            outside = report.get(f"{key}_outside_near_ties")
+            if outside is not None and key == "float_onnx_agreement":
+                value = (f"{value} (outside near-ties {outside}; "
+                         f"{report.get('float_onnx_near_ties')} near-ties, "
+                         f"{report.get('float_onnx_near_tie_disagreements')} decided "
+                         f"otherwise; checked: outside near-ties)")
+            elif outside is not None:
+                value = f"{value} (outside near-ties {outside})"
             lines.append(f"{key}: {value}")
     nir = report.get("nir") or {}
     if "skipped" in nir:
@@ -270,8 +295,11 @@ def summary_lines(out_dir) -> list[str]:
                      f"{spiking.get('agreement_with_rate_model')}, recall_at_1 "
                      f"{spiking.get('recall_at_1')}")
         for name, c in nir.get("consumers", {}).items():
-            lines.append(f"nir_{name}: " + (f"agreement {c['agreement']}, recall_at_1 "
-                                            f"{c['recall_at_1']}" if "agreement" in c
+            cut = (f" ({c['streams']} streams of {c['time_steps']} frames)"
+                   if c.get("streams", 1) > 1 else "")
+            lines.append(f"nir_{name}: " + (f"agreement {c['agreement']} with the spiking "
+                                            f"model on the same inputs{cut}, spike agreement "
+                                            f"{c.get('spike_agreement')}" if "agreement" in c
                                             else "; ".join(f"{k}: {v}" for k, v in c.items())))
     lines += [f"warning: {w}" for w in report.get("warnings", [])]
     failed = [k for k, v in report["checks"].items() if not v]
@@ -295,6 +323,8 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
                     "takes (default: the checkpoint's reference frame size)")
     ap.add_argument("--no-nir", action="store_true", help="do not write model.nir (the "
                     "spiking model as a NIR graph) nor run it in snnTorch and Norse")
+    ap.add_argument("--no-progress", action="store_true", help="do not show the long steps "
+                    "on stderr (bars on a terminal, one line per step otherwise)")
     from torchseq import cli_help
 
     cli_help.organise_help(ap, cli_help.EXPORT, cli_help.EXPORT_EXAMPLES)
@@ -309,7 +339,8 @@ def main(argv: list[str] | None = None, prog: str = "torchseq export") -> int:
     try:
         size = parse_size(args.frame_size)
         ok = export_checkpoint(args.checkpoint, args.out, args.query, args.ground_truth,
-                               frame_size=size, nir=not args.no_nir)
+                               frame_size=size, nir=not args.no_nir,
+                               progress=not args.no_progress)
     except (ValueError, OSError, UsageError) as err:
         print(f"{prog}: error: {_first_line(err)}", file=sys.stderr)
         return 2

@@ -89,6 +89,59 @@ def _row_blocks(paths: list[tuple], max_elements: int = 2**24):
         yield r0, acc
 
 
+TINY = float(np.finfo(np.float32).smallest_subnormal)
+
+
+def _selection(paths: list[tuple]):
+    """The pattern of a single path whose last Linear picks one source row per target row.
+
+    For ``levels @ rest`` (each row of ``levels`` holds one non-zero, ``s_r`` at column
+    ``c_r``) row ``r`` of the product is ``s_r * rest[c_r]``: its non-zeros are those of
+    ``rest[c_r]`` whenever no product can round to zero in float32 (``min |s| * min |rest|``
+    at least the smallest subnormal). Returns ``(row_counts (R,), col_counts (C,))`` of the
+    product's non-zeros without forming it (the ring's ``levels @ shift`` is ``(N K)^2``),
+    or None where that does not hold (then :func:`_row_blocks` multiplies it out).
+    """
+    if len(paths) != 1 or paths[0][0] is None or paths[0][1] is None:
+        return None
+    top, rest, _ = paths[0]
+    nz_top = top != 0
+    if (nz_top.sum(1) > 1).any():
+        return None
+    used = nz_top.any(1)
+    cols = np.argmax(nz_top, axis=1)
+    rest_nz = rest != 0
+    if used.any() and rest_nz.any():
+        lo = float(np.abs(top[nz_top]).astype(np.float64).min()) * \
+            float(np.abs(rest[rest_nz]).astype(np.float64).min())
+        if not lo >= TINY:
+            return None
+    per_row = rest_nz.sum(1)
+    row_counts = np.where(used, per_row[cols], 0)
+    picks = np.bincount(cols[used], minlength=rest.shape[0])
+    col_counts = np.zeros(rest.shape[1], dtype=np.int64)
+    for c in np.flatnonzero(picks):  # rows of rest, each counted as often as it is picked
+        col_counts += int(picks[c]) * rest_nz[c]
+    return row_counts, col_counts
+
+
+def _counts(paths: list[tuple], fast: bool = True):
+    """``(row_counts, col_counts, kernel)`` of the non-zeros of the summed effective weight.
+
+    ``kernel`` is ``"selection"`` (:func:`_selection`) or ``"row_blocks"``
+    (:func:`_row_blocks`); ``fast=False`` forces the latter.
+    """
+    sel = _selection(paths) if fast else None
+    if sel is not None:
+        return sel[0], sel[1], "selection"
+    rows, col = [], 0
+    for _, block in _row_blocks(paths):
+        nz = block != 0
+        rows.append(nz.sum(1))
+        col = col + nz.sum(0)
+    return np.concatenate(rows), col, "row_blocks"
+
+
 def weight_grid(w: np.ndarray, tol: float = 1e-4) -> str:
     """How few bits a weight matrix needs as it stands (no quantisation applied).
 
@@ -105,13 +158,28 @@ def weight_grid(w: np.ndarray, tol: float = 1e-4) -> str:
 
     if on_grid(w):
         return "int8"
-    if all(on_grid(row) for row in w):
-        return "int8_per_row"
-    return "float"
+    w = np.atleast_2d(w)
+    step = max(1, 2**22 // max(w.shape[1], 1))
+    for r0 in range(0, w.shape[0], step):  # each row on its own grid, a block at a time
+        a = np.abs(w[r0:r0 + step]).astype(np.float64)
+        nz = a != 0
+        low = np.where(nz, a, np.inf).min(axis=1, keepdims=True)
+        q = np.where(nz, a / low, 0.0)  # rows of zeros: 0 (on every grid)
+        if q.max() > 127.0 + tol or np.abs(q - np.rint(q)).max() > tol:
+            return "float"
+    return "int8_per_row"
 
 
-def budget(graph) -> dict:
-    """Neurons, weights, effective synapses, fan-in/out and memory of a spiking NIR graph."""
+def budget(graph, fast: bool = True) -> dict:
+    """Neurons, weights, effective synapses, fan-in/out and memory of a spiking NIR graph.
+
+    Args:
+        graph: the ``nir.NIRGraph``.
+        fast: count the non-zeros of a product through a selection matrix from its
+            operands' patterns (:func:`_selection`, exact; the default); False multiplies
+            every product out block by block (the oracle). ``"count_kernels"`` in the
+            result says which ran for each pair.
+    """
     import nir
 
     pops = _populations(graph)
@@ -122,16 +190,12 @@ def budget(graph) -> dict:
     fan_out: dict[str, np.ndarray] = {}
     syn = 0
     by_pair = {}
+    kernels = {}
     for (src, dst), paths in eff.items():
-        rows, col, pair = [], 0, 0
-        for _, block in _row_blocks(paths):
-            nz = block != 0
-            pair += int(nz.sum())
-            rows.append(nz.sum(1))
-            col = col + nz.sum(0)
+        row, col, kernels[f"{src}->{dst}"] = _counts(paths, fast)
+        pair = int(row.sum())
         by_pair[f"{src}->{dst}"] = pair
         syn += pair
-        row = np.concatenate(rows)
         fan_in[dst] = row if dst not in fan_in else fan_in[dst] + row
         fan_out[src] = col if src not in fan_out else fan_out[src] + col
     neurons = sum(pops.values())
@@ -142,6 +206,7 @@ def budget(graph) -> dict:
         "stored_weights": stored, "stored_weights_total": sum(stored.values()),
         "effective_synapses": syn,
         "effective_synapses_by_pair": by_pair,
+        "count_kernels": kernels,
         "max_fan_in": max(int(v.max()) for v in fan_in.values()),
         "max_fan_in_by_population": {k: int(v.max()) for k, v in fan_in.items()},
         "max_fan_out": max(int(v.max()) for v in fan_out.values()),

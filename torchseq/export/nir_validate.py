@@ -3,8 +3,9 @@
 The spiking model and the graph: ``docs/guide/nir.md``.
 
 :func:`export_nir` converts the checkpoint's rate model to the spiking model (calibrated on
-the reference it learnt), writes ``model.nir``, reads it back (values must be equal), runs
-it in every installed consumer over the validation query and returns the JSON-ready figures
+the reference it learnt, never on the validation query), writes ``model.nir``, reads it back
+(values must be equal), runs it in every installed consumer over the validation query (cut
+into streams of :data:`CONSUMER_SEGMENT` frames) and returns the JSON-ready figures
 the exporter puts under ``"nir"`` in ``validation.json``, with the hardware budget.
 """
 
@@ -17,14 +18,29 @@ import torch
 
 NIR_FILE = "model.nir"
 MIN_CONSUMER_AGREEMENT = 0.99
+# The consumers run the query cut into streams of this many frames, stepped together
+# (nir_consumers.compare): on a 500-frame route 32 streams of 16 steps instead of 500 steps.
+CONSUMER_SEGMENT = 16
 
 
-def calibration_frames(model, recorded: dict | None, query_given: bool, frames):
-    """Frames to calibrate the spiking conversion on, and where they came from.
+def calibration_frames(model, recorded: dict | None, replayed=None, load=None):
+    """The reference frames to calibrate the spiking conversion on, and where they came from.
 
-    The checkpoint's recorded demo reference is regenerated; a recorded reference file that
-    the exporter is already replaying as the query is those frames; otherwise (a query given
-    for a checkpoint whose reference is not at hand) the validation query, said so.
+    Only the reference the model learnt: a device has no query to calibrate on. The
+    checkpoint's recorded demo reference is regenerated; a recorded reference file that the
+    exporter is replaying as the query (``replayed``) is those frames; otherwise the
+    recorded file is read with ``load()`` (the exporter's reader of the recorded reference).
+
+    Args:
+        model: the fitted rate model.
+        recorded: the checkpoint's recorded reference (``export.cli.recorded_reference``).
+        replayed: the reference frames when the validation query is their replay, or None.
+        load: a callable returning the recorded reference's frames (raising ``ValueError``
+            when they cannot be read), or None.
+
+    Returns:
+        ``(frames, source)``, or ``(None, reason)`` where the learnt reference is not at
+        hand (then the NIR export is skipped with that reason).
     """
     if recorded is not None and recorded.get("source") == "demo":
         from torchseq.demo import make_demo
@@ -32,9 +48,19 @@ def calibration_frames(model, recorded: dict | None, query_given: bool, frames):
         demo = make_demo(n_reference=int(recorded.get("demo_frames", 200)),
                          seed=int(recorded.get("demo_seed", 0)))
         return demo.reference, "the checkpoint's demo reference"
-    if recorded is not None and not query_given:
-        return frames, f"the checkpoint's reference {recorded['source']}"
-    return frames, "the validation query (the learnt reference is not at hand)"
+    remedy = ("the spiking model is calibrated on the reference the model learnt, never on a "
+              "validation query (a device has none); export a checkpoint written by "
+              "train.py whose reference can be read")
+    if recorded is None:
+        return None, f"the checkpoint does not record its reference: {remedy}"
+    if replayed is not None:
+        return replayed, f"the checkpoint's reference {recorded['source']}"
+    if load is None:
+        return None, f"its reference {recorded['source']} was not loaded: {remedy}"
+    try:
+        return load(), f"the checkpoint's reference {recorded['source']}"
+    except ValueError as err:
+        return None, f"{str(err).splitlines()[0] if str(err) else type(err).__name__}: {remedy}"
 
 
 def _roundtrip_equal(graph, back) -> bool:
@@ -48,7 +74,8 @@ def _roundtrip_equal(graph, back) -> bool:
     return True
 
 
-def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str) -> dict:
+def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
+               progress=None) -> dict:
     """Write ``model.nir`` and validate it; return the ``"nir"`` section of the report.
 
     Args:
@@ -56,40 +83,51 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str) -
         out_dir: output folder.
         frames: validation query ``(T, H, W)``.
         ground_truth: ``(R, T)`` bool or None.
-        calib: frames to calibrate the conversion on.
+        calib: the reference frames to calibrate the conversion on (None: skipped, with
+            ``calib_source`` as the reason).
         calib_source: where they came from (reported).
+        progress: an :class:`~torchseq.export.progress.ExportProgress`, or None.
 
     Returns:
         ``{"file", "bytes", "round_trip_equal", "steps_per_frame", "time_steps", "levels",
         "calibration_source", "spiking": {agreement with the rate model, recall},
-        "consumers": {name: agreement, recall, time steps ..., skipped (not installed) or
-        failed (it raised: the check fails)}, "budget", "chips", "checks"}``, or
-        ``{"skipped": reason}`` without the ``nir`` package.
+        "consumers": {name: agreement, recall, time steps, streams ..., skipped (not
+        installed) or failed (it raised: the check fails)}, "budget", "chips", "checks"}``,
+        or ``{"skipped": reason}`` without the ``nir`` package or the learnt reference.
     """
     from torchseq.export.nir_export import NIRExportError, read_nir, require_nir, write_nir
+    from torchseq.export.progress import QUIET
 
+    progress = progress or QUIET
     try:
         require_nir()
     except NIRExportError as err:
         return {"skipped": str(err)}
+    if calib is None:
+        return {"skipped": calib_source}
     from torchseq.export.hardware_budget import budget, check
     from torchseq.export.nir_consumers import compare
     from torchseq.metrics import recall_at_k
     from torchseq.neural.spiking import SpikingSeqSLAM
 
     query = torch.as_tensor(frames).to(torch.float32)
-    sp = SpikingSeqSLAM.convert(model, torch.as_tensor(calib).to(torch.float32))
-    path = Path(out_dir) / NIR_FILE
-    graph = write_nir(sp, path)
-    same = _roundtrip_equal(graph, read_nir(path))
-    x = sp.encode(query)
-    rep = compare(sp, path, x, ground_truth)
-    rate = model.run(query).matches.reference.numpy()
-    ours = sp.run(x, encoded=True)
+    with progress.step("NIR: spiking conversion and model.nir"):
+        sp = SpikingSeqSLAM.convert(model, torch.as_tensor(calib).to(torch.float32))
+        path = Path(out_dir) / NIR_FILE
+        graph = write_nir(sp, path)
+        back = read_nir(path)
+        same = _roundtrip_equal(graph, back)
+        x = sp.encode(query)
+    with progress.step("NIR: rate and spiking models, whole query", int(x.shape[0])):
+        rate = model.run(query).matches.reference.numpy()
+        ours = sp.run(x, encoded=True)
+    rep = compare(sp, path, x, ground_truth, segment=CONSUMER_SEGMENT, progress=progress,
+                  graph=back)
     refs = ours["reference"].numpy()
     consumers = {k: v for k, v in rep.items() if k != "torchseq"}
     ran = {k: v for k, v in consumers.items() if "skipped" not in v}
-    b = budget(graph)
+    with progress.step("NIR: hardware budget"):
+        b = budget(graph)
     return {
         "file": NIR_FILE, "bytes": path.stat().st_size, "round_trip_equal": same,
         "steps_per_frame": 1, "time_steps": int(x.shape[0]), "levels": sp.levels,
@@ -106,6 +144,10 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str) -
             "synaptic_ops_per_frame": float(ours["synaptic_ops"].mean()),
         },
         "consumers": consumers,
+        "consumer_streams": {"segment_frames": CONSUMER_SEGMENT,
+                             "streams": rep["torchseq"].get("streams"),
+                             "torchseq_streams_recall_at_1":
+                                 rep["torchseq"].get("streams_recall_at_1")},
         "budget": {k: v for k, v in b.items() if k != "effective_synapses_by_pair"},
         "chips": check(b),
         "checks": {"nir_round_trip": same,
