@@ -329,6 +329,7 @@ class Traverse:
     frames: dict
     thumbnail: torch.Tensor
     info: dict
+    members: list | None = None  # temporal-window ensemble: one frames dict per member
 
     def __len__(self) -> int:
         return int(self.info["n_frames"])
@@ -336,6 +337,10 @@ class Traverse:
     def at(self, size) -> torch.Tensor:
         """``(T, h, w)`` frames at ``size``."""
         return self.frames[size_key(size)]
+
+    def members_at(self, size) -> list[torch.Tensor]:
+        """The ensemble members' ``(T, h, w)`` frames at ``size``, in ``--window-ms`` order."""
+        return [m[size_key(size)] for m in self.members]
 
 
 def needed_sizes(settings: list[Settings], model=None) -> dict:
@@ -358,8 +363,24 @@ def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -
     except (ValueError, OSError) as err:
         name = "demo" if not isinstance(source, (str, Path)) else source
         raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
+    members = None
+    opts = event_frame_options(cfg)
+    if opts.members_ms is not None and info.get("events"):
+        members = []
+        for ms in opts.members_ms:  # one traverse per member, frames centred on the steps
+            member = dataclasses.replace(opts, members_ms=None, centred_ms=ms)
+            try:
+                m, _ = load_traverse_sizes(source, sizes, member, cfg.progress, select)
+            except (ValueError, OSError) as err:
+                raise UsageError(f"{what} traverse {source}, {ms:g} ms member: "
+                                 f"{str(err).splitlines()[0]}") from err
+            if len(next(iter(m.values()))) != info["n_frames"]:
+                raise UsageError(f"{what} traverse {source}: the {ms:g} ms member has "
+                                 f"{len(next(iter(m.values())))} frames, the "
+                                 f"{opts.window_ms:g} ms steps {info['n_frames']}")
+            members.append(m)
     return Traverse({k: v for k, v in frames.items() if k != "thumbnail"},
-                    frames["thumbnail"], info)
+                    frames["thumbnail"], info, members)
 
 
 def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
@@ -401,6 +422,11 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
             f", offset {cfg.gt_offset}" if cfg.gt_offset else "")
     if selected and cfg.reference is not None and gt is not None:
         gt = selected_ground_truth(gt, ref, query)
+    if (ref.members is None) != (query.members is None):
+        raise UsageError("--window-ms with several windows (an ensemble) needs event files for "
+                         "both --reference and --query")
+    if ref.members is not None:
+        source["window_ensemble_ms"] = list(event_frame_options(cfg).members_ms)
     if selected:
         source["selection"] = {"start": cfg.start, "stop": cfg.stop,
                                "frame_step": cfg.frame_step, "max_frames": cfg.max_frames}
@@ -425,7 +451,7 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
     if ds > len(query):
         hint = ""
         if query.info.get("events") and s.run.event_count is None:
-            n, w = query.info["n_total"], s.run.window_ms
+            n, w = query.info["n_total"], event_frame_options(s.run).window_ms
             if n > 1:  # the events span more than (n - 1) windows
                 hint = (f": the query recording fills {n} windows of {w:g} ms (more than "
                         f"{(n - 1) * w:g} ms of events); --window-ms {(n - 1) * w / ds:.3g} "
@@ -435,8 +461,14 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
         raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
                          + hint)
     size = s.seqslam.image_size
-    result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
-                                                     progress=s.run.progress)
+    if ref.members is not None:  # temporal-window ensemble (--window-ms 5,10,20)
+        from torchseq.events.ensemble import match_ensemble
+
+        result = match_ensemble(ref.members_at(size), query.members_at(size), s.seqslam,
+                                device)
+    else:
+        result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
+                                                         progress=s.run.progress)
     # plots draw the engine's reduced copy (area averages, at most 1024 a side; the whole
     # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
     # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)
