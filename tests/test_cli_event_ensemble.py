@@ -6,6 +6,7 @@ frames against a plain loop over the events.
 """
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -17,7 +18,13 @@ from torchseq.demo import make_world, render
 from torchseq.events import load_event_frames
 from torchseq.events.ensemble import accumulate_ensemble, match_ensemble
 from torchseq.events.runs import simulate_run
-from torchseq.frontend import UsageError, run_main, window_members
+from torchseq.frontend import (
+    UsageError,
+    config_text,
+    event_frame_options,
+    run_main,
+    window_members,
+)
 from torchseq.preprocess import resize
 from torchseq.seqslam import SeqSLAMConfig
 
@@ -123,3 +130,22 @@ def test_ensemble_refusals(tmp_path, runs, capsys):
         "--no-tensorboard", "--out", str(tmp_path / "t")])
     err = capsys.readouterr().err
     assert code == 2 and "is for eval's SeqSLAM" in err, err
+
+
+def test_the_event_preset_resolves_to_the_measured_settings(tmp_path):
+    """docs/results/event-preset.md: the event preset is the seed's setting plus edges."""
+    want = SeqSLAMConfig(image_size=(16, 16), patch_size=8, ds=100, speed_ratio=0.66,
+                         speed_tolerance=0.2, match_at="trajectory", edges=True)
+    assert SeqSLAMConfig.events(0.66) == want
+    s = cli_eval.parse_args(["--preset", "events", "--speed-ratio", "0.66",
+                             "--engine", "seqslam"])[0]
+    assert s.seqslam == want
+    opts = event_frame_options(s.run)
+    assert opts.window_ms == 10.0 and opts.members_ms is None  # one window, no ensemble
+    # a typed flag wins over the preset even at its dataclass default, and a replay keeps it
+    off = cli_eval.parse_args(["--preset", "events", "--speed-ratio", "0.66", "--no-edges",
+                               "--engine", "seqslam"])[0]
+    assert off.seqslam == dataclasses.replace(want, edges=False)
+    path = tmp_path / "config.json"
+    path.write_text(config_text(cli_eval.config_dict(off)))
+    assert cli_eval.parse_args(["--config", str(path)])[0].seqslam == off.seqslam

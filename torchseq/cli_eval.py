@@ -60,6 +60,7 @@ PROG = "torchseq eval"  # set by main() to the name the user ran
 ENGINES = ("seqslam", "neural", "both")
 Notes = WarningLog | list  # where a run's warnings go (a plain list in tests of one step)
 MAX_DEMO_QUERY = 50_000  # demo query frames (96x128 float32 each)
+SEQSLAM_FIELDS = {f.name for f in dataclasses.fields(SeqSLAMConfig)}
 
 
 @dataclass
@@ -105,8 +106,10 @@ HELP = {
     "checkpoint": "neural model checkpoint (model.pt from train.py); without it the neural "
                   "engine is trained on the reference first",
     "preset": "SeqSLAM preset: openseqslam (OpenSeqSLAM 2013 exactly: uint8 preprocessing, "
-              "flat blocks -> 0, start + ds/2) or events (ds 100, 16x16, --speed-ratio); "
-              "SeqSLAM flags given with a non-default value override it",
+              "flat blocks -> 0, start + ds/2) or events (SeqSLAMConfig.events: --ds 100, "
+              "--image-size 16x16, --patch-size 8, --speed-ratio R with --speed-tolerance "
+              "0.2, --match-at trajectory, --edges; one --window-ms window: measured in "
+              "docs/results/event-preset.md); SeqSLAM flags you type override it",
     "neural_preset": preset_help("the --neural-* flags"),
     "out": "output folder of this run (default: a new runs/eval-<UTC time>)",
     "overwrite": "replace a previous run's --out folder instead of refusing",
@@ -172,8 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
-                  replayed: frozenset[str] = frozenset(), recorded: str | None = None
-                  ) -> Settings:
+                  replayed: frozenset[str] = frozenset(), recorded: str | None = None,
+                  seqslam_typed: frozenset[str] = frozenset()) -> Settings:
     """Parsed flags -> checked :class:`Settings` (ranges first, then each config's rules).
 
     Args:
@@ -181,6 +184,8 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
         typed: NeuralConfig fields whose ``--neural-*`` flag the command line gave.
         replayed: NeuralConfig fields a ``--config`` file gave.
         recorded: the ``--neural-preset`` that file recorded.
+        seqslam_typed: SeqSLAMConfig fields whose flag the command line gave: they win over
+            ``--preset`` even at their default value (``--preset events --no-edges``).
     """
     cfg = config_from_args(EvalConfig, args)
     if cfg.neural_preset is not None:
@@ -196,7 +201,7 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
     scfg.validate()
     if cfg.preset is not None:
         two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
-        scfg = seqslam_preset(cfg.preset, scfg, two_channel)
+        scfg = seqslam_preset(cfg.preset, scfg, two_channel, seqslam_typed)
     # a neural seed of its own (a replayed config.json holds the run's --seed there)
     neural_seed_given = args.neural_seed is not None and args.neural_seed != cfg.seed
     if args.neural_seed is None:
@@ -250,8 +255,8 @@ def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[s
                          f"{'it' if len(demo) == 1 else 'them'}")
 
 
-def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False
-                   ) -> SeqSLAMConfig:
+def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False,
+                   typed: frozenset[str] = frozenset()) -> SeqSLAMConfig:
     """``--preset NAME``, with the SeqSLAM flags whose value differs from the default on top.
 
     ``--preset events`` sizes images as its event frames: with ``--event-mode two-channel``
@@ -259,6 +264,7 @@ def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False
     is given, so the halves are not squeezed into one square.
     """
     changed = changed_fields(flags, SeqSLAMConfig())
+    changed.update({field: getattr(flags, field) for field in typed})  # typed flags win
     if name == "events" and two_channel and "image_size" not in changed:
         h, w = SeqSLAMConfig.events().image_size
         changed["image_size"] = (h, 2 * w)
@@ -280,13 +286,15 @@ def parse_args(argv: list[str] | None
         before = {a.dest: a.default for a in parser._actions}
         replayed = config_file_defaults(parser, pre.config, {"seqslam": "", "neural": "neural_"})
         replayed -= _unused_replay(parser, argv, replayed, before, set(neural))
+    seqslam_replayed = frozenset(d for d in replayed if d in SEQSLAM_FIELDS)  # the run's own
     replayed = frozenset(neural[d] for d in replayed if d in neural)
     recorded = parser.get_default("neural_preset")
 
     def settings(flags: list[str]) -> Settings:
         typed = frozenset(neural[d] for d in given_flags(parser, flags, set(neural)))
+        seqslam_typed = given_flags(parser, flags, SEQSLAM_FIELDS) | seqslam_replayed
         return dataclasses.replace(
-            settings_from(parser.parse_args(flags), typed, replayed, recorded),
+            settings_from(parser.parse_args(flags), typed, replayed, recorded, seqslam_typed),
             given=given_flags(parser, flags, EVENT_FIELDS))
 
     base = settings(argv)
