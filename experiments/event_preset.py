@@ -25,6 +25,7 @@ and JSON)::
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 from dataclasses import dataclass, field
@@ -55,11 +56,13 @@ class Candidate:
 
 
 CANDIDATES = [
-    Candidate("events, no edges (the preset before)", (10.0,), {"edges": False}),
-    Candidate("events (the preset now: edges)", (10.0,), {}),
-    Candidate("edges, ensemble 5+10+20", (5.0, 10.0, 20.0), {}),
-    Candidate("edges, ensemble 10+20+40", (10.0, 20.0, 40.0), {}),
-    Candidate("edges, 16x32 frames", (10.0,), {"image_size": (16, 32)}),
+    Candidate("events, ds 100, no edges (the preset before)", (10.0,),
+              {"ds": 100, "edges": False}),
+    Candidate("edges, ds 100", (10.0,), {"ds": 100}),
+    Candidate("edges, ds 100, ensemble 5+10+20", (5.0, 10.0, 20.0), {"ds": 100}),
+    Candidate("edges, ds 100, ensemble 10+20+40", (10.0, 20.0, 40.0), {"ds": 100}),
+    Candidate("edges, ds 100, 16x32 frames", (10.0,), {"ds": 100, "image_size": (16, 32)}),
+    Candidate("events (the preset now: edges, ds = 100 / ratio)", (10.0,), {}),
 ]
 PAIRS = [("same", "summer", 0.66), ("same", "summer", 0.25), ("cross", "winter", 0.66),
          ("cross", "winter", 0.25)]
@@ -143,7 +146,7 @@ def main(argv=None) -> dict:
         rows.append(row)
         print(" | ".join(f"{v:.3f}" if isinstance(v, float) else str(v) for k, v in row.items()
                          if k not in ("windows_ms", "seqslam")), flush=True)
-    command = "python experiments/event_preset.py " + " ".join(
+    command = "python experiments/event_preset.py " + shlex.join(
         argv if argv is not None else sys.argv[1:])
     md = (f"nordland-b places {a.start}..{a.start + a.places - 1} ({a.places} places; "
           f"{n_ref} reference windows of 10 ms, one place each), recall@1 over all queries, "

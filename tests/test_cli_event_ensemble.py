@@ -133,10 +133,12 @@ def test_ensemble_refusals(tmp_path, runs, capsys):
 
 
 def test_the_event_preset_resolves_to_the_measured_settings(tmp_path):
-    """docs/results/event-preset.md: the event preset is the seed's setting plus edges."""
-    want = SeqSLAMConfig(image_size=(16, 16), patch_size=8, ds=100, speed_ratio=0.66,
+    """docs/results/event-preset.md: the seed's setting, edges, ds = 100 reference windows."""
+    want = SeqSLAMConfig(image_size=(16, 16), patch_size=8, ds=152, speed_ratio=0.66,
                          speed_tolerance=0.2, match_at="trajectory", edges=True)
     assert SeqSLAMConfig.events(0.66) == want
+    assert SeqSLAMConfig.events(0.25).ds == 400 and SeqSLAMConfig.events().ds == 100
+    assert SeqSLAMConfig.events(1.5).ds == 67 and SeqSLAMConfig.events(0.25, ds=20).ds == 20
     s = cli_eval.parse_args(["--preset", "events", "--speed-ratio", "0.66",
                              "--engine", "seqslam"])[0]
     assert s.seqslam == want

@@ -106,7 +106,7 @@ HELP = {
     "checkpoint": "neural model checkpoint (model.pt from train.py); without it the neural "
                   "engine is trained on the reference first",
     "preset": "SeqSLAM preset: openseqslam (OpenSeqSLAM 2013 exactly: uint8 preprocessing, "
-              "flat blocks -> 0, start + ds/2) or events (SeqSLAMConfig.events: --ds 100, "
+              "flat blocks -> 0, start + ds/2) or events (SeqSLAMConfig.events: --ds 100 / R, "
               "--image-size 16x16, --patch-size 8, --speed-ratio R with --speed-tolerance "
               "0.2, --match-at trajectory, --edges; one --window-ms window: measured in "
               "docs/results/event-preset.md); SeqSLAM flags you type override it",
