@@ -143,3 +143,16 @@ def test_write_baseline_gives_the_module_event_lab_imports(tmp_path, monkeypatch
         eventlab.resolve_settings({"dss": 10})
     with pytest.raises(ValueError, match="engines"):
         eventlab.resolve_settings({"engines": ["lens"]})
+
+
+def test_the_module_command_writes_the_files_or_says_why(tmp_path, capsys):
+    root = tmp_path / "Event-LAB"
+    assert eventlab.main([str(root)]) == 2  # no baselines/ folder
+    assert "not an Event-LAB checkout" in capsys.readouterr().err
+    (root / "baselines").mkdir(parents=True)
+    assert eventlab.main([str(root)]) == 0
+    assert "VPR-Baselines" in capsys.readouterr().out
+    assert (root / "baselines" / "torchseq.py").read_text() == eventlab.BASELINE_FILE
+    assert eventlab.main([str(root)]) == 2 and "exist" in capsys.readouterr().err
+    assert eventlab.main([str(root), "--overwrite"]) == 0
+    assert eventlab.main([]) == 2
