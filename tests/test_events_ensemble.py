@@ -66,15 +66,21 @@ def test_downsampled_members_and_base():
         ensemble_base(10_000, ())
 
 
-def test_match_ensemble_single_member_is_seqslam_and_members_combine():
+@pytest.mark.parametrize("edges", [False, True])
+def test_match_ensemble_single_member_is_seqslam_and_members_combine(edges):
     rng = np.random.default_rng(2)
     ref = torch.from_numpy(rng.uniform(0, 255, (40, 16, 16)).astype(np.float32))
     idx = np.clip(np.round(np.arange(50) * 0.8).astype(int), 0, 39)
     qry = ref[idx] + torch.from_numpy(rng.normal(0, 20, (50, 16, 16)).astype(np.float32))
-    cfg = SeqSLAMConfig(image_size=(16, 16), patch_size=4, ds=10, speed_ratio=0.8)
+    cfg = SeqSLAMConfig(image_size=(16, 16), patch_size=4, ds=10, speed_ratio=0.8,
+                        edges=edges)
     one = match_ensemble([ref], [qry], cfg)
     plain = SeqSLAM(cfg).match(ref, qry)
     assert torch.equal(one.matches.reference, plain.matches.reference)
+    torch.testing.assert_close(one.matches.score, plain.matches.score, equal_nan=True)
+    torch.testing.assert_close(one.ranked, plain.ranked)
+    # the edge queries (first and last ds/2) are matched exactly when the config asks
+    assert bool((one.matches.reference[:5] >= 0).all()) == edges
     torch.testing.assert_close(one.enhanced, plain.enhanced)
     other = ref.flip(-1)  # a second member that sees the place differently
     two = match_ensemble([ref, other], [qry, qry[..., :].flip(-1)], cfg)

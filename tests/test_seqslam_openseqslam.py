@@ -50,8 +50,8 @@ def test_preset_fields():
         ((32, 64), 8, 10, 0.8, 1.2, 10, 10)
     assert c.preprocessing == "openseqslam" and c.match_rule == "start" and not c.edges
     assert SeqSLAMConfig.openseqslam(ds=20).ds == 20
-    e = SeqSLAMConfig.events(0.66)
-    assert e.ds == 100 and e.image_size == (16, 16) and e.match_rule == "trajectory"
+    e = SeqSLAMConfig.events(0.66)  # ds: 100 reference windows = 100 / 0.66 query frames
+    assert e.ds == 152 and e.image_size == (16, 16) and e.match_rule == "trajectory"
     assert e.velocity_range == pytest.approx((0.66 * 0.8, 0.66 * 1.2))
     assert SeqSLAMConfig.preset("default") == SeqSLAMConfig()
     with pytest.raises(ValueError, match="preset"):

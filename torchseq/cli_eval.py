@@ -72,6 +72,7 @@ PROG = "torchseq eval"  # set by main() to the name the user ran
 ENGINES = ("seqslam", "neural", "both")
 Notes = WarningLog | list  # where a run's warnings go (a plain list in tests of one step)
 MAX_DEMO_QUERY = 50_000  # demo query frames (96x128 float32 each)
+SEQSLAM_FIELDS = {f.name for f in dataclasses.fields(SeqSLAMConfig)}
 
 
 @dataclass
@@ -128,8 +129,10 @@ HELP = {
     "checkpoint": "neural model checkpoint (model.pt from train.py); without it the neural "
                   "engine is trained on the reference first",
     "preset": "SeqSLAM preset: openseqslam (OpenSeqSLAM 2013 exactly: uint8 preprocessing, "
-              "flat blocks -> 0, start + ds/2) or events (ds 100, 16x16, --speed-ratio); "
-              "SeqSLAM flags given with a non-default value override it",
+              "flat blocks -> 0, start + ds/2) or events (SeqSLAMConfig.events: --ds 100 / R, "
+              "--image-size 16x16, --patch-size 8, --speed-ratio R with --speed-tolerance "
+              "0.2, --match-at trajectory, --edges; one --window-ms window: measured in "
+              "docs/results/event-preset.md); SeqSLAM flags you type override it",
     "neural_preset": preset_help("the --neural-* flags"),
     "out": "output folder of this run (default: a new runs/eval-<UTC time>)",
     "overwrite": "replace a previous run's --out folder instead of refusing",
@@ -215,8 +218,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
-                  replayed: frozenset[str] = frozenset(), recorded: str | None = None
-                  ) -> Settings:
+                  replayed: frozenset[str] = frozenset(), recorded: str | None = None,
+                  seqslam_typed: frozenset[str] = frozenset()) -> Settings:
     """Parsed flags -> checked :class:`Settings` (ranges first, then each config's rules).
 
     Args:
@@ -224,6 +227,8 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
         typed: NeuralConfig fields whose ``--neural-*`` flag the command line gave.
         replayed: NeuralConfig fields a ``--config`` file gave.
         recorded: the ``--neural-preset`` that file recorded.
+        seqslam_typed: SeqSLAMConfig fields whose flag the command line gave: they win over
+            ``--preset`` even at their default value (``--preset events --no-edges``).
     """
     cfg = config_from_args(EvalConfig, args)
     if cfg.neural_preset is not None:
@@ -242,7 +247,7 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
     scfg.validate()
     if cfg.preset is not None:
         two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
-        scfg = seqslam_preset(cfg.preset, scfg, two_channel)
+        scfg = seqslam_preset(cfg.preset, scfg, two_channel, seqslam_typed)
     if cfg.map is not None:
         scfg = map_seqslam_config(cfg.map, scfg)
     # a neural seed of its own (a replayed config.json holds the run's --seed there)
@@ -308,8 +313,8 @@ def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[s
                          f"{'it' if len(demo) == 1 else 'them'}")
 
 
-def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False
-                   ) -> SeqSLAMConfig:
+def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False,
+                   typed: frozenset[str] = frozenset()) -> SeqSLAMConfig:
     """``--preset NAME``, with the SeqSLAM flags whose value differs from the default on top.
 
     ``--preset events`` sizes images as its event frames: with ``--event-mode two-channel``
@@ -317,6 +322,7 @@ def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False
     is given, so the halves are not squeezed into one square.
     """
     changed = changed_fields(flags, SeqSLAMConfig())
+    changed.update({field: getattr(flags, field) for field in typed})  # typed flags win
     if name == "events" and two_channel and "image_size" not in changed:
         h, w = SeqSLAMConfig.events().image_size
         changed["image_size"] = (h, 2 * w)
@@ -338,13 +344,15 @@ def parse_args(argv: list[str] | None
         before = {a.dest: a.default for a in parser._actions}
         replayed = config_file_defaults(parser, pre.config, {"seqslam": "", "neural": "neural_"})
         replayed -= _unused_replay(parser, argv, replayed, before, set(neural))
+    seqslam_replayed = frozenset(d for d in replayed if d in SEQSLAM_FIELDS)  # the run's own
     replayed = frozenset(neural[d] for d in replayed if d in neural)
     recorded = parser.get_default("neural_preset")
 
     def settings(flags: list[str]) -> Settings:
         typed = frozenset(neural[d] for d in given_flags(parser, flags, set(neural)))
+        seqslam_typed = given_flags(parser, flags, SEQSLAM_FIELDS) | seqslam_replayed
         return dataclasses.replace(
-            settings_from(parser.parse_args(flags), typed, replayed, recorded),
+            settings_from(parser.parse_args(flags), typed, replayed, recorded, seqslam_typed),
             given=given_flags(parser, flags, EVENT_FIELDS))
 
     base = settings(argv)
@@ -388,6 +396,7 @@ class Traverse:
     thumbnail: torch.Tensor | None
     info: dict
     descriptors: torch.Tensor | None = None  # (T, D) for a traverse of descriptors
+    members: list | None = None  # temporal-window ensemble: one frames dict per member
 
     def __len__(self) -> int:
         return int(self.info["n_frames"])
@@ -395,6 +404,10 @@ class Traverse:
     def at(self, size) -> torch.Tensor:
         """``(T, h, w)`` frames at ``size``."""
         return self.frames[size_key(size)]
+
+    def members_at(self, size) -> list[torch.Tensor]:
+        """The ensemble members' ``(T, h, w)`` frames at ``size``, in ``--window-ms`` order."""
+        return [m[size_key(size)] for m in self.members]
 
 
 def needed_sizes(settings: list[Settings], model=None) -> dict:
@@ -439,8 +452,24 @@ def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -
     except (ValueError, OSError) as err:
         name = "demo" if not isinstance(source, (str, Path)) else source
         raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
+    members = None
+    opts = event_frame_options(cfg)
+    if opts.members_ms is not None and info.get("events"):
+        members = []
+        for ms in opts.members_ms:  # one traverse per member, frames centred on the steps
+            member = dataclasses.replace(opts, members_ms=None, centred_ms=ms)
+            try:
+                m, _ = load_traverse_sizes(source, sizes, member, cfg.progress, select)
+            except (ValueError, OSError) as err:
+                raise UsageError(f"{what} traverse {source}, {ms:g} ms member: "
+                                 f"{str(err).splitlines()[0]}") from err
+            if len(next(iter(m.values()))) != info["n_frames"]:
+                raise UsageError(f"{what} traverse {source}: the {ms:g} ms member has "
+                                 f"{len(next(iter(m.values())))} frames, the "
+                                 f"{opts.window_ms:g} ms steps {info['n_frames']}")
+            members.append(m)
     return Traverse({k: v for k, v in frames.items() if k != "thumbnail"},
-                    frames["thumbnail"], info)
+                    frames["thumbnail"], info, members=members)
 
 
 def describe_traverse(source, cfg: EvalConfig, select) -> Traverse:
@@ -523,6 +552,11 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
             f", offset {cfg.gt_offset}" if cfg.gt_offset else "")
     if selected and (cfg.reference is not None or cfg.dataset is not None) and gt is not None:
         gt = selected_ground_truth(gt, ref, query)
+    if (ref.members is None) != (query.members is None):
+        raise UsageError("--window-ms with several windows (an ensemble) needs event files for "
+                         "both --reference and --query")
+    if ref.members is not None:
+        source["window_ensemble_ms"] = list(event_frame_options(cfg).members_ms)
     if selected:
         source["selection"] = {"start": cfg.start, "stop": cfg.stop,
                                "frame_step": cfg.frame_step, "max_frames": cfg.max_frames}
@@ -580,7 +614,7 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
     if ds > len(query):
         hint = ""
         if query.info.get("events") and s.run.event_count is None:
-            n, w = query.info["n_total"], s.run.window_ms
+            n, w = query.info["n_total"], event_frame_options(s.run).window_ms
             if n > 1:  # the events span more than (n - 1) windows
                 hint = (f": the query recording fills {n} windows of {w:g} ms (more than "
                         f"{(n - 1) * w:g} ms of events); --window-ms {(n - 1) * w / ds:.3g} "
@@ -593,12 +627,16 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
         return run_seqslam_map(s, query, device, s.run.progress)
     size = s.seqslam.image_size
     config = ranked_config(s.seqslam)
-    engine = SeqSLAM(config, device=device)
     if ref.descriptors is not None:
-        result = engine.match_descriptors(ref.descriptors, query.descriptors,
-                                          progress=s.run.progress)
+        result = SeqSLAM(config, device=device).match_descriptors(
+            ref.descriptors, query.descriptors, progress=s.run.progress)
+    elif ref.members is not None:  # temporal-window ensemble (--window-ms 5,10,20)
+        from torchseq.events.ensemble import match_ensemble
+
+        result = match_ensemble(ref.members_at(size), query.members_at(size), config, device)
     else:
-        result = engine.match(ref.at(size), query.at(size), progress=s.run.progress)
+        result = SeqSLAM(config, device=device).match(ref.at(size), query.at(size),
+                                                      progress=s.run.progress)
     # plots draw the engine's reduced copy (area averages, at most 1024 a side; the whole
     # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
     # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)

@@ -210,6 +210,9 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
     """
     device = resolve_device(cfg.device)
     events = event_frame_options(cfg)
+    if events.members_ms is not None:  # the neural model learns one frame per window
+        raise UsageError("--window-ms with several windows (a temporal-window ensemble) is for "
+                         "eval's SeqSLAM; give train one window")
     orphans = [f"--{k.replace('_', '-')}" for k in ("export_query", "export_ground_truth",
                                                      "export_frame_size")
                if getattr(cfg, k) is not None]

@@ -78,6 +78,12 @@ def finite_float(text: str) -> float:
     return value
 
 
+def float_or_list(text: str) -> float | tuple[float, ...]:
+    """Flag type: a finite float, or a comma-separated list of them (``5,10,20``)."""
+    parts = [finite_float(part.strip()) for part in str(text).split(",")]
+    return parts[0] if len(parts) == 1 else tuple(parts)
+
+
 def bounded_int(text: str) -> int:
     """Flag type: an integer that fits in int64."""
     try:
@@ -110,7 +116,8 @@ def check_ranges(config, limits: dict[str, tuple[float | None, float | None]],
 def _flag_type(annotation: object, default: object) -> type:
     """The argparse type of a dataclass field, from its annotation (``"float | None"``)."""
     text = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
-    for name, kind in (("tuple", str), ("bool", bool), ("float", finite_float),
+    for name, kind in (("tuple[float, ...]", float_or_list), ("tuple", str), ("bool", bool),
+                       ("float", finite_float),
                        ("int", bounded_int)):
         if name in str(text):
             return kind
@@ -249,8 +256,10 @@ def event_options(window_ms: float, event_count: int | None,
         raise UsageError(f"--time-unit must be s, ms, us or ns, got {time_unit!r}")
     if str(mode).replace("_", "-") not in EVENT_MODES:
         raise UsageError(f"--event-mode must be one of {', '.join(EVENT_MODES)}, got {mode!r}")
-    if not (math.isfinite(window_ms) and 0 < window_ms <= MAX_WINDOW_MS):
-        raise UsageError(f"--window-ms must be in (0, {MAX_WINDOW_MS:g}] ms, got {window_ms}")
+    window_ms, members = window_members(window_ms)
+    if members is not None and event_count is not None:
+        raise UsageError("--window-ms with several windows (an ensemble) needs time windows; "
+                         "drop --event-count or give one window")
     if event_count is not None and not 0 < event_count <= MAX_EVENT_COUNT:
         raise UsageError(f"--event-count must be in 1..{MAX_EVENT_COUNT}, got {event_count}")
     if event_count is not None and window_ms != DEFAULT_WINDOW_MS:
@@ -272,7 +281,36 @@ def event_options(window_ms: float, event_count: int | None,
                              truncated=truncated, start_ms=float(t_start),
                              duration_ms=duration, hot_pixel=hot_pixel,
                              refractory_us=refractory_us, time_unit=time_unit,
-                             evt3_kernel=None if evt3_kernel == "auto" else evt3_kernel)
+                             evt3_kernel=None if evt3_kernel == "auto" else evt3_kernel,
+                             members_ms=members)
+
+
+def window_members(window_ms) -> tuple[float, tuple[float, ...] | None]:
+    """``--window-ms``: one window, or a temporal-window ensemble ``5,10,20``.
+
+    Returns ``(step, members)``: frames come every ``step`` ms (the middle member, the lower
+    of the two middle ones for an even count); with several windows ``members`` are their
+    lengths in the order given (each frame of member ``L`` counts the ``L`` ms centred on
+    its step), else None.
+    """
+    values = list(window_ms) if isinstance(window_ms, (list, tuple)) else [window_ms]
+    if not values:
+        raise UsageError("--window-ms needs at least one window")
+    for w in values:
+        if not (isinstance(w, (int, float)) and math.isfinite(w) and 0 < w <= MAX_WINDOW_MS):
+            raise UsageError(f"--window-ms must be in (0, {MAX_WINDOW_MS:g}] ms, got {w}")
+    if len(values) == 1:
+        return float(values[0]), None
+    if len(set(values)) != len(values):
+        raise UsageError(f"--window-ms lists a window twice: {','.join(f'{w:g}' for w in values)}")
+    step = sorted(values)[(len(values) - 1) // 2]
+    from torchseq.events.ensemble import ensemble_base
+
+    try:
+        ensemble_base(int(round(step * 1000)), [int(round(w * 1000)) for w in values])
+    except ValueError as err:
+        raise UsageError(f"--window-ms {','.join(f'{w:g}' for w in values)}: {err}") from None
+    return float(step), tuple(float(w) for w in values)
 
 
 @dataclasses.dataclass
@@ -282,7 +320,7 @@ class EventFlags:
     :func:`event_frame_options` checks and bundles them.
     """
 
-    window_ms: float = DEFAULT_WINDOW_MS
+    window_ms: float | tuple[float, ...] = DEFAULT_WINDOW_MS
     event_count: int | None = None
     frame_size: str | None = None
     window_anchor: str = "first"
@@ -299,7 +337,11 @@ class EventFlags:
 
 
 EVENT_HELP = {
-    "window_ms": "event files: accumulation window in milliseconds (not with --event-count)",
+    "window_ms": "event files: accumulation window in milliseconds (not with --event-count); "
+                 "several, comma-separated (5,10,20), make a temporal-window ensemble: frames "
+                 "every middle window, each member's window centred on them, SeqSLAM on the "
+                 "average of the members' enhanced difference matrices (eval only; the "
+                 "neural engine reads the middle window's frames)",
     "event_count": "event files: events per frame instead of a time window",
     "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
     "window_anchor": "event files: where the first window starts: 'first' (first event), "

@@ -67,6 +67,12 @@ class EventFrameOptions:
         evt3_kernel: the EVT 3 ``.raw`` decoder, ``"numba"`` or ``"numpy"`` (the same
             events); None: chosen by the file's size
             (:func:`torchseq.events.prophesee.default_evt3_kernel`).
+        centred_ms: load one member of a temporal-window ensemble: frame ``k`` counts the
+            ``centred_ms`` window centred on window ``k`` of ``window_ms`` (see
+            :func:`torchseq.events.load_event_frames`); None: plain windows.
+        members_ms: the window lengths of a temporal-window ensemble the caller loads member
+            by member (``centred_ms`` each); loading with these options alone gives the
+            plain ``window_ms`` frames.
     """
 
     window_ms: float = 10.0
@@ -83,6 +89,8 @@ class EventFrameOptions:
     refractory_us: int | None = None
     time_unit: str | None = None
     evt3_kernel: str | None = None
+    centred_ms: float | None = None
+    members_ms: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.sensor_size is not None:  # tonic's (W, H, P): the polarity count is not a size
@@ -419,6 +427,8 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
         kwargs["anchor"] = opts.anchor
     if opts.time_unit is not None:  # a format without a time column refuses it by name
         kwargs["time_unit"] = opts.time_unit
+    if opts.centred_ms is not None:
+        kwargs["centred_ms"] = opts.centred_ms
     try:
         return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
                                  frame_size=opts.frame_size, **kwargs)

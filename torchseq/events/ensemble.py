@@ -147,7 +147,8 @@ def match_ensemble(reference: Sequence[torch.Tensor], query: Sequence[torch.Tens
         raise ValueError(f"members give difference matrices of different shapes {shapes}")
     combined = torch.stack(enhanced).mean(0)
     match, best, ratio, ranked = search(combined, c.sequence_length, engine.speeds, c.rwindow,
-                                        c.top_k, c.max_chunk_elements, False, c.match_rule)
+                                        c.top_k, c.max_chunk_elements, False, c.match_rule,
+                                        edges=c.edges)
     return SeqSLAMResult(
         matches=Matches(match.cpu(), ratio.cpu(), lower_is_better=True),
         difference=torch.stack(diffs).mean(0).cpu(), enhanced=combined.cpu(),

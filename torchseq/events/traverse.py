@@ -20,7 +20,8 @@ def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: in
                       sensor_size: tuple[int, int] | None = None, mode: str = "count",
                       anchor: str | int = "first", start_ms: float = 0.0,
                       duration_ms: float | None = None, hot_pixel: float | None = None,
-                      refractory_us: int | None = None, **options) -> torch.Tensor:
+                      refractory_us: int | None = None, centred_ms: float | None = None,
+                      **options) -> torch.Tensor:
     """Read an event file and accumulate it into grey frames.
 
     Pixel values per ``mode``, each clipped to 0..255 and then area-pooled to ``frame_size``:
@@ -56,6 +57,11 @@ def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: in
             count of active pixels (None: off), counted over the cropped events.
         refractory_us: drop events within this many microseconds of the pixel's last kept
             event (None: off).
+        centred_ms: a member of a temporal-window ensemble: frame ``k`` still stands for
+            window ``k`` of ``window_ms``, but counts the events of the ``centred_ms`` long
+            window centred on it (:func:`~torchseq.events.ensemble.accumulate_ensemble`;
+            ``centred_ms - window_ms`` must be a whole, even number of microseconds). None:
+            plain windows. Not with ``event_count``.
         **options: reader options (see :func:`torchseq.events.iter_events`).
 
     Returns:
@@ -79,8 +85,15 @@ def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: in
     if start_ms or duration_ms is not None:
         stream, anchor = crop_events(stream, anchor, start_ms, duration_ms, path)
     window_us = None if event_count is not None else max(1, int(round(window_ms * 1000)))
-    frames = accumulate(stream, window_us=window_us, event_count=event_count, mode=mode,
-                        anchor=anchor, hot_pixel=hot_pixel, refractory_us=refractory_us)
+    if centred_ms is not None:
+        if event_count is not None:
+            raise ValueError("centred_ms (an ensemble member) needs time windows, not "
+                             "event_count")
+        frames = _centred_frames(stream, window_us, centred_ms, mode, anchor, hot_pixel,
+                                 refractory_us)
+    else:
+        frames = accumulate(stream, window_us=window_us, event_count=event_count, mode=mode,
+                            anchor=anchor, hot_pixel=hot_pixel, refractory_us=refractory_us)
     if mode == "binary":
         frames = frames * 255
     frames = frames.abs().clamp_(0, 255)
@@ -134,3 +147,33 @@ def accumulate_pool(frames: torch.Tensor, size: tuple[int, int]) -> torch.Tensor
     if not (0 < h <= frames.shape[-2] and 0 < w <= frames.shape[-1]):
         raise ValueError(f"frame_size {size} must be within the {tuple(frames.shape[-2:])} frame")
     return torch.nn.functional.adaptive_avg_pool2d(frames[:, None], (int(h), int(w)))[:, 0]
+
+
+def _centred_frames(stream: EventStream, window_us: int, centred_ms: float, mode: str,
+                    anchor: str | int, hot_pixel: float | None,
+                    refractory_us: int | None) -> torch.Tensor:
+    """One ensemble member: ``accumulate``'s windows and filters, windows centred and widened.
+
+    Events before the anchor are dropped and the pixel filters applied as :func:`accumulate`
+    does, then :func:`accumulate_ensemble` counts the ``centred_ms`` window around each
+    ``window_us`` step (``(T, H, W)``, or ``(T, 2, H, W)`` for ``"two_channel"``).
+    """
+    from torchseq.events.ensemble import accumulate_ensemble
+    from torchseq.events.filters import hot_pixel_mask, refractory_mask
+
+    if not (math.isfinite(centred_ms) and centred_ms > 0):
+        raise ValueError(f"centred_ms must be > 0, got {centred_ms}")
+    events = stream.events
+    origin = window_origin(events["t"], anchor)
+    events = events[events["t"] >= origin]
+    keep = np.ones(len(events), dtype=bool)
+    if hot_pixel is not None:
+        keep &= hot_pixel_mask(events, stream.sensor_size, hot_pixel)
+    if refractory_us is not None:
+        keep &= refractory_mask(events, stream.sensor_size, refractory_us)
+    if not keep.all():
+        events = events[keep]
+    members = accumulate_ensemble(EventStream(events, stream.sensor_size),
+                                  [max(1, int(round(centred_ms * 1000)))], step_us=window_us,
+                                  mode=mode, anchor=origin)
+    return members[0]

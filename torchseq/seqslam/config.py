@@ -9,6 +9,7 @@ METRICS = ("l1", "l2", "cosine")
 MATCH_AT = ("start", "trajectory")
 PREPROCESSING = ("torchseq", "openseqslam")
 PRESETS = ("default", "openseqslam", "events")
+EVENT_DS_REFERENCE = 100  # the event preset's sequence: this many reference windows long
 KEEP_MATRICES_MAX = 2**27  # R * Q above which the full matrices are not kept by default
 
 
@@ -96,14 +97,24 @@ class SeqSLAMConfig:
 
     @classmethod
     def events(cls, speed_ratio: float = 1.0, **overrides) -> SeqSLAMConfig:
-        """The seed's event-camera setting: 16x16 frames, ds = 100, a known speed ratio.
+        """The event preset: the seed's setting with edges and a sequence of fixed route length.
 
-        Frames 16x16 (the DVS128's 128x128 area-pooled), ds = 100 and a velocity range of
+        Frames 16x16 (the DVS128's 128x128 area-pooled), patch side 8, a velocity range of
         ``speed_ratio`` +- 20% (reference windows per query window), reporting where the best
-        trajectory crosses the query centre.
+        trajectory crosses the query centre, ``edges=True`` (the first and last ``ds/2``
+        queries are matched from their leading or trailing window instead of left
+        unmatched), and ``ds = round(100 / speed_ratio)`` query frames: every sequence spans
+        100 reference windows of route (the seed's ds = 100 at equal speeds; 152 at ratio
+        0.66, 400 at 0.25). A ``ds`` in ``overrides`` wins. Chosen on simulated nordland-b
+        event runs, same season and across seasons at 1.5x and 4x speed difference, against
+        ds = 100, temporal-window ensembles and 16x32 frames (docs/results/event-preset.md,
+        ``experiments/event_preset.py``).
         """
-        base = dict(image_size=(16, 16), patch_size=8, ds=100, speed_ratio=speed_ratio,
-                    speed_tolerance=0.2, match_at="trajectory")
+        ok = (isinstance(speed_ratio, (int, float)) and math.isfinite(speed_ratio)
+              and speed_ratio > 0)  # else validate() names the bad ratio
+        ds = max(2, round(EVENT_DS_REFERENCE / speed_ratio)) if ok else EVENT_DS_REFERENCE
+        base = dict(image_size=(16, 16), patch_size=8, ds=ds, speed_ratio=speed_ratio,
+                    speed_tolerance=0.2, match_at="trajectory", edges=True)
         return cls(**{**base, **overrides}).validate()
 
     @classmethod

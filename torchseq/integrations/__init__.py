@@ -1,0 +1,1 @@
+"""Bridges to other tools' harnesses: :mod:`torchseq.integrations.eventlab` (Event-LAB)."""
