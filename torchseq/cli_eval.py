@@ -113,10 +113,8 @@ class EvalConfig(EventFlags):
 
 
 HELP = {
-    "reference": "reference traverse: image folder, video, frame array (.npy/.npz), event file "
-                 "(.aedat, .aedat4, .raw, event .npy/.npz, .csv) or descriptors ((T, D) .npy, "
-                 ".npz/.h5 with 'descriptors', a folder of VPR-methods-evaluation .gfeat "
-                 "files); default: the built-in demo",
+    "reference": "reference traverse: image folder, video, frame array, event file or (T, D) "
+                 "descriptors (docs/reference/data-formats.md); default: the built-in demo",
     "query": "query traverse, same kinds as --reference (required with --reference)",
     "ground_truth": "ground truth: CSV 'query,references', (reference x query) 0/1 .npy matrix, "
                     "or VPR-Bench per-query .npy of admissible indices; with --tolerance it is "
@@ -128,11 +126,9 @@ HELP = {
     "engine": f"engine to run: one of {', '.join(ENGINES)}",
     "checkpoint": "neural model checkpoint (model.pt from train.py); without it the neural "
                   "engine is trained on the reference first",
-    "preset": "SeqSLAM preset: openseqslam (OpenSeqSLAM 2013 exactly: uint8 preprocessing, "
-              "flat blocks -> 0, start + ds/2) or events (SeqSLAMConfig.events: --ds 100 / R, "
-              "--image-size 16x16, --patch-size 8, --speed-ratio R with --speed-tolerance "
-              "0.2, --match-at trajectory, --edges; one --window-ms window: measured in "
-              "docs/results/event-preset.md); SeqSLAM flags you type override it",
+    "preset": "SeqSLAM preset: openseqslam (OpenSeqSLAM 2013 exactly) or events "
+              "(SeqSLAMConfig.events: 16x16, ds 100 / R, edges; docs/results/event-preset.md); "
+              "SeqSLAM flags you type override it",
     "neural_preset": preset_help("the --neural-* flags"),
     "out": "output folder of this run (default: a new runs/eval-<UTC time>)",
     "overwrite": "replace a previous run's --out folder instead of refusing",

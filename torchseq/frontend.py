@@ -337,11 +337,8 @@ class EventFlags:
 
 
 EVENT_HELP = {
-    "window_ms": "event files: accumulation window in milliseconds (not with --event-count); "
-                 "several, comma-separated (5,10,20), make a temporal-window ensemble: frames "
-                 "every middle window, each member's window centred on them, SeqSLAM on the "
-                 "average of the members' enhanced difference matrices (eval only; the "
-                 "neural engine reads the middle window's frames)",
+    "window_ms": "event files: accumulation window in ms (not with --event-count); a list "
+                 "(5,10,20) is a temporal-window ensemble (eval; docs/guide/events.md)",
     "event_count": "event files: events per frame instead of a time window",
     "frame_size": "event files: downsample frames to HxW (or N for NxN) by area pooling",
     "window_anchor": "event files: where the first window starts: 'first' (first event), "
