@@ -309,6 +309,34 @@ def crossover_table(sizes, n_query: int, k: int, ds: int) -> list[str]:
 
 
 
+def layouts_table(n_ref: int, n_query: int, k: int, repeats: int = 2) -> list[str]:
+    """Shared against per-window layout in one process: same index, same queries, CPU ms."""
+    import torch
+
+    from torchseq.seqslam import SeqSLAMConfig
+    from torchseq.seqslam.candidates import CandidateSeqSLAM
+
+    one_thread()
+    ref, query, _ = synthetic(n_ref, n_query)
+    ref_t, query_t = torch.from_numpy(ref), torch.from_numpy(query)
+    shared = CandidateSeqSLAM(ref_t, SeqSLAMConfig(candidates=k))
+    per = CandidateSeqSLAM(ref_t, SeqSLAMConfig(candidates=k), index=shared.index,
+                           layout="per-window")
+    lines = [f"{n_ref} references, {n_query} queries, {shared.index.kind}, K = {k}: CPU ms "
+             "per query", "", "| repetition | shared | per-window | identical results |",
+             "|---:|---:|---:|---|"]
+    for rep in range(repeats):
+        (a, _, ca), (b, _, cb) = (timed(lambda e=e: e.match_descriptors(query_t))
+                                  for e in (shared, per))
+        same = all(torch_equal(x, y) for x, y in (
+            (a.matches.reference, b.matches.reference), (a.ranked, b.ranked),
+            (a.matches.score, b.matches.score), (a.best_score, b.best_score)))
+        lines.append(f"| {rep + 1} | {1e3 * ca / n_query:.2f} | {1e3 * cb / n_query:.2f} | "
+                     f"{same} |")
+        print(lines[-1], flush=True)
+    return lines
+
+
 def main() -> None:
     if sys.argv[1:2] == ["--child"]:
         n, kind, k, q = sys.argv[2:6]
@@ -325,6 +353,8 @@ def main() -> None:
                    help="issue 24: Nordland route, crossover and query rate at 10^5, 10^6")
     p.add_argument("--double", action="store_true", help="the 3,576-place Nordland route")
     p.add_argument("--crossover-sizes", type=int, nargs="+", default=[300, 1000, 3000])
+    p.add_argument("--layouts", type=int, default=0, metavar="R",
+                   help="shared against per-window layout at R synthetic references")
     args = p.parse_args()
     import torch
 
@@ -335,6 +365,8 @@ def main() -> None:
         print("\n".join(recall_table()) + "\n")
     if args.scale:
         print("\n".join(scale_table(args.sizes, args.kinds.split(","), args.k, args.queries)))
+    if args.layouts:
+        print("\n".join(layouts_table(args.layouts, 300, args.k)))
     if args.reuse:
         out = route_table(args.double, 100, 20) + [""]
         out += crossover_table(args.crossover_sizes, 200, 100, 20) + [""]
