@@ -25,6 +25,7 @@ from torchseq.seqslam.difference import (
     difference_with_kernel,
     int_mm_supported,
     thermometer_levels,
+    thermometer_product,
 )
 
 
@@ -142,7 +143,30 @@ def test_int_mm_is_exact_on_x86_cpu():
     want = (a.to(torch.int64) @ b.to(torch.int64).T).to(torch.int32)
     got = torch._int_mm(a, b.T)
     assert got.dtype == torch.int32 and torch.equal(got, want)
-    assert torch.equal(_int_matmul(a, b), want)
+    if thermometer_product("cpu") == "int8":  # the float32 form holds sums below 2**24 only
+        assert torch.equal(_int_matmul(a, b), want)
+
+
+@pytest.mark.parametrize("capability, product", [
+    ("AVX512", "int8"), ("AVX512_BF16", "int8"), ("AVX2", "float32"), ("DEFAULT", "float32")])
+def test_thermometer_product_dispatch(monkeypatch, capability, product):
+    """The int8 GEMM runs only where it is fast (AVX-512); the float32 product elsewhere, and
+    the engine reports which ran. Both give the same exact distances."""
+    calls = []
+    real_int_mm = torch._int_mm
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: capability)
+    monkeypatch.setattr(torch, "_int_mm", lambda a, b: calls.append(1) or real_int_mm(a, b))
+    assert thermometer_product("cpu") == product
+    g = torch.Generator().manual_seed(3)
+    x = 127 + torch.randint(-8, 9, (40, 64), generator=g).double()
+    d, kernel = difference_with_kernel(x, x[:25])
+    assert kernel == "thermometer" and bool(calls) == (product == "int8")
+    want = (x[:, None, :] - x[None, :25, :]).abs().sum(-1)
+    assert torch.equal(d.double(), want)
+    result = SeqSLAM(SeqSLAMConfig.openseqslam(), device="cpu").match(
+        torch.rand(30, 32, 64) * 255, torch.rand(24, 32, 64) * 255)
+    assert result.kernels["difference"] == "thermometer"
+    assert result.kernels["product"] == product
 
 
 def test_int_matmul_float_fallback_is_exact(monkeypatch):

@@ -19,6 +19,12 @@ On this project's AMD EPYC (Zen 5, AVX-512 VNNI) the thermometer product at 3,57
 thread took 0.56 s against 1.31 s for a direct sum of absolute differences compiled by Numba
 (LLVM, uint8 loops; ``benchmarks/bench_seqslam.py --kernels``), so it stays the kernel there
 in spite of doing 16x the arithmetic.
+
+The thermometer product itself has two forms (:func:`thermometer_product`), both exact: the
+int8 GEMM (``torch._int_mm``) on CUDA and on CPUs with AVX-512, and a float32 product
+elsewhere. On an AVX2-only AMD EPYC (Zen 3) one thread took 8.1 s for a 512 x 512 product of
+32,768-wide codes with ``torch._int_mm`` against 0.46 s in float32 (conversions included):
+oneDNN's int8 GEMM has no fast path there.
 """
 
 from __future__ import annotations
@@ -57,13 +63,26 @@ def int_mm_supported(a: torch.Tensor, b: torch.Tensor) -> bool:
     return a.shape[0] > 16 and a.shape[1] % 8 == 0 and b.shape[0] % 8 == 0
 
 
+def thermometer_product(device: torch.device | str) -> str:
+    """How the thermometer kernel multiplies its codes on ``device``: ``"int8"`` or ``"float32"``.
+
+    ``"int8"`` (``torch._int_mm``) on CUDA and on CPUs where torch reports AVX-512 (VNNI or
+    its int8 paths); ``"float32"`` on other CPUs (AVX2 alone, Arm), where oneDNN's int8 GEMM
+    measured 18x slower than the float32 product (module docstring). Both are exact.
+    """
+    if torch.device(device).type != "cpu":
+        return "int8"
+    return "int8" if torch.backends.cpu.get_cpu_capability().startswith("AVX512") else "float32"
+
+
 def _int_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``(M, K) int8 @ (N, K)^T int8 -> (M, N)`` exact int32.
 
-    ``torch._int_mm`` (private API, int32 accumulation) where :func:`int_mm_supported`, else
-    a float32 product, exact because the caller keeps every sum below 2**24.
+    ``torch._int_mm`` (private API, int32 accumulation) where :func:`thermometer_product` is
+    ``"int8"`` and :func:`int_mm_supported`, else a float32 product, exact because the caller
+    keeps every sum below 2**24.
     """
-    if int_mm_supported(a, b):
+    if thermometer_product(a.device) == "int8" and int_mm_supported(a, b):
         return torch._int_mm(a, b.T)
     return (a.float() @ b.float().T).round().to(torch.int32)
 

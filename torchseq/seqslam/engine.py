@@ -15,7 +15,11 @@ from torchseq.seqslam._parallel import resolve_threads, single_threaded_ops
 from torchseq.seqslam.banded import match_banded, preview
 from torchseq.seqslam.candidates import CandidateSeqSLAM, resolve_candidates
 from torchseq.seqslam.config import SeqSLAMConfig
-from torchseq.seqslam.difference import check_descriptors, difference_with_kernel
+from torchseq.seqslam.difference import (
+    check_descriptors,
+    difference_with_kernel,
+    thermometer_product,
+)
 from torchseq.seqslam.enhance import enhance_contrast
 from torchseq.seqslam.search import search, velocities
 
@@ -170,7 +174,7 @@ class SeqSLAM(nn.Module):
                 difference=None, enhanced=None, ranked=out["ranked"].cpu(),
                 best_score=out["best"].to(dtype).cpu(), seconds=seconds,
                 kernels={"difference": out["kernel"], "threads": out["threads"],
-                         "matrices": "banded"},
+                         "matrices": "banded", **_product(out["kernel"], self.device)},
                 preview=out["preview"].cpu(),
                 ranked_score=out["ranked_score"].to(dtype).cpu())
         seconds = {}
@@ -201,9 +205,15 @@ class SeqSLAM(nn.Module):
             matches=Matches(match.cpu(), ratio.cpu(), lower_is_better=True),
             difference=diff.cpu(), enhanced=enhanced.cpu(), ranked=ranked.cpu(),
             best_score=best.cpu(), seconds=seconds,
-            kernels={"difference": kernel, "threads": threads, "matrices": "full"},
+            kernels={"difference": kernel, "threads": threads, "matrices": "full",
+                     **_product(kernel, self.device)},
             preview=preview(enhanced).cpu(), ranked_score=ranked_score.cpu())
 
     def forward(self, reference: torch.Tensor, query: torch.Tensor) -> SeqSLAMResult:
         """Same as :meth:`match`."""
         return self.match(reference, query)
+
+
+def _product(kernel: str, device) -> dict:
+    """``{"product": "int8" | "float32"}`` when the thermometer kernel ran (else empty)."""
+    return {"product": thermometer_product(device)} if kernel == "thermometer" else {}
