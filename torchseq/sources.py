@@ -389,8 +389,9 @@ def is_event_file(path: str | Path) -> bool:
     return _is_event_file(Path(path))
 
 
-def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
-    from torchseq.events import load_event_frames
+def _event_frames(path: Path, opts: EventFrameOptions):
+    """The event file's frames as a :class:`torchseq.events.traverse.WindowFrames`."""
+    from torchseq.events.traverse import load_event_windows
 
     kwargs = {}
     if opts.sensor_size is not None:
@@ -420,8 +421,9 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
     if opts.time_unit is not None:  # a format without a time column refuses it by name
         kwargs["time_unit"] = opts.time_unit
     try:
-        return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
-                                 frame_size=opts.frame_size, **kwargs)
+        return load_event_windows(path, window_ms=opts.window_ms,
+                                  event_count=opts.event_count, frame_size=opts.frame_size,
+                                  **kwargs)
     except (ValueError, OSError, EOFError, IndexError, KeyError, TypeError, OverflowError,
             MemoryError, zipfile.BadZipFile, struct.error) as err:
         # whatever the event reader met in a damaged file, the traverse names it
@@ -529,15 +531,24 @@ def load_traverse_sizes(source: Source, sizes: dict[str, tuple[int, int] | None]
     thumb_size = None
     total: dict = {}
     select = select or FrameSelection()
+    last = None  # (frame, its sizes): an event file's empty windows are one zero frame
     for frame in iter_traverse(source, events, progress, select, total):
+        if last is not None and frame is last[0]:
+            for name, resized in last[1].items():
+                (thumbs if name is None else out[name]).append(resized)
+            continue
         x = torch.as_tensor(frame, dtype=torch.float32)[None]  # (1, H, W)
         if frame_size is None:
             frame_size = tuple(int(v) for v in x.shape[1:])
             thumb_size = thumbnail_size(frame_size, thumbnail) if thumbnail else None
+        made = {}
         for name, size in sizes.items():
-            out[name].append(x[0].clone() if size is None else resize(x, size)[0])
+            made[name] = x[0].clone() if size is None else resize(x, size)[0]
+            out[name].append(made[name])
         if thumb_size is not None:
-            thumbs.append(resize(x, thumb_size)[0].round().clamp(0, 255).to(torch.uint8))
+            made[None] = resize(x, thumb_size)[0].round().clamp(0, 255).to(torch.uint8)
+            thumbs.append(made[None])
+        last = (frame, made)
     result = {name: torch.stack(v) for name, v in out.items()}
     if thumbs:
         result["thumbnail"] = torch.stack(thumbs)
