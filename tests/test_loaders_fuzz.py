@@ -191,3 +191,24 @@ def test_event_times_of_any_span(tmp_path, times, window_ms, suffix):
     window = max(1, round(window_ms * 1000))
     assert x.shape == ((int(t[-1]) - int(t[0])) // window + 1, 16, 16)
     assert float(x.sum()) > 0 and bool(torch.isfinite(x).all())
+
+
+@FUZZ
+@given(dtype=st.sampled_from(["|u1", "|i1", "<u2", "<i4", "<i8", "<u8", "<f2", "<f4", "<f8"]),
+       raw=st.binary(min_size=24 * 8, max_size=24 * 8), suffix=st.sampled_from([".npy", ".npz"]))
+def test_frame_arrays_of_any_values(tmp_path, dtype, raw, suffix):
+    """Issue 23 item 2: frame arrays of any values load as 0..255 grey levels unchanged or
+    are refused by name."""
+    frames = np.frombuffer(raw, dtype=dtype)[:24].reshape(2, 3, 4)
+    path = tmp_path / f"values{suffix}"
+    if suffix == ".npz":
+        np.savez(path, frames=frames)
+    else:
+        np.save(path, frames)
+    try:
+        x = load_traverse(path, progress=False)
+    except TraverseError as err:
+        assert path.name in str(err), str(err)
+        return
+    assert float(x.min()) >= 0 and float(x.max()) <= 255
+    np.testing.assert_array_equal(x.numpy(), frames.astype(np.float32))

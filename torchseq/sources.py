@@ -370,6 +370,16 @@ def _frame_array(array: np.ndarray, path: Path) -> np.ndarray:
     return array
 
 
+def _check_grey_levels(frames: torch.Tensor, path: Path) -> None:
+    """Refuse a frame array file whose values are not grey levels in 0..255."""
+    lo, hi = float(frames.min()), float(frames.max())
+    if lo < 0 or hi > 255:
+        raise TraverseError(
+            f"{path}: frame arrays must hold grey levels in 0..255, found values "
+            f"{lo:.6g}..{hi:.6g}; rescale them (x * 255 for floats in [0, 1], x / 257 for "
+            f"16-bit counts) or save uint8 frames")
+
+
 def _is_event_file(path: Path) -> bool:
     """Sniff an event file: structured ``.npy``, ``.npz`` without ``frames``, or a suffix."""
     if path.suffix.lower() == ".npy":
@@ -476,9 +486,11 @@ def iter_traverse(source: Source, events: EventFrameOptions | None = None,
             total["events"] = True
         elif suffix == ".npy":
             frames = frames_from_array(_frame_array(load_npy(path, TraverseError), path), name)
+            _check_grey_levels(frames, path)
         elif suffix == ".npz":
             array = load_npz_member(path, "frames", TraverseError)
             frames = frames_from_array(_frame_array(array, path), name)
+            _check_grey_levels(frames, path)
         elif suffix in IMAGE_SUFFIXES:
             raise TraverseError(f"{path} is a single image; give the folder that holds the "
                                 f"traverse")
