@@ -248,7 +248,12 @@ def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None
         title: figure title.
     """
     ref, qry, idx = _np(reference), _np(query), _np(matches.reference)
-    matched = np.nonzero(idx >= 0)[0]
+    # a checkpoint of a longer route matches reference frames these frames do not hold
+    outside = int(((idx >= len(ref)) | (idx < -1)).sum())
+    matched = np.nonzero((idx >= 0) & (idx < len(ref)))[0]
+    if outside:
+        title += (f" ({outside} of {len(idx)} matches point past the {len(ref)} reference "
+                  f"frames: not shown)")
     pick = matched[np.linspace(0, len(matched) - 1, min(n, len(matched))).round().astype(int)] \
         if len(matched) else np.array([], int)
     fig, axes = _figure((2 * max(len(pick), 1), 4.2), 2, max(len(pick), 1), squeeze=False)
