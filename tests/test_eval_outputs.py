@@ -57,3 +57,29 @@ def test_checkpoint_of_a_longer_route_on_a_shorter_one_writes_its_plots(
     assert "it learnt 100 reference frames, this reference has 40" in err
     assert (tmp_path / "o" / "neural_matched_pairs.png").stat().st_size > 1000
     assert (tmp_path / "o" / "neural_activity.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("kind", ["folder", "array", "events", "video"])
+def test_start_past_the_end_says_how_many_frames_the_route_has(tmp_path, capsys, kind):
+    corridor = shared_data("corridor")
+    if kind == "folder":
+        src, n = corridor / "ref", 111
+    elif kind == "array":
+        src, n = tmp_path / "f.npy", 7
+        np.save(src, np.zeros((7, 4, 5), np.uint8))
+    elif kind == "events":
+        src, n = shared_data("events", "evt3_sample.raw"), 1
+    else:
+        import cv2
+
+        src, n = tmp_path / "v.avi", 12
+        writer = cv2.VideoWriter(str(src), cv2.VideoWriter_fourcc(*"MJPG"), 10, (32, 24))
+        for i in range(n):
+            writer.write(np.full((24, 32, 3), 20 * i, np.uint8))
+        writer.release()
+    code, _, err = run_eval(tmp_path, capsys, "--engine", "seqslam", "--reference", str(src),
+                            "--query", str(src), "--start", "500")
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert f"reference traverse {src}: no frame selected: the traverse has {n} frame" in lines[0]
+    assert f"must be below {n}" in lines[0] and "TensorList" not in lines[0]

@@ -357,7 +357,9 @@ def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -
                                            cfg.progress, select, thumbnail=THUMBNAIL)
     except (ValueError, OSError) as err:
         name = "demo" if not isinstance(source, (str, Path)) else source
-        raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
+        text = str(err).splitlines()[0]
+        text = text.removeprefix(f"{name}: ")  # the file named once
+        raise UsageError(f"{what} traverse {name}: {text}") from err
     return Traverse({k: v for k, v in frames.items() if k != "thumbnail"},
                     frames["thumbnail"], info)
 

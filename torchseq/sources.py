@@ -277,6 +277,8 @@ def iter_image_folder(folder: Path, progress: bool = True,
     """
     files = _image_files(folder)
     keep = (select or FrameSelection()).indices(len(files))
+    if len(keep) == 0:
+        raise TraverseError(_nothing_selected(folder, len(files), select))
     chosen = [files[i] for i in keep]
     first = None
     frames = _decoded_in_order(chosen, decode_workers(workers))
@@ -325,8 +327,17 @@ def iter_video(path: Path, progress: bool = True,
     finally:
         cap.release()
     if kept == 0:
+        if select != FrameSelection() and i > 0:
+            raise TraverseError(_nothing_selected(path, i, select))
         raise TraverseError(f"video {path} has no readable frames"
                             + (" in the selected range" if select != FrameSelection() else ""))
+
+
+def _nothing_selected(name, n: int, select: FrameSelection) -> str:
+    """The message for a frame selection that keeps nothing of ``n`` frames."""
+    return (f"{name}: no frame selected: the traverse has {n} frame{'s' * (n != 1)} "
+            f"(0..{n - 1}) and the selection starts at frame {select.start}; --start counts "
+            f"frames from 0 and must be below {n}")
 
 
 def load_image_folder(folder: Path, progress: bool = True,
@@ -499,7 +510,7 @@ def iter_traverse(source: Source, events: EventFrameOptions | None = None,
     total["n_total"] = len(frames)
     keep = select.indices(len(frames))
     if len(keep) == 0:
-        raise TraverseError(f"{name}: no frame in the selected range ({len(frames)} frames)")
+        raise TraverseError(_nothing_selected(name, len(frames), select))
     for i in keep:
         yield frames[i]
 
