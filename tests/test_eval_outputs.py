@@ -1,6 +1,7 @@
 """What an eval run leaves and says (issue 23): plots for a checkpoint of a longer route,
 a start past the end, interrupted runs, matches.csv columns, plot labels."""
 
+import json
 import shutil
 
 import numpy as np
@@ -83,3 +84,27 @@ def test_start_past_the_end_says_how_many_frames_the_route_has(tmp_path, capsys,
     assert code == 2 and len(lines) == 1, err
     assert f"reference traverse {src}: no frame selected: the traverse has {n} frame" in lines[0]
     assert f"must be below {n}" in lines[0] and "TensorList" not in lines[0]
+
+
+def test_ctrl_c_while_plotting_leaves_a_run_marked_incomplete(tmp_path, capsys, monkeypatch):
+    corridor = shared_data("corridor")
+    args = ["--engine", "seqslam", "--reference", str(corridor / "ref"), "--query",
+            str(corridor / "query"), "--ground-truth", str(corridor / "ground_truth.csv")]
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(plots, "plot_matched_pairs", interrupted)
+        code, _, err = run_eval(tmp_path, capsys, *args)
+    assert code == 130 and "interrupted" in err
+    out = tmp_path / "o"
+    assert (out / "matches.csv").exists() and (out / "config.json").exists()
+    assert (out / "INCOMPLETE").is_file()
+    assert "stopped before it finished" in (out / "INCOMPLETE").read_text()
+    assert json.loads((out / "metrics.json").read_text())["status"] == "incomplete"
+    # the same folder is taken back with --overwrite, and a finished run is marked so
+    code, _, err = run_eval(tmp_path, capsys, *args, "--overwrite")
+    assert code == 0, err
+    assert not (out / "INCOMPLETE").exists()
+    assert json.loads((out / "metrics.json").read_text())["status"] == "complete"

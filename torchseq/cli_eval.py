@@ -584,6 +584,7 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
         summary[name] = engine_metrics(r, gt, s.run.target_precision)
         if gt is not None:
             curves[name] = metrics.precision_recall_curve(r["matches"], gt)
+    summary["status"] = "incomplete"  # until the plots and logs are written too
     write_json(out / "metrics.json", summary)
     write_text(out / "matches.csv", matches_csv(results))
     write_text(out / "config.json", config_text(config_dict(s)) + "\n")
@@ -609,7 +610,24 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
         figures[k].clear()
     if s.run.tensorboard:
         log_tensorboard(s, out, summary, results, gt, images)
+    summary["status"] = "complete"
+    write_json(out / "metrics.json", summary)
     return summary
+
+
+INCOMPLETE = "INCOMPLETE"  # a run folder holding this file is partial: stopped or failed
+
+
+def mark_incomplete(out: Path) -> None:
+    """Leave ``OUT/INCOMPLETE`` until the run has written everything (see :func:`run`)."""
+    write_text(out / INCOMPLETE, "this run stopped before it finished (interrupted or failed): "
+               "its files are partial; metrics.json says \"status\": \"complete\" only "
+               "when every file was written\n")
+
+
+def mark_complete(out: Path) -> None:
+    """Remove ``OUT/INCOMPLETE``: the run wrote everything."""
+    (out / INCOMPLETE).unlink(missing_ok=True)
 
 
 def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
@@ -703,15 +721,19 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
                                 point.given)
     frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "eval", cfg.overwrite)
+    mark_incomplete(out)
     torch.manual_seed(cfg.seed)
     model = None
     if cfg.checkpoint and cfg.engine in ("neural", "both"):
         model = load_model(cfg.checkpoint, device)
     ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes)
     if grid:
-        return sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
+        code = sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
+        mark_complete(out)
+        return code
     results = run_engines(s, ref, query, device, notes, model)
     summary = report(s, ref, query, gt, source, results, out, notes)
+    mark_complete(out)
     for name in results:
         m = summary[name]
         r1 = "n/a (no ground truth)" if m.get("recall_at_1") is None else \

@@ -524,7 +524,7 @@ def run_folder(out: str | None, kind: str, overwrite: bool) -> Path:
         if not overwrite:
             raise UsageError(f"--out {path} already holds files; give a new folder or "
                              f"--overwrite to replace the previous run there")
-        if not (path / "config.json").is_file():
+        if not ((path / "config.json").is_file() or (path / "INCOMPLETE").is_file()):
             raise UsageError(f"--overwrite only replaces a previous run's folder (one with a "
                              f"config.json); {path} is not one")
         shutil.rmtree(path)
