@@ -1,6 +1,7 @@
 """What an eval run leaves and says (issue 23): plots for a checkpoint of a longer route,
 a start past the end, interrupted runs, matches.csv columns, plot labels."""
 
+import csv
 import json
 import shutil
 
@@ -108,3 +109,71 @@ def test_ctrl_c_while_plotting_leaves_a_run_marked_incomplete(tmp_path, capsys, 
     assert code == 0, err
     assert not (out / "INCOMPLETE").exists()
     assert json.loads((out / "metrics.json").read_text())["status"] == "complete"
+
+
+def corridor_truth(corridor):
+    """query -> admissible references, read from ground_truth.csv by hand."""
+    rows = csv.reader(open(corridor / "ground_truth.csv"))
+    next(rows)
+    return {int(q): {int(r) for r in refs.split()} for q, refs in rows}
+
+
+def test_matches_csv_has_correct_and_top_k_and_the_run_its_labels(tmp_path, capsys):
+    corridor = shared_data("corridor")
+    out = tmp_path / "o"
+    code = run_main(cli_eval.main, "eval.py", [
+        "--engine", "seqslam", "--reference", str(corridor / "ref"), "--query",
+        str(corridor / "query"), "--ground-truth", str(corridor / "ground_truth.csv"),
+        "--no-progress", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    truth = corridor_truth(corridor)
+    rows = list(csv.DictReader(open(out / "matches.csv")))
+    assert list(rows[0]) == ["engine", "query", "reference", "score", "correct", "candidates"]
+    assert len(rows) == 111
+    for row in rows:
+        q = int(row["query"])
+        expected = row["reference"] != "" and int(row["reference"]) in truth[q]
+        assert row["correct"] == str(int(expected))
+        cands = [int(c) for c in row["candidates"].split()]
+        assert len(cands) <= 5 and len(set(cands)) == len(cands)
+        if row["reference"] != "":
+            assert len(cands) == 5 and cands[0] == int(row["reference"])
+    m = json.loads((out / "metrics.json").read_text())
+    assert sum(int(r["correct"]) for r in rows) / 111 == pytest.approx(
+        m["seqslam"]["recall_at_1"])
+    # recall@5 from the candidates column equals metrics.json's
+    hit5 = [any(c in truth[int(r["query"])] for c in map(int, r["candidates"].split()))
+            for r in rows]
+    assert sum(hit5) / 111 == pytest.approx(m["seqslam"]["recall_at_5"])
+    # the HParams tab: a sub-run per engine holding the hparams summary
+    sub = out / "tensorboard" / "seqslam"
+    assert sub.is_dir() and any(b"hparams" in f.read_bytes() for f in sub.iterdir())
+    # a smaller K, and no correct column without ground truth
+    code = run_main(cli_eval.main, "eval.py", [
+        "--engine", "seqslam", "--reference", str(corridor / "ref"), "--query",
+        str(corridor / "query"), "--matches-top-k", "2", "--no-progress", "--no-tensorboard",
+        "--out", str(tmp_path / "k2")])
+    assert code == 0
+    rows = list(csv.DictReader(open(tmp_path / "k2" / "matches.csv")))
+    assert "correct" not in rows[0] and max(len(r["candidates"].split()) for r in rows) == 2
+
+
+def test_pr_legend_gives_auc_and_the_ring_matrix_its_axes():
+    from torchseq import metrics
+    from torchseq.ground_truth import alignment_ranges
+
+    m = Matches(torch.arange(20), torch.linspace(1, 0, 20), lower_is_better=False)
+    gt = alignment_ranges(20, 20, 1.0)
+    curve = metrics.precision_recall_curve(m, gt)
+    fig = plots.plot_pr_curves({"seqslam": curve})
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert labels == [f"seqslam (AUC {metrics.auc(curve):.3f})"]
+    fig = plots.plot_matrix(np.eye(4), "ring", xlabel="from output unit",
+                            ylabel="to output unit")
+    assert fig.axes[0].get_xlabel() == "from output unit"
+    assert fig.axes[0].get_ylabel() == "to output unit"
+    import inspect
+
+    from torchseq import cli_train
+    source = inspect.getsource(cli_train)
+    assert 'xlabel="from output unit (the current winner)"' in source

@@ -88,6 +88,7 @@ class EvalConfig(EventFlags):
     device: str = "cpu"
     tensorboard: bool = True
     progress: bool = True
+    matches_top_k: int = 5
 
 
 HELP = {
@@ -122,6 +123,8 @@ HELP = {
     "device": "cpu, cuda or auto",
     "tensorboard": "write TensorBoard logs",
     "progress": "show progress bars",
+    "matches_top_k": "matches.csv: the best K reference candidates of each query (the "
+                     "'candidates' column, best first; at most the K the engine ranks)",
     # SeqSLAMConfig fields whose docstring reads poorly as a flag
     "ds": "SeqSLAM sequence length in frames (rounded up to even)",
     "image_size": "SeqSLAM image size HxW after resizing",
@@ -131,7 +134,7 @@ LIMITS = {
     "tolerance": (0.0, 1e9), "gt_offset": (-1e9, 1e9), "target_precision": (0.0, 1.0),
     "demo_frames": (2, 20_000), "demo_speed": (0.01, 100.0), "seed": (0, 2 ** 32 - 1),
     "start": (0, 2 ** 40), "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40),
-    "max_frames": (1, 2 ** 40),
+    "max_frames": (1, 2 ** 40), "matches_top_k": (1, 1000),
 }
 THUMBNAIL = 160  # longer side of the frames kept for plots
 SEQSLAM_LIMITS = {
@@ -541,16 +544,29 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
             "frames_per_unit": per_unit}
 
 
-def matches_csv(results: dict) -> str:
-    """``engine,query,reference,score`` rows, empty reference and score where no match."""
+def matches_csv(results: dict, gt=None, top_k: int = 5) -> str:
+    """``engine,query,reference,score[,correct],candidates`` rows.
+
+    Empty reference and score where no match; ``correct`` (1/0, only with ground truth):
+    the ground truth admits the match; ``candidates``: the best ``top_k`` reference indices
+    the engine ranked, best first, space-separated.
+    """
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["engine", "query", "reference", "score"])
+    w.writerow(["engine", "query", "reference", "score", *(["correct"] if gt is not None
+                                                            else []), "candidates"])
     for name, r in results.items():
         ref = r["matches"].reference.cpu().numpy()
         score = r["matches"].score.cpu().numpy()
+        good = metrics.correct(r["matches"], gt) if gt is not None else None
+        ranked = np.asarray(r["ranked"].cpu() if torch.is_tensor(r["ranked"]) else r["ranked"])
+        ranked = ranked.reshape(len(ref), -1)[:, :top_k]
         for q, (i, s) in enumerate(zip(ref, score)):
-            w.writerow([name, q, int(i) if i >= 0 else "", f"{s:.6g}" if i >= 0 else ""])
+            row = [name, q, int(i) if i >= 0 else "", f"{s:.6g}" if i >= 0 else ""]
+            if good is not None:
+                row.append(int(good[q]))
+            row.append(" ".join(str(int(c)) for c in ranked[q] if c >= 0))
+            w.writerow(row)
     return buf.getvalue()
 
 
@@ -586,7 +602,7 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
             curves[name] = metrics.precision_recall_curve(r["matches"], gt)
     summary["status"] = "incomplete"  # until the plots and logs are written too
     write_json(out / "metrics.json", summary)
-    write_text(out / "matches.csv", matches_csv(results))
+    write_text(out / "matches.csv", matches_csv(results, gt, s.run.matches_top_k))
     write_text(out / "config.json", config_text(config_dict(s)) + "\n")
     figures = {}
     if "seqslam" in results:
@@ -643,6 +659,11 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
                     tb.add_scalar(f"{name}/{key}", value)
         for key, img in images.items():
             tb.add_image(key, img, dataformats="HWC")
+        for name in results:  # the HParams tab: this run's settings beside its results
+            tb.add_hparams(hparams(s, name), {
+                f"hparam/{name}/{k}": float(v) for k, v in summary[name].items()
+                if k in ("recall_at_1", "recall_at_5", "auc", "seconds")
+                and isinstance(v, (int, float)) and np.isfinite(v)}, run_name=name)
         if gt is None:
             return
         for name, r in results.items():
@@ -655,6 +676,20 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
             lo, hi = conf.min(), conf.max()
             pred = (conf - lo) / (hi - lo) if hi > lo else torch.ones_like(conf)
             tb.add_pr_curve(f"{name}/pr_curve", labels, pred.float())
+
+
+def hparams(s: Settings, engine: str) -> dict:
+    """TensorBoard hparams of one engine: the run's and that engine's scalar settings."""
+    section = to_jsonable(s.seqslam if engine == "seqslam" else s.neural)
+    flat = {**{k: v for k, v in to_jsonable(s.run).items()}, **{
+        f"{engine}.{k}": v for k, v in section.items()}}
+    out = {"engine": engine}
+    for k, v in flat.items():
+        if isinstance(v, (bool, int, float, str)):
+            out[k] = v
+        elif isinstance(v, (list, tuple)) and v and all(isinstance(x, (int, float)) for x in v):
+            out[k] = "x".join(str(x) for x in v)
+    return out
 
 
 def run_engines(s: Settings, ref, query, device, notes: Notes, model=None) -> dict:
