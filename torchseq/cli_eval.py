@@ -436,7 +436,9 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
                         f"{(n - 1) * w:g} ms of events); --window-ms {(n - 1) * w / ds:.3g} "
                         f"or less gives at least {ds} frames")
             else:
-                hint = f": the query recording is shorter than one {w:g} ms window"
+                hint = (f": the query recording is shorter than one {w:g} ms window; give "
+                        f"shorter windows (--window-ms) or a fixed number of events per frame "
+                        f"(--event-count N makes frames of N events each)")
         raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
                          + hint)
     size = s.seqslam.image_size
@@ -600,6 +602,7 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
         summary[name] = engine_metrics(r, gt, s.run.target_precision)
         if gt is not None:
             curves[name] = metrics.precision_recall_curve(r["matches"], gt)
+    mark_incomplete(out)  # before the first file: an interrupted run never looks finished
     summary["status"] = "incomplete"  # until the plots and logs are written too
     write_json(out / "metrics.json", summary)
     write_text(out / "matches.csv", matches_csv(results, gt, s.run.matches_top_k))
@@ -702,6 +705,7 @@ def run_engines(s: Settings, ref, query, device, notes: Notes, model=None) -> di
 def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: list[str],
           ref, query, gt, source, device, out: Path, notes: Notes, model=None) -> int:
     """Run every grid point; write sweep.csv (one row per setting and engine) and sweep.json."""
+    mark_incomplete(out)
     rows = []
     for point, flags in zip(points, grid):
         setting = " ".join(flags)
@@ -756,7 +760,6 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
                                 point.given)
     frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     out = run_folder(cfg.out, "eval", cfg.overwrite)
-    mark_incomplete(out)
     torch.manual_seed(cfg.seed)
     model = None
     if cfg.checkpoint and cfg.engine in ("neural", "both"):

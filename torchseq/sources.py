@@ -333,6 +333,17 @@ def iter_video(path: Path, progress: bool = True,
                             + (" in the selected range" if select != FrameSelection() else ""))
 
 
+def _check_not_text(path: Path) -> None:
+    """Refuse an empty or plain-text file named as a video before the decoder sees it."""
+    with open(path, "rb") as f:
+        head = f.read(512)
+    if not head:
+        raise TraverseError(f"{path}: an empty file, not a video")
+    if all(32 <= b < 127 or b in b"\t\r\n" for b in head):
+        raise TraverseError(f"{path}: a text file, not a video (it starts "
+                            f"{head[:40].decode('ascii').splitlines()[0]!r})")
+
+
 def _nothing_selected(name, n: int, select: FrameSelection) -> str:
     """The message for a frame selection that keeps nothing of ``n`` frames."""
     return (f"{name}: no frame selected: the traverse has {n} frame{'s' * (n != 1)} "
@@ -487,6 +498,7 @@ def iter_traverse(source: Source, events: EventFrameOptions | None = None,
             return
         suffix = path.suffix.lower()
         if suffix in VIDEO_SUFFIXES:
+            _check_not_text(path)
             cap = cv2.VideoCapture(str(path))
             total["n_total"] = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
             cap.release()
