@@ -80,3 +80,23 @@ def test_evt3_recording_shorter_than_one_window_suggests_the_flags(tmp_path, cap
     err = eval_error(tmp_path, capsys, "--reference", str(raw), "--query", str(raw))
     assert "shorter than one 10 ms window" in err
     assert "--window-ms" in err and "--event-count" in err
+
+
+def test_transposed_image_size_is_warned_once(tmp_path, capsys):
+    corridor = shared_data("corridor")
+    args = ["--engine", "seqslam", "--reference", str(corridor / "ref"), "--query",
+            str(corridor / "query"), "--no-progress", "--no-tensorboard"]
+    code = run_main(cli_eval.main, "eval.py", [*args, "--image-size", "64x32",
+                                               "--out", str(tmp_path / "t")])
+    err = capsys.readouterr().err
+    assert code == 0
+    want = ("--image-size 64x32 is height x width (64 high, 32 wide), the transposed shape of "
+            "these 120x160 frames (landscape); give --image-size 32x64")
+    assert err.count(want) == 1, err
+    assert any(want in w for w in json.loads(
+        (tmp_path / "t" / "metrics.json").read_text())["warnings"])
+    code = run_main(cli_eval.main, "eval.py", [*args, "--out", str(tmp_path / "d")])
+    assert code == 0 and "--image-size" not in capsys.readouterr().err
+    assert cli_eval.transposed_size((32, 32), (120, 160)) is None  # square: no orientation
+    assert cli_eval.transposed_size((24, 32), (120, 160)) is None
+    assert cli_eval.transposed_size((64, 32), (160, 120)) is None  # portrait frames

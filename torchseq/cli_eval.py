@@ -13,6 +13,7 @@ import argparse
 import csv
 import dataclasses
 import io
+import math
 import sys
 import time
 from dataclasses import dataclass
@@ -424,6 +425,25 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
     return ref, query, gt, source
 
 
+def transposed_size(size, frame_size) -> str | None:
+    """A warning when ``size`` ``(h, w)`` has the transposed aspect of ``frame_size`` ``(H, W)``.
+
+    OpenSeqSLAM and much of the literature write image sizes as width x height (64x32);
+    ``--image-size`` is height x width, so the transposed spelling squeezes landscape frames
+    into portrait images (corridor recall@1 0.441 -> 0.216).
+    """
+    (h, w), (fh, fw) = (int(v) for v in size), (int(v) for v in frame_size)
+    if h == w or fh == fw or (h > w) == (fh > fw):
+        return None
+    # closer to the frames' aspect when swapped?
+    if abs(math.log((w / h) / (fw / fh))) <= abs(math.log((h / w) / (fw / fh))):
+        return None
+    return (f"--image-size {h}x{w} is height x width ({h} high, {w} wide), the transposed "
+            f"shape of these {fh}x{fw} frames ({'landscape' if fw > fh else 'portrait'}); "
+            f"give --image-size {w}x{h} if you meant width x height (OpenSeqSLAM's 64x32 is "
+            f"32x64 here)")
+
+
 def run_seqslam(s: Settings, ref, query, device, notes: Notes):
     """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
     ds = s.seqslam.sequence_length
@@ -442,6 +462,9 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
         raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
                          + hint)
     size = s.seqslam.image_size
+    transposed = transposed_size(size, ref.info["frame_size"])
+    if transposed:
+        warn(PROG, transposed, notes)
     result = SeqSLAM(s.seqslam, device=device).match(ref.at(size), query.at(size),
                                                      progress=s.run.progress)
     # plots draw the engine's reduced copy (area averages, at most 1024 a side; the whole
