@@ -16,6 +16,7 @@ import io
 import math
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -411,17 +412,28 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
         source["selection"] = {"start": cfg.start, "stop": cfg.stop,
                                "frame_step": cfg.frame_step, "max_frames": cfg.max_frames}
     two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
+    causes: dict = {}  # one warning per cause: (kind, frame size) -> traverses, engine sizes
     for what, t in (("reference", ref), ("query", query)):
         fh, fw = t.info["frame_size"]
         for key, (h, w) in sizes.items():
             if h > fh or w > fw:
-                warn(PROG, f"{what} frames are {fh}x{fw}, smaller than the {key} an engine "
-                     f"reads: they are upsampled (set --image-size or --neural-input-size "
-                     f"to the frame size)", notes)
+                cause = ("small", fh, fw)
             elif two_channel and t.info.get("events") and h * fw != w * fh:
-                warn(PROG, f"{what} two-channel event frames are {fh}x{fw} (OFF | ON side by "
-                     f"side), resized to {key}: the halves change shape (set --image-size or "
-                     f"--neural-input-size to {fh}x{fw}, or a size of that shape)", notes)
+                cause = ("halves", fh, fw)
+            else:
+                continue
+            whats, keys = causes.setdefault(cause, ({}, {}))  # dicts: ordered sets
+            whats[what] = keys[key] = None
+    for (kind, fh, fw), (whats, keys) in causes.items():
+        what, key = " and ".join(whats), " and ".join(keys)
+        if kind == "small":
+            warn(PROG, f"{what} frames are {fh}x{fw}, smaller than the {key} an engine "
+                 f"reads: they are upsampled (set --image-size or --neural-input-size "
+                 f"to the frame size)", notes)
+        else:
+            warn(PROG, f"{what} two-channel event frames are {fh}x{fw} (OFF | ON side by "
+                 f"side), resized to {key}: the halves change shape (set --image-size or "
+                 f"--neural-input-size to {fh}x{fw}, or a size of that shape)", notes)
     return ref, query, gt, source
 
 
@@ -545,7 +557,10 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
             warn(PROG, problem, notes)
     else:
         model = NeuralSeqSLAM(s.neural, device=device)
-        model.fit(ref.at(s.neural.input_size), progress=cfg.progress)
+        with warnings.catch_warnings():  # one warning per cause: the run's own, below, names
+            warnings.filterwarnings(      # the flag (--neural-n-output)
+                "ignore", message=r"a route of \d+ frames on \d+ output units")
+            model.fit(ref.at(s.neural.input_size), progress=cfg.progress)
     size = model.config.input_size
     fit_seconds = time.perf_counter() - start
     n_ref = int(model.unit_to_reference[-1, 1])
@@ -757,6 +772,21 @@ def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: 
     return 0
 
 
+def progress_wanted(argv: list[str] | None, stream=None) -> bool:
+    """Progress bars only on a terminal: redirected logs get no carriage-return lines.
+
+    ``--progress`` given on the command line keeps them anywhere.
+    """
+    argv = sys.argv[1:] if argv is None else argv
+    stream = sys.stderr if stream is None else stream
+    return "--progress" in argv or bool(getattr(stream, "isatty", lambda: False)())
+
+
+def quiet(s: Settings) -> Settings:
+    """``s`` with progress bars off."""
+    return dataclasses.replace(s, run=dataclasses.replace(s.run, progress=False))
+
+
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """Entry point; returns the exit code (errors raise, see :func:`torchseq.frontend.run_main`).
 
@@ -767,6 +797,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     global PROG
     PROG = prog or PROG
     s, points, grid, specs = parse_args(argv)
+    if not progress_wanted(argv):
+        s, points = quiet(s), [quiet(p) for p in points]
     notes = WarningLog(PROG)  # the library's warnings and the front end's, once each
     with notes.capture():
         return run(s, points, grid, specs, notes)
