@@ -56,9 +56,12 @@ def test_sweep_json_counts_a_warning_of_every_point(tmp_path, capsys):
                               "--sweep", "neural_density=0.5,0.6", "--no-tensorboard",
                               "--out", str(out))
     assert code == 0, err
-    assert err.count("warning: a route of 40 frames on 4 output units") == 1
+    # one cause, one warning: the run's (naming --neural-n-output), not also fit's
+    assert err.count("warning: neural: 40 reference frames on 4 output units") == 1
+    assert "a route of 40 frames" not in err
     notes = json.loads((out / "sweep.json").read_text())["warnings"]
-    assert any(n.startswith("a route of 40 frames") and n.endswith("(2 times)") for n in notes)
+    assert any(n.startswith("neural: 40 reference frames") and n.endswith("(2 times)")
+               for n in notes)
 
 
 def test_log_counts_repeats_and_leaves_developer_warnings_alone(capsys, monkeypatch):

@@ -319,7 +319,6 @@ def test_a_recording_too_short_for_the_windows_says_what_fits(tmp_path, capsys):
 
 def test_event_crop_mode_and_filters_reach_the_traverse(tmp_path, capsys, monkeypatch):
     # a tiny synthetic recording: 300 ms on a 16x16 sensor, starting at sensor time 1 s
-    import torchseq.events as events
     from torchseq.events import EventStream, make_events, write_npz
 
     rng = np.random.default_rng(3)
@@ -327,14 +326,16 @@ def test_event_crop_mode_and_filters_reach_the_traverse(tmp_path, capsys, monkey
     t = np.sort(rng.integers(1_000_000, 1_300_000, n))
     write_npz(tmp_path / "e.npz", EventStream(make_events(
         t, rng.integers(0, 16, n), rng.integers(0, 16, n), rng.integers(0, 2, n)), (16, 16)))
+    import torchseq.events.traverse as traverse
+
     seen = []
-    real = events.load_event_frames
+    real = traverse.load_event_windows  # what load_traverse calls (empty windows kept sparse)
 
     def spy(path, **kwargs):
         seen.append(kwargs)
         return real(path, **kwargs)
 
-    monkeypatch.setattr(events, "load_event_frames", spy)
+    monkeypatch.setattr(traverse, "load_event_windows", spy)
     out = tmp_path / "o"
     code, err = run_inprocess(
         "eval", capsys, "--engine", "seqslam", "--reference", str(tmp_path / "e.npz"),

@@ -159,3 +159,56 @@ def test_headers_declaring_any_shape(tmp_path, shape, descr):
         load_ground_truth(path, 4, 4)
     except GroundTruthError as err:
         assert "h.npy" in str(err)
+
+
+@FUZZ
+@given(times=st.lists(st.integers(0, 2**42), min_size=1, max_size=6),
+       window_ms=st.sampled_from([0.05, 1.0, 10.0, 1000.0]),
+       suffix=st.sampled_from([".npz", ".aedat"]))
+def test_event_times_of_any_span(tmp_path, times, window_ms, suffix):
+    """Issue 23 item 1: frames follow the events present; a span too sparse to hold is refused
+    by name (never a MemoryError from a dense allocation sized by the time span)."""
+    from torchseq.events import EventStream, make_events, write_aedat2
+
+    t = np.sort(np.array(times, dtype=np.int64))
+    n = len(t)
+    ev = make_events(t, np.arange(n) % 128, np.arange(n) % 128, np.arange(n) % 2)
+    path = tmp_path / f"span{suffix}"
+    if suffix == ".npz":
+        np.savez(path, events=ev, sensor_size=np.array([128, 128]))
+    else:
+        t = t % 2**32  # AEDAT 2.0 stores time modulo 2**32 (the reader unwraps)
+        if (t[1:] < t[:-1]).any():
+            return
+        write_aedat2(path, EventStream(make_events(t, ev["x"], ev["y"], ev["p"]), (128, 128)))
+    opts = EventFrameOptions(window_ms=window_ms)
+    try:
+        x = load_traverse(path, events=opts, progress=False, size=(16, 16))
+    except TraverseError as err:
+        assert path.name in str(err), str(err)
+        assert not isinstance(err.__cause__, MemoryError), str(err)
+        return
+    window = max(1, round(window_ms * 1000))
+    assert x.shape == ((int(t[-1]) - int(t[0])) // window + 1, 16, 16)
+    assert float(x.sum()) > 0 and bool(torch.isfinite(x).all())
+
+
+@FUZZ
+@given(dtype=st.sampled_from(["|u1", "|i1", "<u2", "<i4", "<i8", "<u8", "<f2", "<f4", "<f8"]),
+       raw=st.binary(min_size=24 * 8, max_size=24 * 8), suffix=st.sampled_from([".npy", ".npz"]))
+def test_frame_arrays_of_any_values(tmp_path, dtype, raw, suffix):
+    """Issue 23 item 2: frame arrays of any values load as 0..255 grey levels unchanged or
+    are refused by name."""
+    frames = np.frombuffer(raw, dtype=dtype)[:24].reshape(2, 3, 4)
+    path = tmp_path / f"values{suffix}"
+    if suffix == ".npz":
+        np.savez(path, frames=frames)
+    else:
+        np.save(path, frames)
+    try:
+        x = load_traverse(path, progress=False)
+    except TraverseError as err:
+        assert path.name in str(err), str(err)
+        return
+    assert float(x.min()) >= 0 and float(x.max()) <= 255
+    np.testing.assert_array_equal(x.numpy(), frames.astype(np.float32))

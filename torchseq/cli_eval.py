@@ -13,8 +13,10 @@ import argparse
 import csv
 import dataclasses
 import io
+import math
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -110,6 +112,7 @@ class EvalConfig(EventFlags):
     map: str | None = None
     shards: int | None = None
     ray_address: str | None = None
+    matches_top_k: int = 5
 
 
 HELP = {
@@ -162,6 +165,8 @@ HELP = {
               "mode: needs --candidates K)",
     "ray_address": "Ray cluster to run --shards on (default: a local cluster started for "
                    "this run and stopped after it)",
+    "matches_top_k": "matches.csv: the best K reference candidates of each query (the "
+                     "'candidates' column, best first; at most the K the engine ranks)",
     # SeqSLAMConfig fields whose docstring reads poorly as a flag
     "ds": "SeqSLAM sequence length in frames (rounded up to even)",
     "image_size": "SeqSLAM image size HxW after resizing",
@@ -172,7 +177,7 @@ LIMITS = {
     "demo_frames": (2, 20_000), "demo_speed": (0.01, 100.0), "seed": (0, 2 ** 32 - 1),
     "start": (0, 2 ** 40), "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40),
     "max_frames": (1, 2 ** 40), "descriptor_batch": (1, 2 ** 20),
-    "shards": (1, 10 ** 5),
+    "shards": (1, 10 ** 5), "matches_top_k": (1, 1000),
 }
 THUMBNAIL = 160  # longer side of the frames kept for plots
 SEQSLAM_LIMITS = {
@@ -447,7 +452,9 @@ def load_traverse_for(source, what: str, cfg: EvalConfig, sizes: dict, select) -
                                            cfg.progress, select, thumbnail=THUMBNAIL)
     except (ValueError, OSError) as err:
         name = "demo" if not isinstance(source, (str, Path)) else source
-        raise UsageError(f"{what} traverse {name}: {str(err).splitlines()[0]}") from err
+        text = str(err).splitlines()[0]
+        text = text.removeprefix(f"{name}: ")  # the file named once
+        raise UsageError(f"{what} traverse {name}: {text}") from err
     members = None
     opts = event_frame_options(cfg)
     if opts.members_ms is not None and info.get("events"):
@@ -557,19 +564,30 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
         source["selection"] = {"start": cfg.start, "stop": cfg.stop,
                                "frame_step": cfg.frame_step, "max_frames": cfg.max_frames}
     two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
+    causes: dict = {}  # one warning per cause: (kind, frame size) -> traverses, engine sizes
     for what, t in (("reference", ref), ("query", query)):
         if t.descriptors is not None:
             continue
         fh, fw = t.info["frame_size"]
         for key, (h, w) in sizes.items():
             if h > fh or w > fw:
-                warn(PROG, f"{what} frames are {fh}x{fw}, smaller than the {key} an engine "
-                     f"reads: they are upsampled (set --image-size or --neural-input-size "
-                     f"to the frame size)", notes)
+                cause = ("small", fh, fw)
             elif two_channel and t.info.get("events") and h * fw != w * fh:
-                warn(PROG, f"{what} two-channel event frames are {fh}x{fw} (OFF | ON side by "
-                     f"side), resized to {key}: the halves change shape (set --image-size or "
-                     f"--neural-input-size to {fh}x{fw}, or a size of that shape)", notes)
+                cause = ("halves", fh, fw)
+            else:
+                continue
+            whats, keys = causes.setdefault(cause, ({}, {}))  # dicts: ordered sets
+            whats[what] = keys[key] = None
+    for (kind, fh, fw), (whats, keys) in causes.items():
+        what, key = " and ".join(whats), " and ".join(keys)
+        if kind == "small":
+            warn(PROG, f"{what} frames are {fh}x{fw}, smaller than the {key} an engine "
+                 f"reads: they are upsampled (set --image-size or --neural-input-size "
+                 f"to the frame size)", notes)
+        else:
+            warn(PROG, f"{what} two-channel event frames are {fh}x{fw} (OFF | ON side by "
+                 f"side), resized to {key}: the halves change shape (set --image-size or "
+                 f"--neural-input-size to {fh}x{fw}, or a size of that shape)", notes)
     return ref, query, gt, source
 
 
@@ -604,6 +622,25 @@ def check_descriptor_pair(ref: Traverse, query: Traverse) -> None:
                          f"descriptors {query.descriptors.shape[1]}: they must be the same size")
 
 
+def transposed_size(size, frame_size) -> str | None:
+    """A warning when ``size`` ``(h, w)`` has the transposed aspect of ``frame_size`` ``(H, W)``.
+
+    OpenSeqSLAM and much of the literature write image sizes as width x height (64x32);
+    ``--image-size`` is height x width, so the transposed spelling squeezes landscape frames
+    into portrait images (corridor recall@1 0.441 -> 0.216).
+    """
+    (h, w), (fh, fw) = (int(v) for v in size), (int(v) for v in frame_size)
+    if h == w or fh == fw or (h > w) == (fh > fw):
+        return None
+    # closer to the frames' aspect when swapped?
+    if abs(math.log((w / h) / (fw / fh))) <= abs(math.log((h / w) / (fw / fh))):
+        return None
+    return (f"--image-size {h}x{w} is height x width ({h} high, {w} wide), the transposed "
+            f"shape of these {fh}x{fw} frames ({'landscape' if fw > fh else 'portrait'}); "
+            f"give --image-size {w}x{h} if you meant width x height (OpenSeqSLAM's 64x32 is "
+            f"32x64 here)")
+
+
 def run_seqslam(s: Settings, ref, query, device, notes: Notes):
     """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
     ds = s.seqslam.sequence_length
@@ -616,12 +653,18 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
                         f"{(n - 1) * w:g} ms of events); --window-ms {(n - 1) * w / ds:.3g} "
                         f"or less gives at least {ds} frames")
             else:
-                hint = f": the query recording is shorter than one {w:g} ms window"
+                hint = (f": the query recording is shorter than one {w:g} ms window; give "
+                        f"shorter windows (--window-ms) or a fixed number of events per frame "
+                        f"(--event-count N makes frames of N events each)")
         raise UsageError(f"--ds {s.seqslam.ds} is longer than the query ({len(query)} frames)"
                          + hint)
     if s.run.map is not None:
         return run_seqslam_map(s, query, device, s.run.progress)
     size = s.seqslam.image_size
+    if ref.descriptors is None:
+        transposed = transposed_size(size, ref.info["frame_size"])
+        if transposed:
+            warn(PROG, transposed, notes)
     config = ranked_config(s.seqslam)
     if ref.descriptors is not None:
         result = SeqSLAM(config, device=device).match_descriptors(
@@ -728,7 +771,10 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
         model.fit(neural_input(ref.descriptors), progress=cfg.progress)
     else:
         model = NeuralSeqSLAM(s.neural, device=device)
-        model.fit(ref.at(s.neural.input_size), progress=cfg.progress)
+        with warnings.catch_warnings():  # one warning per cause: the run's own, below, names
+            warnings.filterwarnings(      # the flag (--neural-n-output)
+                "ignore", message=r"a route of \d+ frames on \d+ output units")
+            model.fit(ref.at(s.neural.input_size), progress=cfg.progress)
     size = model.config.input_size
     if ref.descriptors is not None and tuple(size) != (1, ref.descriptors.shape[1]):
         raise UsageError(f"the checkpoint's L1 takes {size[0]}x{size[1]} inputs, not "
@@ -764,16 +810,29 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
             "frames_per_unit": per_unit, "self_check": self_check}
 
 
-def matches_csv(results: dict) -> str:
-    """``engine,query,reference,score`` rows, empty reference and score where no match."""
+def matches_csv(results: dict, gt=None, top_k: int = 5) -> str:
+    """``engine,query,reference,score[,correct],candidates`` rows.
+
+    Empty reference and score where no match; ``correct`` (1/0, only with ground truth):
+    the ground truth admits the match; ``candidates``: the best ``top_k`` reference indices
+    the engine ranked, best first, space-separated.
+    """
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["engine", "query", "reference", "score"])
+    w.writerow(["engine", "query", "reference", "score", *(["correct"] if gt is not None
+                                                            else []), "candidates"])
     for name, r in results.items():
         ref = r["matches"].reference.cpu().numpy()
         score = r["matches"].score.cpu().numpy()
+        good = metrics.correct(r["matches"], gt) if gt is not None else None
+        ranked = np.asarray(r["ranked"].cpu() if torch.is_tensor(r["ranked"]) else r["ranked"])
+        ranked = ranked.reshape(len(ref), -1)[:, :top_k]
         for q, (i, s) in enumerate(zip(ref, score)):
-            w.writerow([name, q, int(i) if i >= 0 else "", f"{s:.6g}" if i >= 0 else ""])
+            row = [name, q, int(i) if i >= 0 else "", f"{s:.6g}" if i >= 0 else ""]
+            if good is not None:
+                row.append(int(good[q]))
+            row.append(" ".join(str(int(c)) for c in ranked[q] if c >= 0))
+            w.writerow(row)
     return buf.getvalue()
 
 
@@ -838,8 +897,10 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
             if single is not None:
                 summary[name]["versus_single_frame"] = metrics.sequence_vs_single(
                     r["matches"], single.matches, gt)
+    mark_incomplete(out)  # before the first file: an interrupted run never looks finished
+    summary["status"] = "incomplete"  # until the plots and logs are written too
     write_json(out / "metrics.json", summary)
-    write_text(out / "matches.csv", matches_csv(results))
+    write_text(out / "matches.csv", matches_csv(results, gt, s.run.matches_top_k))
     write_text(out / "config.json",
                config_text({**config_dict(s), VERSIONS_KEY: versions()}) + "\n")
     figures = {}
@@ -866,7 +927,24 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
         figures[k].clear()
     if s.run.tensorboard:
         log_tensorboard(s, out, summary, results, gt, images)
+    summary["status"] = "complete"
+    write_json(out / "metrics.json", summary)
     return summary
+
+
+INCOMPLETE = "INCOMPLETE"  # a run folder holding this file is partial: stopped or failed
+
+
+def mark_incomplete(out: Path) -> None:
+    """Leave ``OUT/INCOMPLETE`` until the run has written everything (see :func:`run`)."""
+    write_text(out / INCOMPLETE, "this run stopped before it finished (interrupted or failed): "
+               "its files are partial; metrics.json says \"status\": \"complete\" only "
+               "when every file was written\n")
+
+
+def mark_complete(out: Path) -> None:
+    """Remove ``OUT/INCOMPLETE``: the run wrote everything."""
+    (out / INCOMPLETE).unlink(missing_ok=True)
 
 
 def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
@@ -882,6 +960,11 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
                     tb.add_scalar(f"{name}/{key}", value)
         for key, img in images.items():
             tb.add_image(key, img, dataformats="HWC")
+        for name in results:  # the HParams tab: this run's settings beside its results
+            tb.add_hparams(hparams(s, name), {
+                f"hparam/{name}/{k}": float(v) for k, v in summary[name].items()
+                if k in ("recall_at_1", "recall_at_5", "auc", "seconds")
+                and isinstance(v, (int, float)) and np.isfinite(v)}, run_name=name)
         if gt is None:
             return
         for name, r in results.items():
@@ -896,6 +979,20 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
             tb.add_pr_curve(f"{name}/pr_curve", labels, pred.float())
 
 
+def hparams(s: Settings, engine: str) -> dict:
+    """TensorBoard hparams of one engine: the run's and that engine's scalar settings."""
+    section = to_jsonable(s.seqslam if engine == "seqslam" else s.neural)
+    flat = {**{k: v for k, v in to_jsonable(s.run).items()}, **{
+        f"{engine}.{k}": v for k, v in section.items()}}
+    out = {"engine": engine}
+    for k, v in flat.items():
+        if isinstance(v, (bool, int, float, str)):
+            out[k] = v
+        elif isinstance(v, (list, tuple)) and v and all(isinstance(x, (int, float)) for x in v):
+            out[k] = "x".join(str(x) for x in v)
+    return out
+
+
 def run_engines(s: Settings, ref, query, device, notes: Notes, model=None) -> dict:
     """Every engine the run asks for, by name (``model``: a loaded checkpoint)."""
     names = ["seqslam", "neural"] if s.run.engine == "both" else [s.run.engine]
@@ -906,6 +1003,7 @@ def run_engines(s: Settings, ref, query, device, notes: Notes, model=None) -> di
 def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: list[str],
           ref, query, gt, source, device, out: Path, notes: Notes, model=None) -> int:
     """Run every grid point; write sweep.csv (one row per setting and engine) and sweep.json."""
+    mark_incomplete(out)
     rows = []
     for point, flags in zip(points, grid):
         setting = " ".join(flags)
@@ -935,6 +1033,21 @@ def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: 
     return 0
 
 
+def progress_wanted(argv: list[str] | None, stream=None) -> bool:
+    """Progress bars only on a terminal: redirected logs get no carriage-return lines.
+
+    ``--progress`` given on the command line keeps them anywhere.
+    """
+    argv = sys.argv[1:] if argv is None else argv
+    stream = sys.stderr if stream is None else stream
+    return "--progress" in argv or bool(getattr(stream, "isatty", lambda: False)())
+
+
+def quiet(s: Settings) -> Settings:
+    """``s`` with progress bars off."""
+    return dataclasses.replace(s, run=dataclasses.replace(s.run, progress=False))
+
+
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     """Entry point; returns the exit code (errors raise, see :func:`torchseq.frontend.run_main`).
 
@@ -945,6 +1058,8 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     global PROG
     PROG = prog or PROG
     s, points, grid, specs = parse_args(argv)
+    if not progress_wanted(argv):
+        s, points = quiet(s), [quiet(p) for p in points]
     notes = WarningLog(PROG)  # the library's warnings and the front end's, once each
     with notes.capture():
         return run(s, points, grid, specs, notes)
@@ -987,10 +1102,13 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
                              f"effect on descriptors: the network's L1 takes the "
                              f"{ref.info['descriptor_dim']} values of each descriptor")
     if grid:
-        return sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
+        code = sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
+        mark_complete(out)
+        return code
     results = run_engines(s, ref, query, device, notes, model)
     single = single_frame_baseline(s, ref, query, device) if gt is not None else None
     summary = report(s, ref, query, gt, source, results, out, notes, single)
+    mark_complete(out)
     for name in results:
         print(summary_line(name, summary[name]))
     print(f"wrote {out / 'metrics.json'}, {out / 'matches.csv'} and plots to {out}")

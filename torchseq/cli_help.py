@@ -52,7 +52,7 @@ EVAL = (
      tuple(f"--neural-{n}" for n in NEURAL_OTHER)),
     ("events", EVENT_COMMON, EVENT_OTHER),
     ("outputs", ("--out", "--overwrite", "--sweep", "--tensorboard"),
-     ("--target-precision", "--progress")),
+     ("--target-precision", "--progress", "--matches-top-k")),
     ("advanced", (), ("--device", "--threads", "--max-chunk-elements", "--keep-matrices",
                       "--neural-eps", "--neural-chunk")),
 )

@@ -143,7 +143,10 @@ def log_training(cfg: TrainConfig, ncfg: NeuralConfig, model: NeuralSeqSLAM,
     figures = {
         "reference_activity": plots.plot_activity_raster(
             activity, log.winners, "output activity over the reference (winners marked)"),
-        "ring_shift_matrix": plots.plot_matrix(model.ring.shift, "learnt ring shift matrix"),
+        "ring_shift_matrix": plots.plot_matrix(
+            model.ring.shift, "learnt ring shift matrix",
+            xlabel="from output unit (the current winner)",
+            ylabel="to output unit (the next winner)"),
     }
     images = {k: plots.figure_to_array(f) for k, f in figures.items()}
     for k, f in figures.items():

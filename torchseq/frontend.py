@@ -571,7 +571,7 @@ def run_folder(out: str | None, kind: str, overwrite: bool) -> Path:
         if not overwrite:
             raise UsageError(f"--out {path} already holds files; give a new folder or "
                              f"--overwrite to replace the previous run there")
-        if not (path / "config.json").is_file():
+        if not ((path / "config.json").is_file() or (path / "INCOMPLETE").is_file()):
             raise UsageError(f"--overwrite only replaces a previous run's folder (one with a "
                              f"config.json); {path} is not one")
         shutil.rmtree(path)
@@ -614,7 +614,12 @@ def config_file_defaults(parser: argparse.ArgumentParser, path: str,
     defaults = {}
     for dest, value in flat.items():
         if dest not in dests or dest in ("help", "config"):
-            raise UsageError(f"--config {path}: unknown setting {dest!r}")
+            if {"inputs", "warnings"} <= set(data):
+                raise UsageError(f"--config {path}: this is a run's metrics.json, not a "
+                                 f"config; give the config.json beside it "
+                                 f"({Path(path).with_name('config.json')})")
+            raise UsageError(f"--config {path}: unknown setting {dest!r}"
+                             + _near_name(dest, dests))
         action = dests[dest]
         if value is None or isinstance(action, argparse.BooleanOptionalAction):
             if value is not None and not isinstance(value, bool):
@@ -633,6 +638,15 @@ def config_file_defaults(parser: argparse.ArgumentParser, path: str,
     return frozenset(defaults)
 
 
+def _near_name(dest: str, dests) -> str:
+    """``"; did you mean ds?"`` for the closest setting name, or ``""``."""
+    import difflib
+
+    names = [d for d in dests if d not in ("help", "config", "sweep")]
+    near = difflib.get_close_matches(dest, names, n=1, cutoff=0.6)
+    return f"; did you mean {near[0]}?" if near else ""
+
+
 def sweep_grid(specs: list[str], parser: argparse.ArgumentParser) -> list[list[str]]:
     """``["ds=10,20", "vmax=1.2,1.5"]`` -> one list of extra flags per grid point."""
     import itertools
@@ -647,7 +661,8 @@ def sweep_grid(specs: list[str], parser: argparse.ArgumentParser) -> list[list[s
         if not sep or not values.strip():
             raise UsageError(f"--sweep must look like name=v1,v2,..., got {spec!r}")
         if dest not in dests or dest in ("help", "config", "sweep", "out", "overwrite"):
-            raise UsageError(f"--sweep: {name!r} is not a setting of this script")
+            raise UsageError(f"--sweep: {name!r} is not a setting of this script"
+                             + _near_name(dest, dests))
         flag = "--" + dest.replace("_", "-")
         axes.append([[flag, v.strip()] for v in values.split(",")])
     grid = [sum(point, []) for point in itertools.product(*axes)]

@@ -231,6 +231,7 @@ def read_ground_truth_csv(path: Path, n_reference: int, n_query: int) -> np.ndar
         raise GroundTruthError(f"{path}: not a readable UTF-8 CSV ({err})") from None
     if not rows or [c.strip().lower() for c in rows[0][:2]] != ["query", "references"]:
         raise GroundTruthError(f"{path}: expected a 'query,references' header")
+    hint = _one_based_hint(rows[1:])
     for line, row in enumerate(rows[1:], start=2):
         if not row:
             continue
@@ -240,16 +241,31 @@ def read_ground_truth_csv(path: Path, n_reference: int, n_query: int) -> np.ndar
         except ValueError as err:
             raise GroundTruthError(f"{path}:{line}: not integer indices: {row}") from err
         if not 0 <= q < n_query:
-            raise GroundTruthError(f"{path}:{line}: query {q} outside 0..{n_query - 1}")
+            raise GroundTruthError(f"{path}:{line}: query {q} outside 0..{n_query - 1}{hint}")
         bad = [r for r in refs if not 0 <= r < n_reference]
         if bad:
             raise GroundTruthError(
-                f"{path}:{line}: reference {bad[0]} outside 0..{n_reference - 1}")
+                f"{path}:{line}: reference {bad[0]} outside 0..{n_reference - 1}{hint}")
         gt[refs, q] = True
         seen.add(q)
     if len(seen) != n_query:
-        raise GroundTruthError(f"{path}: covers {len(seen)} queries but the query has {n_query}")
+        raise GroundTruthError(f"{path}: covers {len(seen)} queries but the query has "
+                               f"{n_query}{hint}")
     return gt
+
+
+def _one_based_hint(rows: list) -> str:
+    """``"; indices are 0-based ..."`` for CSV rows whose indices never use 0, else ``""``."""
+    values = []
+    for row in rows:
+        try:
+            values += [int(row[0]), *(int(r) for r in (row[1].split() if len(row) > 1 else []))]
+        except (ValueError, IndexError):
+            return ""
+    if len(values) < 2 or min(values) < 1:
+        return ""
+    return ("; indices are 0-based (query 0 is the first frame) but this file never uses "
+            "index 0: if it counts from 1, subtract 1 from every index")
 
 
 def _index_list(value, path: Path, q: int, n_reference: int) -> list[int]:
@@ -307,6 +323,10 @@ def load_ground_truth(path: str | Path, n_reference: int, n_query: int,
     """
     n_reference, n_query = _check_counts(n_reference, n_query)
     path = Path(path)
+    if path.is_dir():
+        raise GroundTruthError(
+            f"{path} is a folder; --ground-truth takes a file: a CSV 'query,references', a "
+            f"(reference x query) 0/1 .npy matrix or a VPR-Bench per-query .npy")
     if not path.is_file():
         raise GroundTruthError(f"no such ground-truth file: {path}")
     suffix = path.suffix.lower()
@@ -316,9 +336,13 @@ def load_ground_truth(path: str | Path, n_reference: int, n_query: int,
             gt = read_vpr_bench(m, path, n_reference, n_query)
         else:
             if m.ndim != 2 or m.shape != (n_reference, n_query):
+                swapped = (m.ndim == 2 and n_reference != n_query
+                           and m.shape == (n_query, n_reference))
                 raise GroundTruthError(
                     f"{path}: matrix is {m.shape} but the traverses need (reference, query) = "
-                    f"({n_reference}, {n_query})")
+                    f"({n_reference}, {n_query})" + (
+                        ": it is the transposed shape; were --reference and --query swapped? "
+                        "(rows are reference frames, columns query frames)" if swapped else ""))
             if m.dtype.kind not in "biuf":
                 raise GroundTruthError(f"{path}: matrix dtype {m.dtype} is not numeric")
             if not np.isin(m, (0, 1)).all():

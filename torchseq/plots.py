@@ -20,7 +20,7 @@ from torchseq.area import area_mean
 from torchseq.atomic import atomic_path
 from torchseq.ground_truth import GroundTruthRanges, admits
 from torchseq.matches import Matches
-from torchseq.metrics import PRCurve
+from torchseq.metrics import PRCurve, auc
 
 
 def _figure(figsize, nrows: int = 1, ncols: int = 1, **kw):
@@ -171,11 +171,11 @@ def plot_difference_matrix(matrix, matches: Matches | None = None, gt=None,
 
 
 def plot_pr_curves(curves: dict[str, PRCurve]) -> Figure:
-    """Precision-recall curves, one line per engine."""
+    """Precision-recall curves, one line per engine, its AUC in the legend."""
     fig, ax = _figure((5, 4))
     for name, c in curves.items():
         ax.plot(np.r_[0.0, c.recall], np.r_[c.precision[:1] if len(c.precision) else [1.0],
-                                            c.precision], label=name)
+                                            c.precision], label=f"{name} (AUC {auc(c):.3f})")
     ax.set_xlabel("recall")
     ax.set_ylabel("precision")
     ax.set_xlim(0, 1)
@@ -212,12 +212,17 @@ def plot_activity_raster(activity, winners=None, title: str = "output activity")
     return fig
 
 
-def plot_matrix(matrix, title: str, cmap: str = "viridis") -> Figure:
-    """A plain heat map, e.g. the learnt ring shift matrix."""
+def plot_matrix(matrix, title: str, cmap: str = "viridis", xlabel: str | None = None,
+                ylabel: str | None = None) -> Figure:
+    """A plain heat map, e.g. the learnt ring shift matrix, with axis labels when given."""
     fig, ax = _figure((5, 5))
     im = ax.imshow(_np(matrix), cmap=cmap, interpolation="nearest")
     fig.colorbar(im, ax=ax, fraction=0.046)
     ax.set_title(title)
+    if xlabel:
+        ax.set_xlabel(xlabel)
+    if ylabel:
+        ax.set_ylabel(ylabel)
     fig.tight_layout()
     return fig
 
@@ -248,7 +253,12 @@ def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None
         title: figure title.
     """
     ref, qry, idx = _np(reference), _np(query), _np(matches.reference)
-    matched = np.nonzero(idx >= 0)[0]
+    # a checkpoint of a longer route matches reference frames these frames do not hold
+    outside = int(((idx >= len(ref)) | (idx < -1)).sum())
+    matched = np.nonzero((idx >= 0) & (idx < len(ref)))[0]
+    if outside:
+        title += (f" ({outside} of {len(idx)} matches point past the {len(ref)} reference "
+                  f"frames: not shown)")
     pick = matched[np.linspace(0, len(matched) - 1, min(n, len(matched))).round().astype(int)] \
         if len(matched) else np.array([], int)
     fig, axes = _figure((2 * max(len(pick), 1), 4.2), 2, max(len(pick), 1), squeeze=False)

@@ -285,6 +285,8 @@ def iter_image_folder(folder: Path, progress: bool = True,
     """
     files = _image_files(folder)
     keep = (select or FrameSelection()).indices(len(files))
+    if len(keep) == 0:
+        raise TraverseError(_nothing_selected(folder, len(files), select))
     chosen = [files[i] for i in keep]
     first = None
     frames = _decoded_in_order(chosen, decode_workers(workers))
@@ -333,8 +335,28 @@ def iter_video(path: Path, progress: bool = True,
     finally:
         cap.release()
     if kept == 0:
+        if select != FrameSelection() and i > 0:
+            raise TraverseError(_nothing_selected(path, i, select))
         raise TraverseError(f"video {path} has no readable frames"
                             + (" in the selected range" if select != FrameSelection() else ""))
+
+
+def _check_not_text(path: Path) -> None:
+    """Refuse an empty or plain-text file named as a video before the decoder sees it."""
+    with open(path, "rb") as f:
+        head = f.read(512)
+    if not head:
+        raise TraverseError(f"{path}: an empty file, not a video")
+    if all(32 <= b < 127 or b in b"\t\r\n" for b in head):
+        raise TraverseError(f"{path}: a text file, not a video (it starts "
+                            f"{head[:40].decode('ascii').splitlines()[0]!r})")
+
+
+def _nothing_selected(name, n: int, select: FrameSelection) -> str:
+    """The message for a frame selection that keeps nothing of ``n`` frames."""
+    return (f"{name}: no frame selected: the traverse has {n} frame{'s' * (n != 1)} "
+            f"(0..{n - 1}) and the selection starts at frame {select.start}; --start counts "
+            f"frames from 0 and must be below {n}")
 
 
 def load_image_folder(folder: Path, progress: bool = True,
@@ -378,6 +400,16 @@ def _frame_array(array: np.ndarray, path: Path) -> np.ndarray:
     return array
 
 
+def _check_grey_levels(frames: torch.Tensor, path: Path) -> None:
+    """Refuse a frame array file whose values are not grey levels in 0..255."""
+    lo, hi = float(frames.min()), float(frames.max())
+    if lo < 0 or hi > 255:
+        raise TraverseError(
+            f"{path}: frame arrays must hold grey levels in 0..255, found values "
+            f"{lo:.6g}..{hi:.6g}; rescale them (x * 255 for floats in [0, 1], x / 257 for "
+            f"16-bit counts) or save uint8 frames")
+
+
 def _is_event_file(path: Path) -> bool:
     """Sniff an event file: structured ``.npy``, ``.npz`` without ``frames``, or a suffix."""
     if path.suffix.lower() == ".npy":
@@ -397,8 +429,9 @@ def is_event_file(path: str | Path) -> bool:
     return _is_event_file(Path(path))
 
 
-def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
-    from torchseq.events import load_event_frames
+def _event_frames(path: Path, opts: EventFrameOptions):
+    """The event file's frames as a :class:`torchseq.events.traverse.WindowFrames`."""
+    from torchseq.events.traverse import load_event_windows
 
     kwargs = {}
     if opts.sensor_size is not None:
@@ -430,8 +463,9 @@ def _event_frames(path: Path, opts: EventFrameOptions) -> torch.Tensor:
     if opts.centred_ms is not None:
         kwargs["centred_ms"] = opts.centred_ms
     try:
-        return load_event_frames(path, window_ms=opts.window_ms, event_count=opts.event_count,
-                                 frame_size=opts.frame_size, **kwargs)
+        return load_event_windows(path, window_ms=opts.window_ms,
+                                  event_count=opts.event_count, frame_size=opts.frame_size,
+                                  **kwargs)
     except (ValueError, OSError, EOFError, IndexError, KeyError, TypeError, OverflowError,
             MemoryError, zipfile.BadZipFile, struct.error) as err:
         # whatever the event reader met in a damaged file, the traverse names it
@@ -474,6 +508,7 @@ def iter_traverse(source: Source, events: EventFrameOptions | None = None,
             return
         suffix = path.suffix.lower()
         if suffix in VIDEO_SUFFIXES:
+            _check_not_text(path)
             cap = cv2.VideoCapture(str(path))
             total["n_total"] = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
             cap.release()
@@ -484,9 +519,11 @@ def iter_traverse(source: Source, events: EventFrameOptions | None = None,
             total["events"] = True
         elif suffix == ".npy":
             frames = frames_from_array(_frame_array(load_npy(path, TraverseError), path), name)
+            _check_grey_levels(frames, path)
         elif suffix == ".npz":
             array = load_npz_member(path, "frames", TraverseError)
             frames = frames_from_array(_frame_array(array, path), name)
+            _check_grey_levels(frames, path)
         elif suffix in IMAGE_SUFFIXES:
             raise TraverseError(f"{path} is a single image; give the folder that holds the "
                                 f"traverse")
@@ -495,7 +532,7 @@ def iter_traverse(source: Source, events: EventFrameOptions | None = None,
     total["n_total"] = len(frames)
     keep = select.indices(len(frames))
     if len(keep) == 0:
-        raise TraverseError(f"{name}: no frame in the selected range ({len(frames)} frames)")
+        raise TraverseError(_nothing_selected(name, len(frames), select))
     for i in keep:
         yield frames[i]
 
@@ -539,15 +576,24 @@ def load_traverse_sizes(source: Source, sizes: dict[str, tuple[int, int] | None]
     thumb_size = None
     total: dict = {}
     select = select or FrameSelection()
+    last = None  # (frame, its sizes): an event file's empty windows are one zero frame
     for frame in iter_traverse(source, events, progress, select, total):
+        if last is not None and frame is last[0]:
+            for name, resized in last[1].items():
+                (thumbs if name is None else out[name]).append(resized)
+            continue
         x = torch.as_tensor(frame, dtype=torch.float32)[None]  # (1, H, W)
         if frame_size is None:
             frame_size = tuple(int(v) for v in x.shape[1:])
             thumb_size = thumbnail_size(frame_size, thumbnail) if thumbnail else None
+        made = {}
         for name, size in sizes.items():
-            out[name].append(x[0].clone() if size is None else resize(x, size)[0])
+            made[name] = x[0].clone() if size is None else resize(x, size)[0]
+            out[name].append(made[name])
         if thumb_size is not None:
-            thumbs.append(resize(x, thumb_size)[0].round().clamp(0, 255).to(torch.uint8))
+            made[None] = resize(x, thumb_size)[0].round().clamp(0, 255).to(torch.uint8)
+            thumbs.append(made[None])
+        last = (frame, made)
     result = {name: torch.stack(v) for name, v in out.items()}
     if thumbs:
         result["thumbnail"] = torch.stack(thumbs)

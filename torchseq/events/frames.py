@@ -40,6 +40,10 @@ MAX_FRAME_PIXELS = 2**24
 # a time anchor that leaves at least this many empty windows before the first event, and
 # more empty windows than full ones, is warned about (e.g. anchor='zero' on a late recording)
 EMPTY_LEAD_WARN = 100
+# frames whose windows are mostly empty (two events far apart: a pause, a damaged time stamp)
+# are refused beyond this many elements in all (1 GiB float32) before anything is allocated:
+# their size follows the time span, not the events the file holds
+MAX_SPARSE_ELEMENTS = 2**28
 
 
 def window_origin(t: np.ndarray, anchor: str | int = "first") -> int:
@@ -147,7 +151,44 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
             than ``MAX_FRAME_ELEMENTS`` elements in all (a far anchor, tiny windows), or a
             frame buffer of more than ``MAX_FRAME_PIXELS`` elements (``C * H * W`` as built:
             the pooled size when ``downsample`` divides the sensor, else the sensor's), as
-            from a header declaring a far larger sensor than its events use.
+            from a header declaring a far larger sensor than its events use, or frames of
+            more than ``MAX_SPARSE_ELEMENTS`` elements whose windows are mostly empty (the
+            message names the time span, the window and the windows holding events).
+    """
+    frames, _, _ = accumulate_windows(
+        events, sensor_size, window_us, event_count, mode, hot_pixel, refractory_us,
+        downsample, t_start, device, dtype, anchor, occupied_only=False)
+    return frames
+
+
+def accumulate_windows(events, sensor_size, window_us, event_count, mode, hot_pixel,
+                       refractory_us, downsample, t_start, device, dtype, anchor,
+                       occupied_only: bool, frame_elements: int | None = None
+                       ) -> tuple[torch.Tensor, np.ndarray, int]:
+    """:func:`accumulate`, optionally building only the windows that hold events.
+
+    Args:
+        events: as :func:`accumulate`.
+        sensor_size: as :func:`accumulate`.
+        window_us: as :func:`accumulate`.
+        event_count: as :func:`accumulate`.
+        mode: as :func:`accumulate`.
+        hot_pixel: as :func:`accumulate`.
+        refractory_us: as :func:`accumulate`.
+        downsample: as :func:`accumulate`.
+        t_start: as :func:`accumulate`.
+        device: as :func:`accumulate`.
+        dtype: as :func:`accumulate`.
+        anchor: as :func:`accumulate`.
+        occupied_only: build only the ``K`` windows holding events (the others are zero
+            frames), so memory follows the events, not the time span.
+        frame_elements: elements of one frame as the caller will hold it (for the
+            mostly-empty bound; default the frame as built here).
+
+    Returns:
+        ``(frames, windows, T)``: ``frames`` ``(K, ...)`` of the windows ``windows`` ``(K,)``
+        (increasing window indices) out of ``T`` windows in all; ``K == T`` and ``windows``
+        is ``arange(T)`` unless ``occupied_only``.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -204,10 +245,24 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
     geometry = _Geometry(out_w, out_h, fw, fh, channels)
     t_last = int(events["t"][-1]) if ordered else int(events["t"].max())
     n_frames = _count_windows(len(events), t_last, origin, window_us, event_count)
-    size = n_frames * channels * out_h * out_w
+    windows = None  # (K,) the windows built, None: all n_frames
+    elements = channels * out_h * out_w if frame_elements is None else frame_elements
+    if window_us is not None and (occupied_only or n_frames * elements > MAX_SPARSE_ELEMENTS):
+        wid = np.floor_divide(events["t"] - origin, int(window_us))  # (N,) window of each event
+        occupied = (wid[np.concatenate(([True], wid[1:] != wid[:-1]))] if ordered
+                    else np.unique(wid))
+        check_window_span(n_frames, len(occupied), elements, origin,
+                          int(events["t"][0]) if ordered else int(events["t"].min()), t_last,
+                          window_us)
+        if occupied_only and len(occupied) < n_frames:  # close the gaps: window k -> rank k
+            events = events.copy()
+            events["t"] -= (wid - np.searchsorted(occupied, wid)) * int(window_us)
+            windows = occupied
+    n_built = n_frames if windows is None else len(windows)
+    size = n_built * channels * out_h * out_w
     if size > MAX_FRAME_ELEMENTS:
         raise ValueError(
-            f"{n_frames} windows of {channels}x{out_h}x{out_w} would need {size:,} elements "
+            f"{n_built} windows of {channels}x{out_h}x{out_w} would need {size:,} elements "
             f"(> {MAX_FRAME_ELEMENTS:,}): use a later anchor, longer windows or downsample")
     if window_us is not None and origin < t_first:
         empty = (t_first - origin) // window_us  # windows that end before the first event
@@ -216,10 +271,12 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
                           f"({(t_first - origin) / 1e6:.1f} s) end before the first event (at "
                           f"{t_first} us) and are empty frames; anchor='first' starts at the "
                           f"first event", stacklevel=2)
+    if windows is None:
+        windows = np.arange(n_built)
     _, kernel = _kernel_for(dev)
-    frames = kernel(events, origin, window_us, event_count, n_frames, geometry,
+    frames = kernel(events, origin, window_us, event_count, n_built, geometry,
                     mode == "signed", acc, dev, ordered)
-    frames = frames.reshape(n_frames, channels, out_h, out_w)
+    frames = frames.reshape(n_built, channels, out_h, out_w)
     if mode == "binary":
         frames = (frames > 0).to(acc)
     if fh * fw > 1:
@@ -227,7 +284,38 @@ def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | 
     elif downsample is not None and (out_h, out_w) != (int(downsample[0]), int(downsample[1])):
         frames = F.adaptive_avg_pool2d(frames, (int(downsample[0]), int(downsample[1])))
     frames = frames.to(dtype)
-    return frames if channels == 2 else frames[:, 0]
+    return (frames if channels == 2 else frames[:, 0]), windows, n_frames
+
+
+def check_window_span(n_frames: int, occupied: int, frame_elements: int, origin: int,
+                      t_first: int, t_last: int, window_us: int) -> None:
+    """Refuse frames that are mostly empty windows and too many to hold.
+
+    Args:
+        n_frames: windows in all.
+        occupied: windows holding events.
+        frame_elements: elements of one frame as it will be held.
+        origin: sensor time (us) where window 0 starts.
+        t_first: the first event's time (us).
+        t_last: the last event's time (us).
+        window_us: the window length (us).
+
+    Raises:
+        ValueError: more than ``MAX_SPARSE_ELEMENTS`` elements in ``n_frames`` frames of
+            ``frame_elements`` each while fewer than half the windows hold events; the
+            message names the time span, the window and the remedies.
+    """
+    size = n_frames * frame_elements
+    if size > MAX_SPARSE_ELEMENTS and 2 * occupied < n_frames:
+        lead = (f"the window origin at {origin} us is {(t_first - origin) / 1e6:,.1f} s before "
+                f"the first event (use a later anchor); " if origin < t_first else "")
+        raise ValueError(
+            f"{n_frames:,} windows of {window_us / 1000:g} ms span {(t_last - origin) / 1e6:,.1f}"
+            f" s (events at {t_first}..{t_last} us) but only {occupied:,} of them hold events: "
+            f"the frames would need {size:,} elements ({size * 4 / 2**30:,.1f} GiB float32); "
+            f"{lead}crop the recording (start_ms/duration_ms, --t-start/--duration), use "
+            f"longer windows (--window-ms) or a fixed number of events per frame "
+            f"(--event-count)")
 
 
 class _Geometry:

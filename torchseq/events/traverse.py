@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchseq.events.frames import accumulate, sensor_wh, window_origin
+from torchseq.events.frames import accumulate_windows, sensor_wh, window_origin
 from torchseq.events.io import read_events
 from torchseq.events.stream import EventFormatError, EventStream
 
@@ -71,6 +71,66 @@ def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: in
         EventFormatError: no events in the crop (the message gives the recording's span).
         ValueError: bad mode, window or crop.
     """
+    return load_event_windows(path, window_ms, event_count, frame_size, sensor_size, mode,
+                              anchor, start_ms, duration_ms, hot_pixel, refractory_us,
+                              centred_ms, **options).dense()
+
+
+class WindowFrames:
+    """``(T, H, W)`` event frames of which only the windows holding events are stored.
+
+    A recording with long pauses (or two events far apart) has many empty windows; they are
+    zero frames made when asked for, so memory follows the events, not the time span.
+    ``len()`` is ``T`` and ``frames[i]`` is frame ``i`` ``(H, W)``, as from a tensor.
+
+    Args:
+        frames: ``(K, H, W)`` float32 frames of the windows holding events.
+        windows: ``(K,)`` their increasing window indices.
+        n_frames: ``T``, the windows in all.
+    """
+
+    def __init__(self, frames: torch.Tensor, windows: np.ndarray, n_frames: int) -> None:
+        self.frames, self.windows, self.n_frames = frames, np.asarray(windows), int(n_frames)
+        self._zero = torch.zeros(frames.shape[1:], dtype=frames.dtype)
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        i = int(i)
+        if not -self.n_frames <= i < self.n_frames:
+            raise IndexError(f"frame {i} of {self.n_frames}")
+        i %= self.n_frames
+        k = int(np.searchsorted(self.windows, i))
+        if k < len(self.windows) and self.windows[k] == i:
+            return self.frames[k]
+        return self._zero
+
+    def dense(self) -> torch.Tensor:
+        """All ``T`` frames as one ``(T, H, W)`` tensor."""
+        if len(self.windows) == self.n_frames:
+            return self.frames
+        out = torch.zeros((self.n_frames, *self.frames.shape[1:]), dtype=self.frames.dtype)
+        out[torch.from_numpy(self.windows.astype(np.int64))] = self.frames
+        return out
+
+
+def load_event_windows(path: str | Path, window_ms: float = 10.0,
+                       event_count: int | None = None,
+                       frame_size: tuple[int, int] | None = None,
+                       sensor_size: tuple[int, int] | None = None, mode: str = "count",
+                       anchor: str | int = "first", start_ms: float = 0.0,
+                       duration_ms: float | None = None, hot_pixel: float | None = None,
+                       refractory_us: int | None = None, centred_ms: float | None = None,
+                       **options) -> WindowFrames:
+    """:func:`load_event_frames`, keeping the empty windows sparse (:class:`WindowFrames`).
+
+    Raises:
+        EventFormatError: as :func:`load_event_frames`.
+        ValueError: as :func:`load_event_frames`, and frames of more than
+            ``MAX_SPARSE_ELEMENTS`` elements (``T`` frames at their output size) whose
+            windows are mostly empty (see :func:`torchseq.events.frames.check_window_span`).
+    """
     if mode not in TRAVERSE_MODES:
         raise ValueError(f"mode must be one of {', '.join(TRAVERSE_MODES)}, got {mode!r}")
     if event_count is None and not window_ms > 0:
@@ -85,25 +145,31 @@ def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: in
     if start_ms or duration_ms is not None:
         stream, anchor = crop_events(stream, anchor, start_ms, duration_ms, path)
     window_us = None if event_count is not None else max(1, int(round(window_ms * 1000)))
-    if centred_ms is not None:
+    if centred_ms is not None:  # an ensemble member: every window, dense (ensemble.py)
         if event_count is not None:
             raise ValueError("centred_ms (an ensemble member) needs time windows, not "
                              "event_count")
         frames = _centred_frames(stream, window_us, centred_ms, mode, anchor, hot_pixel,
                                  refractory_us)
+        n_frames = frames.shape[0]
+        windows = np.arange(n_frames)
     else:
-        frames = accumulate(stream, window_us=window_us, event_count=event_count, mode=mode,
-                            anchor=anchor, hot_pixel=hot_pixel, refractory_us=refractory_us)
+        channels = 2 if mode == "two_channel" else 1
+        elements = (None if frame_size is None
+                    else channels * int(frame_size[0]) * int(frame_size[1]))
+        frames, windows, n_frames = accumulate_windows(
+            stream, None, window_us, event_count, mode, hot_pixel, refractory_us, None, None,
+            None, torch.float32, anchor, occupied_only=True, frame_elements=elements)
     if mode == "binary":
         frames = frames * 255
     frames = frames.abs().clamp_(0, 255)
     if mode == "two_channel":  # (T, 2, H, W): pool each channel, then OFF | ON side by side
         if frame_size is not None:
             frames = accumulate_pool(frames.flatten(0, 1), frame_size).unflatten(0, (-1, 2))
-        return torch.cat([frames[:, 0], frames[:, 1]], dim=-1).to(torch.float32)
-    if frame_size is not None:
+        frames = torch.cat([frames[:, 0], frames[:, 1]], dim=-1)
+    elif frame_size is not None:
         frames = accumulate_pool(frames, frame_size)
-    return frames.to(torch.float32)
+    return WindowFrames(frames.to(torch.float32), windows, n_frames)
 
 
 def crop_events(stream: EventStream, anchor: str | int, start_ms: float,
