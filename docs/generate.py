@@ -40,14 +40,18 @@ def cli_page() -> str:
                  "a test fails when it is out of date). `torchseq COMMAND --help` shows the common",
                  "flags of a command, `--help-all` every flag, as below. How to use them:",
                  "[the guides](../guide/).\n"]
-        for name in COMMANDS:
-            buf = io.StringIO()
-            with redirect_stdout(buf):
-                try:
-                    main([name, "--help-all"])
-                except SystemExit:
-                    pass
-            parts += [f"## torchseq {name}\n", "```text", buf.getvalue().rstrip(), "```\n"]
+        for name in COMMANDS:  # map has subcommands (build, verify), each with its --help
+            calls = ([[name, sub, "--help"] for sub in ("build", "verify")] if name == "map"
+                     else [[name, "--help-all"]])
+            for argv in calls:
+                buf = io.StringIO()
+                with redirect_stdout(buf):
+                    try:
+                        main(argv)
+                    except SystemExit:
+                        pass
+                title = " ".join(argv[:-1])
+                parts += [f"## torchseq {title}\n", "```text", buf.getvalue().rstrip(), "```\n"]
     finally:
         if old is None:
             del os.environ["COLUMNS"]
