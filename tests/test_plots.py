@@ -151,3 +151,30 @@ def test_sparse_matrix_reduces_as_its_dense_form_with_blanks(shape, side):
     fig = plots.plot_difference_matrix(sparse, title="candidates")
     assert fig.axes[0].get_images()[0].get_array().shape == (min(shape[0], 512),
                                                              min(shape[1], 512))
+
+
+def test_true_units_follow_a_plain_loop_and_the_raster_draws_them():
+    """issue 23 item 14: the neural raster shows the ground truth as the units standing for an
+    admissible reference frame of each query (spans past the reference are clipped)."""
+    from torchseq.ground_truth import alignment_ground_truth
+    from torchseq.plots import plot_activity_raster, true_units
+
+    rng = np.random.default_rng(0)
+    gt = (rng.random((23, 17)) < 0.15).astype(np.uint8)  # (R, Q)
+    spans = np.array([[0, 3], [3, 5], [5, 9], [9, 10], [10, 16], [16, 23], [20, 30]])
+    want = np.array([[any(gt[r, q] for r in range(f, min(e, 23))) for f, e in spans]
+                     for q in range(17)])
+    got = true_units(gt, torch.tensor(spans), 17)
+    assert got.shape == (17, 7) and np.array_equal(got, want)
+    ranges = alignment_ground_truth(40, 30, 2)
+    dense = np.asarray(ranges.dense() if hasattr(ranges, "dense") else ranges)
+    spans2 = np.stack([np.arange(0, 40, 4), np.arange(4, 44, 4)], 1)
+    assert np.array_equal(true_units(ranges, spans2, 30), true_units(dense, spans2, 30))
+    assert true_units(gt, spans, 17, max_elements=100) is None
+    fig = plot_activity_raster(rng.random((17, 7)), truth=got)
+    lines = {line.get_label(): line for line in fig.axes[0].lines}
+    frames, units = np.nonzero(want)
+    assert np.array_equal(lines["ground truth"].get_xdata(), frames)
+    assert np.array_equal(lines["ground truth"].get_ydata(), units)
+    plain = plot_activity_raster(rng.random((17, 7))).axes[0].lines
+    assert "ground truth" not in {line.get_label() for line in plain}

@@ -804,7 +804,7 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
     ranked = model.unit_centre.cpu()[top.indices]
     preset = None if cfg.checkpoint else preset_name(cfg.neural_preset)
     return {"matches": result.matches, "ranked": ranked, "ranked_score": top.values,
-            "activity": result.activity,
+            "activity": result.activity, "unit_spans": model.unit_to_reference.cpu(),
             "seconds": run_seconds, "fit_seconds": fit_seconds, "preset": preset,
             "parameters": to_jsonable(model.config), "model_bytes": int(model.model_bytes()),
             "frames_per_unit": per_unit, "self_check": self_check}
@@ -911,8 +911,11 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
             + (" (banded run: reduced copy)" if r["matrix_reduced"] else ""),
             shape=r["matrix_shape"])
     if "neural" in results:
+        r = results["neural"]
+        truth = (None if gt is None else
+                 plots.true_units(gt, r["unit_spans"], r["activity"].shape[0]))
         figures["neural_activity"] = plots.plot_activity_raster(
-            results["neural"]["activity"], title="neural output activity over the query")
+            r["activity"], title="neural output activity over the query", truth=truth)
     for name, r in results.items():
         if ref.thumbnail is None or query.thumbnail is None:
             continue  # descriptor files and maps: no frames to show

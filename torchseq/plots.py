@@ -187,7 +187,8 @@ def plot_pr_curves(curves: dict[str, PRCurve]) -> Figure:
     return fig
 
 
-def plot_activity_raster(activity, winners=None, title: str = "output activity") -> Figure:
+def plot_activity_raster(activity, winners=None, title: str = "output activity",
+                         truth=None) -> Figure:
     """Output-unit activity over time with the winning unit marked (the seed's Figures 7 and 9).
 
     Args:
@@ -195,6 +196,8 @@ def plot_activity_raster(activity, winners=None, title: str = "output activity")
             :data:`PLOT_SIDE` a side for drawing).
         winners: ``(T,)`` winning unit per frame (default: the argmax).
         title: figure title.
+        truth: ``(T, N)`` bool, the units that stand for an admissible reference frame of
+            each query frame (:func:`true_units`), drawn under the winners; None: not drawn.
     """
     a = _np(activity)
     w = _np(winners) if winners is not None else a.argmax(1)
@@ -203,6 +206,10 @@ def plot_activity_raster(activity, winners=None, title: str = "output activity")
     # long runs: area-reduced first (as plot_difference_matrix), drawn in frame/unit coordinates
     ax.imshow(reduce_matrix(a.T), cmap="magma", aspect="auto", origin="lower",
               interpolation="nearest", extent=(-0.5, n_frames - 0.5, -0.5, n_units - 0.5))
+    if truth is not None:
+        frames, units = np.nonzero(np.asarray(truth))
+        ax.plot(frames, units, "s", ms=2, c="lime", alpha=0.35, mec="none",
+                label="ground truth")
     ax.plot(np.arange(len(w)), w, ".", ms=2, c="cyan", label="winner")
     ax.set_xlabel("frame")
     ax.set_ylabel("output unit")
@@ -308,3 +315,24 @@ def save_image(image: np.ndarray, path: str | Path) -> None:
         raise ValueError(f"cannot encode a {image.shape} image as PNG")
     with atomic_path(path) as tmp:
         tmp.write_bytes(png.tobytes())
+
+
+def true_units(gt, spans, n_query: int, max_elements: int = 2**26) -> np.ndarray | None:
+    """``(Q, N)`` bool: the units whose reference span holds an admissible frame of each query.
+
+    Args:
+        gt: ``(R, Q)`` 0/1 ground truth or a :class:`~torchseq.ground_truth.GroundTruthRanges`.
+        spans: ``(N, 2)`` first and one-past-last reference frame of each unit (a checkpoint
+            of a longer route may reach past ``R``: clipped).
+        n_query: ``Q``.
+        max_elements: above ``R * Q`` nothing is computed (None): a plot needs no more.
+    """
+    dense = gt.dense() if hasattr(gt, "dense") else None
+    shape = gt.shape if dense is None else dense.shape
+    if shape[0] * max(shape[1], n_query) > max_elements:
+        return None
+    m = np.asarray(dense if dense is not None else gt, dtype=bool)  # (R, Q)
+    count = np.zeros((m.shape[0] + 1, m.shape[1]), np.int64)
+    np.cumsum(m, axis=0, out=count[1:])
+    s = np.clip(_np(spans).astype(np.int64), 0, m.shape[0])
+    return (count[s[:, 1]] - count[s[:, 0]]).T > 0
