@@ -208,7 +208,7 @@ def plot_activity_raster(activity, winners=None, title: str = "output activity",
               interpolation="nearest", extent=(-0.5, n_frames - 0.5, -0.5, n_units - 0.5))
     if truth is not None:
         frames, units = np.nonzero(np.asarray(truth))
-        ax.plot(frames, units, "s", ms=2, c="lime", alpha=0.35, mec="none",
+        ax.plot(frames, units, "s", ms=3, c="lime", alpha=0.6, mec="none",
                 label="ground truth")
     ax.plot(np.arange(len(w)), w, ".", ms=2, c="cyan", label="winner")
     ax.set_xlabel("frame")
