@@ -411,14 +411,16 @@ class Traverse:
         return [m[size_key(size)] for m in self.members]
 
 
-def needed_sizes(settings: list[Settings], model=None) -> dict:
+def needed_sizes(settings: list[Settings], model=None, baseline: bool = True) -> dict:
     """Every frame size the run's engines read, by key.
 
-    SeqSLAM's size always: its descriptors are the single-frame baseline of every run.
+    ``baseline``: SeqSLAM's size always, since its descriptors are the single-frame baseline
+    of every run; False: only the sizes of the engines that run (what the warnings name).
     """
     sizes = {}
     for s in settings:
-        sizes[size_key(s.seqslam.image_size)] = tuple(s.seqslam.image_size)
+        if baseline or s.run.engine in ("seqslam", "both"):
+            sizes[size_key(s.seqslam.image_size)] = tuple(s.seqslam.image_size)
         if s.run.engine in ("neural", "both"):
             size = model.config.input_size if model is not None else s.neural.input_size
             sizes[size_key(size)] = tuple(size)
@@ -506,8 +508,12 @@ def selected_ground_truth(gt_full, ref: Traverse, query: Traverse):
     return gt_full[np.ix_(ref.info["indices"], query.info["indices"])]
 
 
-def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
-    """Reference and query traverses, ``(R, Q)`` ground truth (or None) and a description."""
+def load_data(cfg: EvalConfig, sizes: dict, notes: Notes, engine_sizes: dict | None = None):
+    """Reference and query traverses, ``(R, Q)`` ground truth (or None) and a description.
+
+    ``sizes``: every size to load; ``engine_sizes``: those the engines read, which the
+    small-frame warnings name (default: ``sizes``).
+    """
     select = frame_selection(cfg.start, cfg.stop, cfg.frame_step, cfg.max_frames)
     if cfg.dataset is not None:
         ds = open_place_dataset(cfg)
@@ -569,7 +575,7 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes):
         if t.descriptors is not None:
             continue
         fh, fw = t.info["frame_size"]
-        for key, (h, w) in sizes.items():
+        for key, (h, w) in (sizes if engine_sizes is None else engine_sizes).items():
             if h > fh or w > fw:
                 cause = ("small", fh, fw)
             elif two_channel and t.info.get("events") and h * fw != w * fh:
@@ -1086,7 +1092,8 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
     model = None
     if cfg.checkpoint and cfg.engine in ("neural", "both"):
         model = load_model(cfg.checkpoint, device)
-    ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes)
+    ref, query, gt, source = load_data(cfg, needed_sizes([s, *points], model), notes,
+                                       needed_sizes([s, *points], model, baseline=False))
     if ref.descriptors is not None and cfg.engine != "neural" and cfg.preset is None:
         default = SeqSLAMConfig()
         typed = [f"--{k.replace('_', '-')}" for k in ("image_size", "patch_size",
