@@ -1116,7 +1116,9 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
         mark_complete(out)
         return code
     results = run_engines(s, ref, query, device, notes, model)
-    single = single_frame_baseline(s, ref, query, device) if gt is not None else None
+    # the baseline needs the reference's descriptors: a map run reads none (sharded maps)
+    single = (single_frame_baseline(s, ref, query, device)
+              if gt is not None and s.run.map is None else None)
     summary = report(s, ref, query, gt, source, results, out, notes, single)
     mark_complete(out)
     for name in results:

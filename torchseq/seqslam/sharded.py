@@ -126,7 +126,9 @@ class GlobalRows:
         self.shape = torch.Size((int(n_ref), local.shape[1]))
         self.dtype, self.device = local.dtype, local.device
 
-    def __getitem__(self, rows: torch.Tensor) -> torch.Tensor:
+    def __getitem__(self, rows: torch.Tensor | slice) -> torch.Tensor:
+        if isinstance(rows, slice):  # the tile table reads a block of rows at once
+            rows = torch.arange(*rows.indices(self.shape[0]))
         rows = torch.as_tensor(rows)
         local = rows - self.offset
         if local.numel() and (int(local.min()) < 0 or int(local.max()) >= len(self.local)):
