@@ -80,3 +80,16 @@ def test_single_column_and_short_reference():
     np.testing.assert_allclose(got.numpy(), oracle_enhance(d.numpy(), 10, False), atol=1e-6)
     with pytest.raises(ValueError, match="finite"):
         enhance_contrast(torch.tensor([[1.0, float("inf")], [2.0, 3.0]]))
+
+
+def test_columns_of_very_different_scale_match_the_oracle():
+    """A tile whose smallest window variance is below the tile-wide threshold though no window
+    is suspect in its own column (a column of differences around 1e4 beside one around 1):
+    the exact pass has nothing to do. It raised on an empty reduction (seen on nordland-b,
+    summer + winter against winter + summer, exact mode at ds 20)."""
+    g = torch.Generator().manual_seed(0)
+    d = torch.empty(100, 2, dtype=torch.float64)
+    d[:, 0] = torch.rand(100, generator=g, dtype=torch.float64) * 1e4
+    d[:, 1] = torch.rand(100, generator=g, dtype=torch.float64)
+    got = enhance_contrast(d, 10)
+    np.testing.assert_allclose(got.numpy(), oracle_enhance(d.numpy(), 10), rtol=1e-9, atol=1e-9)

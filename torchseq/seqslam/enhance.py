@@ -97,11 +97,12 @@ def _enhance_tile(d: torch.Tensor, q0: int, q1: int, r0: int, n_seg: int, seg: i
     if bool(sq_rows.amin() <= SUSPECT_RTOL * total.amax()):  # rare: (nearly) flat windows
         suspect = (sq_dev <= SUSPECT_RTOL * total).view(n_cols, -1)[:, :rows]
         r, t = torch.nonzero(suspect, as_tuple=True)
-        mean, var = _exact(x, r, lo[t] - base, hi[t] - base)
-        flat = var == 0  # std 0 is defined as 0: num 0 over any positive sq_dev
-        k, t_seg = t // seg, t % seg
-        num[r, k, t_seg] = torch.where(flat, 0.0, x[r, t + half + 1] - mean)
-        sq_dev[r, k, t_seg] = torch.where(flat, 1.0, var * (n[k, t_seg] - 1))
+        if r.numel():  # the tile-wide test can pass with no window suspect in its own column
+            mean, var = _exact(x, r, lo[t] - base, hi[t] - base)
+            flat = var == 0  # std 0 is defined as 0: num 0 over any positive sq_dev
+            k, t_seg = t // seg, t % seg
+            num[r, k, t_seg] = torch.where(flat, 0.0, x[r, t + half + 1] - mean)
+            sq_dev[r, k, t_seg] = torch.where(flat, 1.0, var * (n[k, t_seg] - 1))
     z = num.to(d.dtype) * sq_dev.to(d.dtype).rsqrt_()
     z *= (n - 1).sqrt().to(d.dtype)
     return z.view(n_cols, -1)[:, :rows]
