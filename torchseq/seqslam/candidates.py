@@ -667,7 +667,6 @@ class CandidateSeqSLAM:
                              f"{c.ds}, got {n_query}")
         if self.layout == "per-window":
             return self._match_per_window(query, progress)
-        from torchseq.seqslam.engine import SeqSLAMResult
 
         ds = self.ds
         seconds = {"index": self.index_seconds}
@@ -691,11 +690,7 @@ class CandidateSeqSLAM:
             if bool(block.needed.any()):
                 floor = min(floor, float(table.block_values(cols, block).min()))
         floor = floor if math.isfinite(floor) else 0.0  # nothing evaluated: no match anywhere
-        dev = self.device
-        match = torch.full((n_query,), -1, dtype=torch.int64, device=dev)
-        best_score = torch.full((n_query,), math.nan, dtype=self.dtype, device=dev)
-        uniqueness = torch.full_like(best_score, math.nan)
-        ranked = torch.full((n_query, c.top_k), -1, dtype=torch.int64, device=dev)
+        match, best_score, uniqueness, ranked = self._outputs(n_query)
         for b0, b1, cols, block in tqdm(blocks, desc="candidate search", disable=not progress,
                                         leave=False):
             if len(block.rows) == 0:
@@ -707,18 +702,11 @@ class CandidateSeqSLAM:
             match[sl], best_score[sl], uniqueness[sl], ranked[sl] = out[:4]
         seconds["search"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
-        table.values -= floor
-        difference, enhanced = self._sparse(table, n_query)
-        return SeqSLAMResult(
-            matches=Matches(match.cpu(), uniqueness.cpu(), lower_is_better=True),
-            difference=difference, enhanced=enhanced, ranked=ranked.cpu(),
-            best_score=best_score.cpu(), seconds=seconds,
-            kernels={"layout": "shared", "blocks": len(blocks)})
+        return self._result(table, floor, (match, best_score, uniqueness, ranked), seconds,
+                            {"layout": "shared", "blocks": len(blocks)})
 
     def _match_per_window(self, query: torch.Tensor, progress: bool):
         """:meth:`match_descriptors` with every window in its own layout (checked query)."""
-        from torchseq.seqslam.engine import SeqSLAMResult
-
         c, ds = self.config, self.ds
         n_query = query.shape[0]
         seconds = {"index": self.index_seconds}
@@ -739,11 +727,7 @@ class CandidateSeqSLAM:
             vals = table.lookup(cols.T[:, :, None], rows[None])
             floor = min(floor, float(vals.min()))
         floor = floor if math.isfinite(floor) else 0.0  # nothing evaluated: no match anywhere
-        dev = self.device
-        match = torch.full((n_query,), -1, dtype=torch.int64, device=dev)
-        best_score = torch.full((n_query,), math.nan, dtype=self.dtype, device=dev)
-        uniqueness = torch.full_like(best_score, math.nan)
-        ranked = torch.full((n_query, c.top_k), -1, dtype=torch.int64, device=dev)
+        match, best_score, uniqueness, ranked = self._outputs(n_query)
         report = c.match_rule
         blocks = self._blocks(cand, block)
         for c0, c1, cols, rows, is_start in tqdm(blocks, total=-(-(n_query - ds) // block),
@@ -756,12 +740,29 @@ class CandidateSeqSLAM:
             match[sl], best_score[sl], uniqueness[sl], ranked[sl] = out[:4]
         seconds["search"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
+        return self._result(table, floor, (match, best_score, uniqueness, ranked), seconds,
+                            {"layout": "per-window"})
+
+    def _outputs(self, n_query: int) -> tuple[torch.Tensor, ...]:
+        """Empty ``match (Q,)``, ``best_score (Q,)``, ``uniqueness (Q,)``, ``ranked (Q, K)``."""
+        dev = self.device
+        match = torch.full((n_query,), -1, dtype=torch.int64, device=dev)
+        best_score = torch.full((n_query,), math.nan, dtype=self.dtype, device=dev)
+        ranked = torch.full((n_query, self.config.top_k), -1, dtype=torch.int64, device=dev)
+        return match, best_score, torch.full_like(best_score, math.nan), ranked
+
+    def _result(self, table: TileTable, floor: float, outputs: tuple, seconds: dict,
+                kernels: dict):
+        """The search's :class:`SeqSLAMResult`, its sparse matrices less the minimum ``floor``."""
+        from torchseq.seqslam.engine import SeqSLAMResult
+
+        match, best_score, uniqueness, ranked = outputs
         table.values -= floor
-        difference, enhanced = self._sparse(table, n_query)
+        difference, enhanced = self._sparse(table, ranked.shape[0])
         return SeqSLAMResult(
             matches=Matches(match.cpu(), uniqueness.cpu(), lower_is_better=True),
             difference=difference, enhanced=enhanced, ranked=ranked.cpu(),
-            best_score=best_score.cpu(), seconds=seconds, kernels={"layout": "per-window"})
+            best_score=best_score.cpu(), seconds=seconds, kernels=kernels)
 
     def _sparse(self, table: TileTable, n_query: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The table's entries as sparse ``(R, Q)`` COO tensors on CPU (raw, enhanced)."""
