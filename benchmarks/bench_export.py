@@ -28,10 +28,11 @@ from onnx import TensorProto, helper
 from torchseq.demo import make_demo
 from torchseq.export.int_format import encode
 from torchseq.export.int_model import device_frames, integer_model
-from torchseq.export.int_onnx import build_integer_onnx, session
+from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime
 from torchseq.export.int_stream import StreamRuntime
 from torchseq.export.onnx_float import build_float_onnx
+from torchseq.export.sessions import session
 from torchseq.export.validate import quantise_onnx
 from torchseq.layers import RingState
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM

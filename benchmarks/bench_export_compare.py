@@ -34,7 +34,8 @@ import torchseq
 from torchseq.demo import make_demo
 from torchseq.export.int_format import decode, encode
 from torchseq.export.int_model import device_frames, integer_model
-from torchseq.export.int_onnx import build_integer_onnx, session
+from torchseq.export.int_onnx import build_integer_onnx
+from torchseq.export.sessions import session
 from torchseq.export.int_runtime import IntegerRuntime
 from torchseq.export.int_stream import StreamRuntime
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM

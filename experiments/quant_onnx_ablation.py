@@ -24,8 +24,8 @@ import onnx
 import torch
 from onnxruntime.quantization import QuantType, quantize_dynamic
 
-from torchseq.export.int_onnx import session
-from torchseq.export.onnx_float import build_float_onnx, run_float_onnx
+from torchseq.export.onnx_float import build_float_onnx
+from torchseq.export.sessions import run_float_onnx, session
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.preprocess import resize, to_grey
 from torchseq.sources import load_traverse

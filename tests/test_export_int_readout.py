@@ -19,11 +19,12 @@ from torchseq.export.int_format import (
     decode,
     encode,
 )
-from torchseq.export.int_onnx import build_integer_onnx, run_integer_onnx, session
+from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime
 from torchseq.export.int_runtime import within_unit as within_unit_numpy
 from torchseq.export.int_step import within_unit as within_unit_torch
 from torchseq.export.int_stream import StreamRuntime
+from torchseq.export.sessions import run_integer_onnx, session
 from torchseq.neural.readout import _within_unit_numpy as float_within_unit
 
 INT32_MAX = 2**31 - 1

@@ -18,10 +18,11 @@ from int_oracle import oracle_step
 from torchseq.demo import make_demo
 from torchseq.export.int_format import IntegerFormatError, IntegerModel, read_integer_model
 from torchseq.export.int_model import choose_pool, device_frames, integer_model
-from torchseq.export.int_onnx import build_integer_onnx, session
+from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime
 from torchseq.export.int_step import IntegerStepModule, isqrt, kwta_code, round_div
 from torchseq.export.int_stream import StreamRuntime
+from torchseq.export.sessions import session
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -30,7 +30,7 @@ from torchseq.export.int_format import (
     read_integer_model,
 )
 from torchseq.export.int_model import device_frames, integer_model
-from torchseq.export.int_onnx import build_integer_onnx, run_integer_onnx, session
+from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime
 from torchseq.export.int_stream import StreamRuntime
 from torchseq.export.int_velocity import (
@@ -40,6 +40,7 @@ from torchseq.export.int_velocity import (
     velocity_ring,
     velocity_update,
 )
+from torchseq.export.sessions import run_integer_onnx, session
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 
 DATA = Path(__file__).parent / "data"

@@ -7,13 +7,12 @@ import torch
 from conftest import coarse_units_expected
 from export_helpers import small_setup
 
-from torchseq.export.int_onnx import session
 from torchseq.export.onnx_float import (
     StreamingStep,
     build_float_onnx,
     export_float_onnx,
-    run_float_onnx,
 )
+from torchseq.export.sessions import run_float_onnx, session
 from torchseq.export.validate import quantise_onnx
 from torchseq.preprocess import resize
 

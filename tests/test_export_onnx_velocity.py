@@ -16,13 +16,11 @@ from torchseq.demo import make_demo
 from torchseq.export import ExportError, export_checkpoint
 from torchseq.export.cli import main, summary_lines
 from torchseq.export.contract import read_contract
-from torchseq.export.int_onnx import session
 from torchseq.export.onnx_float import (
     StreamingStep,
     build_float_onnx,
-    run_float_onnx,
-    run_velocity_onnx,
 )
+from torchseq.export.sessions import run_float_onnx, run_velocity_onnx, session
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.preprocess import resize
 

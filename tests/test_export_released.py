@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from torchseq.export.int_format import FORMAT_VERSION, read_integer_model
-from torchseq.export.int_onnx import build_integer_onnx, run_integer_onnx, session
+from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime
+from torchseq.export.sessions import run_integer_onnx, session
 
 DATA = Path(__file__).resolve().parent / "data"
 

@@ -136,8 +136,8 @@ def test_integer_export_holds_the_interpolating_readout():
 
 @pytest.mark.parametrize("batch", [1, 3])
 def test_float_onnx_follows_the_interpolating_readout(batch):
-    from torchseq.export.int_onnx import session
     from torchseq.export.onnx_float import build_float_onnx
+    from torchseq.export.sessions import session
     from torchseq.preprocess import resize
 
     d = make_demo(n_reference=60, size=(24, 32), step=4.0)

@@ -23,11 +23,8 @@ import time
 from pathlib import Path
 
 from torchseq.atomic import write_json
+from torchseq.export.errors import ExportError
 from torchseq.versions import VERSIONS_KEY, versions, versions_line
-
-
-class ExportError(ValueError):
-    """Bad input to the exporter (unreadable checkpoint, query or ground truth)."""
 
 
 def _first_line(err: Exception) -> str:

@@ -11,7 +11,6 @@ import io
 import warnings
 from pathlib import Path
 
-import numpy as np
 import onnx
 import torch
 
@@ -113,70 +112,3 @@ def write_onnx(model: onnx.ModelProto, path: str | Path) -> int:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
     return len(data)
-
-
-def session(model: onnx.ModelProto | str | Path, threads: int = 1):
-    """An onnxruntime CPU session (``threads`` intra-op threads, one inter-op thread)."""
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    src = model.SerializeToString() if isinstance(model, onnx.ModelProto) else str(model)
-    return ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
-
-
-def run_step_session(sess, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stream a traverse ``(T, H, W)`` through a step graph (float or integer), frame by frame.
-
-    The state is fed back; its dtype (int32 or float32) is read off the graph.
-
-    Returns:
-        ``(reference (T,), confidence (T,), activity (T, N))``.
-    """
-    state_input = sess.get_inputs()[1]
-    dtype = np.int32 if state_input.type == "tensor(int32)" else np.float32
-    state = np.zeros((1, state_input.shape[1]), dtype)
-    refs, confs, acts = [], [], []
-    for t in range(frames.shape[0]):
-        act, state, ref, conf = sess.run(None, {"frames": frames[t:t + 1], "state": state})
-        refs.append(ref)
-        confs.append(conf)
-        acts.append(act)
-    return np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
-
-
-def run_integer_onnx(sess, frames: np.ndarray,
-                     speeds: bool = False) -> tuple[np.ndarray, ...]:
-    """Stream a ``(T, H, W)`` uint8 traverse through an integer session (int32 state).
-
-    A graph of the adaptive ring (inputs ``velocity``, ``positions``, ``count``) is fed its
-    estimator state back too.
-
-    Args:
-        sess: the integer graph's session.
-        frames: the traverse.
-        speeds: also return the speed after each frame (adaptive ring only).
-
-    Returns:
-        ``(reference (T,), confidence (T,), activity (T, N) int32)``, and ``speed (T,)``
-        int64 (``2**-16`` grid) with ``speeds``.
-    """
-    names = [i.name for i in sess.get_inputs()]
-    if not set(VELOCITY_INPUTS) <= set(names):
-        if speeds:
-            raise ValueError("speeds: the graph has the fixed ring (no speed estimate)")
-        return run_step_session(sess, frames)
-    n_units, window = sess.get_inputs()[1].shape[1], sess.get_inputs()[3].shape[1]
-    state = initial_velocity_state(1, n_units, window)
-    feed = dict(zip(["state", *VELOCITY_INPUTS], state))
-    refs, confs, acts, vs = [], [], [], []
-    for t in range(frames.shape[0]):
-        act, new, ref, conf, v, pos, n = sess.run(None, {"frames": frames[t:t + 1], **feed})
-        feed = {"state": new, "velocity": v, "positions": pos, "count": n}
-        refs.append(ref)
-        confs.append(conf)
-        acts.append(act)
-        vs.append(v)
-    out = np.concatenate(refs), np.concatenate(confs), np.concatenate(acts)
-    return (*out, np.concatenate(vs)) if speeds else out

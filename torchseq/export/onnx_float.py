@@ -23,12 +23,11 @@ import io
 import warnings
 from pathlib import Path
 
-import numpy as np
 import onnx
 import torch
 
-from torchseq.export.cli import ExportError
-from torchseq.export.int_onnx import run_step_session, write_onnx
+from torchseq.export.errors import ExportError
+from torchseq.export.int_onnx import write_onnx
 from torchseq.layers import RingState
 from torchseq.neural.inference import NeuralInference
 from torchseq.neural.velocity import VelocityState
@@ -131,44 +130,3 @@ def build_float_onnx(model) -> onnx.ModelProto:
 def export_float_onnx(model, path: str | Path) -> int:
     """Write the float streaming step to ``path`` (atomically); returns its size in bytes."""
     return write_onnx(build_float_onnx(model), path)
-
-
-def run_float_onnx(sess, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stream ``(T, h, w)`` float32 frames through a float session, feeding the state back.
-
-    Adaptive-velocity graphs (a ``velocity`` input) run through :func:`run_velocity_onnx`.
-
-    Returns:
-        ``(reference (T,), confidence (T,), activity (T, N))``.
-    """
-    if "velocity" in [i.name for i in sess.get_inputs()]:
-        return run_velocity_onnx(sess, frames)[:3]
-    return run_step_session(sess, frames)
-
-
-def run_velocity_onnx(sess, frames: np.ndarray):
-    """Stream ``(T, h, w)`` float32 frames through an adaptive-velocity float session.
-
-    The whole state (activity, velocity, positions, count) is fed back, from the start state
-    of :meth:`~torchseq.neural.velocity.VelocityTracker.initial` (window read off the graph).
-
-    Returns:
-        ``(reference (T,), confidence (T,), activity (T, N), velocity (T,))``: ``velocity[t]``
-        is the speed estimate after frame ``t`` (the one frame ``t + 1`` steps at).
-    """
-    inputs = {i.name: i for i in sess.get_inputs()}
-    n_units, window = inputs["state"].shape[1], inputs["positions"].shape[1]
-    state = [np.zeros((1, n_units), np.float32), np.ones(1), np.zeros((1, window)),
-             np.zeros(1, np.int64)]
-    names = FIXED_INPUTS[1:] + VELOCITY_INPUTS
-    refs, confs, acts, vels = [], [], [], []
-    for t in range(frames.shape[0]):
-        act, new_state, ref, conf, *rest = sess.run(
-            None, {"frames": frames[t:t + 1], **dict(zip(names, state))})
-        state = [new_state, *rest]
-        refs.append(ref)
-        confs.append(conf)
-        acts.append(act)
-        vels.append(rest[0])
-    return (np.concatenate(refs), np.concatenate(confs), np.concatenate(acts),
-            np.concatenate(vels))

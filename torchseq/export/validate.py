@@ -25,9 +25,10 @@ import torch
 
 from torchseq.export.int_format import read_integer_model, write_integer_model
 from torchseq.export.int_model import choose_pool, device_frames, integer_model
-from torchseq.export.int_onnx import build_integer_onnx, run_integer_onnx, session, write_onnx
+from torchseq.export.int_onnx import build_integer_onnx, write_onnx
 from torchseq.export.int_runtime import IntegerRuntime
-from torchseq.export.onnx_float import build_float_onnx, run_float_onnx
+from torchseq.export.onnx_float import build_float_onnx
+from torchseq.export.sessions import run_float_onnx, run_integer_onnx, session
 from torchseq.preprocess import resize, to_grey
 
 FLOAT_ONNX = "model_float.onnx"
