@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchseq.export.quantise import (
+from torchseq.quantise import (
     dequantise,
     fixed_point,
     fixed_point_array,
@@ -76,17 +76,18 @@ def test_bad_input():
 
 
 def test_one_quantiser_module_for_training_and_export():
-    import importlib
+    # the model's training grids and the exporter's grids are the objects of torchseq.quantise
+    import torchseq.export.int_model as int_model
+    import torchseq.neural.inference as inference
+    import torchseq.neural.learning as learning
+    import torchseq.neural.model as model
+    import torchseq.quantise as one
 
-    export_grids = importlib.import_module("torchseq.export.quantise")  # (the package's
-    training_grids = importlib.import_module("torchseq.neural.fixed_point")  # names shadow
-    one = importlib.import_module("torchseq.quantise")  # the modules as attributes)
-
-    for name in ("integer_weights", "round_rows", "factor_power_of_two", "factor_rows",
-                 "power_of_two_scale"):
-        assert getattr(training_grids, name) is getattr(one, name), name
-    for name in ("quantise", "integer_grid", "fixed_point", "fixed_point_array", "dequantise"):
-        assert getattr(export_grids, name) is getattr(one, name), name
+    for mod, name in ((model, "integer_weights"), (learning, "round_rows"),
+                      (inference, "factor_power_of_two"), (inference, "factor_rows"),
+                      (int_model, "quantise"), (int_model, "integer_grid"),
+                      (int_model, "fixed_point"), (int_model, "fixed_point_array")):
+        assert getattr(mod, name) is getattr(one, name), (mod.__name__, name)
 
 
 @pytest.mark.parametrize("as_tensor", [False, True])

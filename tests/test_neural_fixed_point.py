@@ -8,16 +8,9 @@ from torchseq.layers import kwta
 from torchseq.layers.kernels import Int8Linear, kwta_partition
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.neural.config import NeuralError
-from torchseq.neural.fixed_point import (
-    block_order,
-    factor_power_of_two,
-    factor_rows,
-    integer_weights,
-    quantise_input,
-    round_rows,
-    zscore_blocks,
-)
 from torchseq.neural.inference import int8_expected
+from torchseq.preprocess import block_order, quantise_input, zscore_blocks
+from torchseq.quantise import factor_power_of_two, factor_rows, integer_weights, round_rows
 
 
 def test_quantise_input_grid_and_identity():

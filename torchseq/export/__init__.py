@@ -21,7 +21,7 @@ from torchseq.export.int_runtime import IntegerRuntime, IntegerStep
 from torchseq.export.int_stages import IntegerInputError
 from torchseq.export.int_stream import StreamRuntime
 from torchseq.export.onnx_float import StreamingStep, build_float_onnx, export_float_onnx
-from torchseq.export.quantise import Quantised, dequantise, fixed_point, quantise
+from torchseq.quantise import Quantised, dequantise, fixed_point, quantise
 
 __all__ = [
     "FORMAT_VERSION", "ExportError", "IntegerFormatError", "IntegerInputError", "IntegerModel",

@@ -64,7 +64,8 @@ class NeuralConfig:
     :meth:`table1` gives the 20% L2 -> L3 mask and 5% winners; :meth:`dense_readout` adds
     ring decay 0.96 to the dense layer.
     The L1 input, the L1 weights and the L2 -> L3 weights sit on integer grids
-    (:mod:`torchseq.neural.fixed_point`): the L2 code is exact in float32 and in int8.
+    (:mod:`torchseq.quantise`, :func:`torchseq.preprocess.quantise_input`): the L2 code is
+    exact in float32 and in int8.
 
     Attributes:
         input_size: ``(H, W)`` the frames are resized to (L1 has ``H * W`` units).

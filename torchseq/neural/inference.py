@@ -49,11 +49,11 @@ from torchseq.layers import kernels as K
 from torchseq.layers.kernels import TIE_STEP, Int8Linear
 from torchseq.layers.ring import band_diagonals, ring_power, ring_scan, ring_step
 from torchseq.neural.config import NeuralError
-from torchseq.neural.fixed_point import factor_power_of_two, factor_rows
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralStep
 from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import block_order, zscore_pixel_major
+from torchseq.quantise import factor_power_of_two, factor_rows
 
 STAGES = ("input", "l1", "kwta", "l3", "cohorts", "ring", "scan", "decide")
 CHOICES = {

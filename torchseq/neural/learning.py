@@ -10,7 +10,7 @@ from collections.abc import Iterable
 import numpy as np
 import torch
 
-from torchseq.neural.fixed_point import round_rows
+from torchseq.quantise import round_rows
 
 
 def recruit_units(n_frames: int, n_units: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -227,7 +227,7 @@ def learn_readout(codes: Iterable[tuple[int, int, torch.Tensor]], unit_of_frame:
 
     Accumulates each unit's codes and the route's, then applies :func:`hebbian_weights`
     and, with ``levels``, rounds each row to its integer grid
-    (:func:`torchseq.neural.fixed_point.round_rows`).
+    (:func:`torchseq.quantise.round_rows`).
 
     Args:
         codes: ``(lo, hi, code (hi - lo, M))`` for consecutive stretches of frames

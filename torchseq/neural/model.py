@@ -23,7 +23,6 @@ from torchseq.matches import Matches
 from torchseq.neural import memory
 from torchseq.neural.checkpoint import load_model, save_checkpoint
 from torchseq.neural.config import NeuralConfig, NeuralError
-from torchseq.neural.fixed_point import integer_weights
 from torchseq.neural.inference import NeuralInference
 from torchseq.neural.learning import (
     cohort_membership,
@@ -38,6 +37,7 @@ from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
 from torchseq.neural.selfcheck import SELF_CHECK_FLOOR, disturbed, self_recall
 from torchseq.neural.velocity import VelocityState, VelocityTracker, adaptive_step
 from torchseq.preprocess import patch_normalise, quantise_input, resize, to_grey, zscore_blocks
+from torchseq.quantise import integer_weights
 
 __all__ = ["NeuralFitLog", "NeuralResult", "NeuralSeqSLAM", "NeuralStep", "seqslam_bytes"]
 

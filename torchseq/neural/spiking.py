@@ -150,7 +150,7 @@ def ladder(config: SpikingConfig, a_max: float) -> tuple[torch.Tensor, torch.Ten
 def l1_sum_grid(w1: torch.Tensor, input_steps: int, l1_levels: int) -> float | None:
     """The step ``q`` every L1 sum is a multiple of, or None where the sums are not on a grid.
 
-    With the model's integer grids (:mod:`torchseq.neural.fixed_point`: inputs multiples of
+    With the model's integer grids (:mod:`torchseq.quantise`: inputs multiples of
     ``1 / input_steps``, weights integers times one power of two ``s``) every sum is an
     integer times ``q = s / input_steps``, exact in float32 whatever the order.
 
