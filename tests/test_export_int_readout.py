@@ -19,10 +19,10 @@ from torchseq.export.int_format import (
     decode,
     encode,
 )
+from torchseq.export.int_functional import within_unit as within_unit_torch
+from torchseq.export.int_kernels import within_unit as within_unit_numpy
 from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime
-from torchseq.export.int_runtime import within_unit as within_unit_numpy
-from torchseq.export.int_step import within_unit as within_unit_torch
 from torchseq.export.int_stream import StreamRuntime
 from torchseq.export.sessions import run_integer_onnx, session
 from torchseq.neural.readout import _within_unit_numpy as float_within_unit
@@ -129,7 +129,7 @@ def test_the_model_is_written_as_version_2(interp):
 def test_every_integer_form_agrees_and_follows_the_oracle(interp):
     model, frames, im = interp
     ref, conf, act = IntegerRuntime(im).run(frames)
-    for other in (IntegerRuntime(im, kernel="module").run(frames), StreamRuntime(im).run(frames),
+    for other in (IntegerRuntime(im, kernel="torch").run(frames), StreamRuntime(im).run(frames),
                   run_integer_onnx(session(build_integer_onnx(im)), frames)):
         assert all(np.array_equal(x, y) for x, y in zip((ref, conf, act), other))
     state = [0] * im.params["n_units"]

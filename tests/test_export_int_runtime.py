@@ -12,9 +12,11 @@ from int_oracle import oracle_step
 
 from torchseq.demo import make_demo
 from torchseq.export import IntegerInputError
+from torchseq.export.int_functional import kwta_code
+from torchseq.export.int_kernels import input_stage, isqrt, round_div
 from torchseq.export.int_model import choose_pool, device_frames, integer_model
 from torchseq.export.int_onnx import build_integer_onnx
-from torchseq.export.int_runtime import IntegerRuntime, input_stage, isqrt, kwta_int, round_div
+from torchseq.export.int_runtime import IntegerRuntime
 from torchseq.export.sessions import run_integer_onnx, session
 from torchseq.layers.functional import kwta
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
@@ -89,13 +91,14 @@ def test_input_stage_is_the_float_zscore_on_a_fixed_grid():
     assert np.abs(x * step - z).max() <= step / 2 + 2e-3  # rounding plus the isqrt's 2**-8
 
 
-def test_kwta_int_matches_the_float_kwta_with_ties():
+@pytest.mark.parametrize("kernel", ["numpy", "torch"])
+def test_kwta_int_matches_the_float_kwta_with_ties(kernel):
     rng = np.random.default_rng(1)
     h = rng.integers(-5, 6, size=(50, 40)).astype(np.int32)  # many ties at the threshold
     for k in (1, 7, 40):
         want = kwta(torch.from_numpy(h).double(), k, binary=True).numpy() > 0
-        assert np.array_equal(kwta_int(h, k), want)
-        assert (kwta_int(h, k).sum(1) == k).all()
+        assert np.array_equal(np.asarray(kwta_code(h, k, kernel=kernel), bool), want)
+        assert (np.asarray(kwta_code(h, k, kernel=kernel), bool).sum(1) == k).all()
 
 
 def test_bit_exact_over_a_whole_traverse_batched():

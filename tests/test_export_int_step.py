@@ -17,10 +17,11 @@ from int_oracle import oracle_step
 
 from torchseq.demo import make_demo
 from torchseq.export.int_format import IntegerFormatError, IntegerModel, read_integer_model
+from torchseq.export.int_functional import isqrt, kwta_code, round_div
 from torchseq.export.int_model import choose_pool, device_frames, integer_model
 from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime
-from torchseq.export.int_step import IntegerStepModule, isqrt, kwta_code, round_div
+from torchseq.export.int_step import IntegerStepModule
 from torchseq.export.int_stream import StreamRuntime
 from torchseq.export.sessions import session
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
@@ -122,7 +123,7 @@ def test_module_equals_numpy_stream_and_onnx_on_a_larger_model():
     _, _, _, frames, im = small_setup()
     act, ref, conf = module_run(im, frames)
     for got in (IntegerRuntime(im).run(frames), StreamRuntime(im, chunk=16).run(frames),
-                IntegerRuntime(im, kernel="module").run(frames)):
+                IntegerRuntime(im, kernel="torch").run(frames)):
         assert np.array_equal(got[0], ref[:, 0]) and np.array_equal(got[1], conf[:, 0])
         assert np.array_equal(got[2], act[:, 0])
 
@@ -179,16 +180,16 @@ def test_runtime_kernel_is_chosen_at_construction(monkeypatch):
     ran = []
     forward, drive = IntegerStepModule.forward, IntegerRuntime.drive
     monkeypatch.setattr(IntegerStepModule, "forward",
-                        lambda self, *a: ran.append("module") or forward(self, *a))
+                        lambda self, *a: ran.append("torch") or forward(self, *a))
     monkeypatch.setattr(IntegerRuntime, "drive",
                         lambda self, *a: ran.append("numpy") or drive(self, *a))
     outs = {}
-    for kernel in ("numpy", "module"):
+    for kernel in ("numpy", "torch"):
         ran.clear()
         rt = IntegerRuntime(model, kernel=kernel)
         outs[kernel] = rt.run(frames)
         assert rt.kernel == kernel and set(ran) == {kernel}, ran
-    for a, b in zip(outs["numpy"], outs["module"]):
+    for a, b in zip(outs["numpy"], outs["torch"]):
         assert a.dtype == b.dtype and np.array_equal(a, b)
     with pytest.raises(ValueError, match="kernel"):
         IntegerRuntime(model, kernel="fast")
@@ -222,7 +223,7 @@ def test_dense_kernels_refuse_a_small_file_that_asks_for_gigabytes():
         with pytest.raises(IntegerFormatError, match=f"{what}.*memory budget"):
             build(model)
     # the definition's memory follows the file: it runs, and agrees with the oracle
-    rt = IntegerRuntime(model, kernel="module")
+    rt = IntegerRuntime(model, kernel="torch")
     frames = np.random.default_rng(3).integers(0, 256, (2, 7, 4681)).astype(np.uint8)
     out, state = rt.step(frames)
     out, state = rt.step(frames[::-1].copy(), state)

@@ -10,8 +10,9 @@ from conftest import coarse_units_expected
 from torchseq.demo import make_demo
 from torchseq.export import IntegerInputError
 from torchseq.export.int_format import X_MAX
+from torchseq.export.int_functional import input_stage, kwta_code
 from torchseq.export.int_model import device_frames, integer_model
-from torchseq.export.int_runtime import IntegerRuntime, input_stage, kwta_int
+from torchseq.export.int_runtime import IntegerRuntime
 from torchseq.export.int_stream import StreamRuntime
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 
@@ -51,11 +52,12 @@ def test_stream_runtime_errors():
         runtime.run(frames[:0])
 
 
-def test_kwta_int_ties_go_to_the_lowest_index():
+@pytest.mark.parametrize("kernel", ["numpy", "torch"])
+def test_kwta_int_ties_go_to_the_lowest_index(kernel):
     g = torch.Generator().manual_seed(0)
     h = torch.randint(-4, 5, (30, 200), generator=g).numpy().astype(np.int32)
     h[2] = 7  # all tied
-    win = kwta_int(h, 25)
+    win = kwta_code(h, 25, kernel=kernel)
     assert (win.sum(1) == 25).all()
     for row, w in zip(h, win):  # loop reference: sort by value, then by lower index
         order = sorted(range(200), key=lambda j: (-int(row[j]), j))[:25]
@@ -83,8 +85,9 @@ def input_stage_loop(frame: np.ndarray, p: dict) -> list[int]:
     return [v for row in out for v in row]
 
 
+@pytest.mark.parametrize("kernel", ["numpy", "torch"])
 @pytest.mark.parametrize("pool", [(1, 1), (2, 3), (5, 5)])
-def test_input_stage_equals_the_spec_loop(pool):
+def test_input_stage_equals_the_spec_loop(pool, kernel):
     im, _ = fitted()
     p = dict(im.params, pool_h=pool[0], pool_w=pool[1])
     g = np.random.default_rng(sum(pool))
@@ -97,14 +100,14 @@ def test_input_stage_equals_the_spec_loop(pool):
     # the model's constant takes the exact float64 path; a 45-bit one the int64 path
     for x_frac, const in ((5, p["norm_const"]), (9, p["norm_const"]), (5, 2**44 + 12345)):
         q = dict(p, x_frac=x_frac, norm_const=const)
-        got = input_stage(frames, q)
+        got = input_stage(frames, q, kernel=kernel)
         for t in range(frames.shape[0]):
             assert got[t].tolist() == input_stage_loop(frames[t], q)
 
 
 @pytest.mark.parametrize("scale", [1000, 2**30])
 def test_ring_scan_equals_the_step_rule_with_and_without_saturation(scale):
-    from torchseq.export.int_runtime import INT32_MAX, round_div
+    from torchseq.export.int_kernels import INT32_MAX, round_div
 
     im, _ = fitted()
     runtime = StreamRuntime(im)
@@ -112,7 +115,7 @@ def test_ring_scan_equals_the_step_rule_with_and_without_saturation(scale):
     got = runtime.ring_scan(g)
     a = np.zeros(runtime.n_units, np.int64)
     for t in range(g.shape[0]):  # the step's rule, literally
-        moved = (a[runtime.ring_cols] * runtime.ring_values).sum(-1)
+        moved = (a[runtime.runtime.ring_cols] * runtime.runtime.ring_values).sum(-1)
         a = np.clip(round_div(moved, np.int64(1) << im.params["ring_frac"]) + g[t],
                     -INT32_MAX, INT32_MAX)
         assert np.array_equal(got[t], a)

@@ -29,6 +29,7 @@ from torchseq.export.int_format import (
     encode,
     read_integer_model,
 )
+from torchseq.export.int_functional import velocity_ring, velocity_update
 from torchseq.export.int_model import device_frames, integer_model
 from torchseq.export.int_onnx import build_integer_onnx
 from torchseq.export.int_runtime import IntegerRuntime
@@ -37,8 +38,6 @@ from torchseq.export.int_velocity import (
     IntVelocityState,
     VelocityStepModule,
     initial_velocity_state,
-    velocity_ring,
-    velocity_update,
 )
 from torchseq.export.sessions import run_integer_onnx, session
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
@@ -188,7 +187,7 @@ def test_every_integer_form_follows_the_oracle_on_a_stream(setup):
     want = oracle_run(im, fr)
     ref, conf, act, speed = IntegerRuntime(im).run(fr, speeds=True)
     outs = {"numpy": (ref, conf, act, speed),
-            "module": IntegerRuntime(im, kernel="module").run(fr, speeds=True),
+            "module": IntegerRuntime(im, kernel="torch").run(fr, speeds=True),
             "stream": StreamRuntime(im).run_speeds(fr),
             "onnx": run_integer_onnx(session(build_integer_onnx(im)), fr, speeds=True)}
     for name, (r, c, a, v) in outs.items():
@@ -202,7 +201,7 @@ def test_every_integer_form_follows_the_oracle_on_a_stream(setup):
 def test_module_kernel_runs_the_velocity_step(setup):
     """STYLE habit 9: the module kernel is the version-3 definition, the NumPy one its own."""
     _, im, frames = setup
-    assert isinstance(IntegerRuntime(im, kernel="module").module, VelocityStepModule)
+    assert isinstance(IntegerRuntime(im, kernel="torch").module, VelocityStepModule)
     rt = IntegerRuntime(im)
     assert rt.module is None and rt.velocity is im.velocity
     out, state = rt.step(frames[0.8][:2])
