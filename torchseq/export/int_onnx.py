@@ -2,7 +2,8 @@
 
 The graph is not written by hand: it is ``torch.onnx.export`` of the one definition of the
 integer step, whose export branches (the two products as ``MatMulInteger``, ``isqrt`` bit by
-bit) live inside :mod:`torchseq.export.int_step`. Every tensor in the step is an integer.
+bit) live inside its stage functions, :mod:`torchseq.export.int_functional`. Every tensor in
+the step is an integer.
 """
 
 from __future__ import annotations
