@@ -14,8 +14,9 @@ from torchseq.demo import make_demo
 from torchseq.export import IntegerInputError
 from torchseq.export.int_model import choose_pool, device_frames, integer_model
 from torchseq.export.int_onnx import build_integer_onnx, run_integer_onnx, session
-from torchseq.export.int_runtime import IntegerRuntime, input_stage, isqrt, kwta_int, round_div
+from torchseq.export.int_runtime import IntegerRuntime, input_stage, isqrt, round_div
 from torchseq.layers.functional import kwta
+from torchseq.layers.kernels import kwta_numpy as kwta_int  # the integer runtime's k-WTA
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.preprocess import patch_normalise
 

@@ -11,8 +11,9 @@ from torchseq.demo import make_demo
 from torchseq.export import IntegerInputError
 from torchseq.export.int_format import X_MAX
 from torchseq.export.int_model import device_frames, integer_model
-from torchseq.export.int_runtime import IntegerRuntime, input_stage, kwta_int
+from torchseq.export.int_runtime import IntegerRuntime, input_stage
 from torchseq.export.int_stream import StreamRuntime
+from torchseq.layers.kernels import kwta_numpy
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 
 
@@ -55,7 +56,7 @@ def test_kwta_int_ties_go_to_the_lowest_index():
     g = torch.Generator().manual_seed(0)
     h = torch.randint(-4, 5, (30, 200), generator=g).numpy().astype(np.int32)
     h[2] = 7  # all tied
-    win = kwta_int(h, 25)
+    win = kwta_numpy(h, 25)
     assert (win.sum(1) == 25).all()
     for row, w in zip(h, win):  # loop reference: sort by value, then by lower index
         order = sorted(range(200), key=lambda j: (-int(row[j]), j))[:25]

@@ -31,7 +31,7 @@ from torchseq.export.int_velocity import (
     VelocityStepModule,
     initial_velocity_state,
 )
-from torchseq.layers.functional import kwta_numpy
+from torchseq.layers.kernels import kwta_numpy
 
 ISQRT_BITS = 31  # isqrt handles 0 <= v < 2**62; result bits 30..0
 INT32_MAX = 2**31 - 1
@@ -221,10 +221,6 @@ def within_unit(a: np.ndarray, unit: np.ndarray, spans: np.ndarray) -> np.ndarra
     return np.minimum(first + quot, last - 1)
 
 
-# binary k-WTA of int32 (B, M): the k largest, ties to the lowest indices (NumPy only)
-kwta_int = kwta_numpy
-
-
 class IntegerRuntime:
     """Run an integer model step by step (integer dtypes only).
 
@@ -391,7 +387,7 @@ class IntegerRuntime:
     def drive(self, frames: np.ndarray) -> np.ndarray:
         """The state-free stages: checked uint8 frames -> ``gain * z`` ``(B, N)`` int64."""
         p = self.params
-        win = kwta_int(self.hidden(input_stage(frames, p)), p["k"])
+        win = kwta_numpy(self.hidden(input_stage(frames, p)), p["k"])
         return self.gain_z(self.evidence(win))
 
     def decide(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

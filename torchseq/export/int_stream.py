@@ -5,7 +5,7 @@
 one stream of frames, but runs every state-free stage (:meth:`IntegerRuntime.drive`: input
 stage, L1, k-WTA, L3, cohort z-score and gain) on all frames at once and only the fixed-point
 ring frame by frame. The two products use oneDNN's int8 GEMM
-(:class:`torchseq.neural.fast.Int8Linear`) where their integers fit int8 and every sum stays
+(:class:`torchseq.layers.kernels.Int8Linear`) where their integers fit int8 and every sum stays
 below ``2**24`` (so the float32 result of the kernel is the exact integer); otherwise the
 NumPy runtime's own integer products. A model with the adaptive ring (format version 3)
 batches the same state-free stages; its ring, decision and speed estimate run frame by frame
@@ -27,7 +27,7 @@ from torchseq.export.int_runtime import (
     check_dense_budget,
 )
 from torchseq.export.int_stages import IntegerInputError
-from torchseq.neural.fast import Int8Linear
+from torchseq.layers.kernels import Int8Linear
 
 EXACT_F32 = 2**24  # integers below this are exact in float32
 
