@@ -133,6 +133,9 @@ class NeuralInference(nn.Module):
             self.w1_bf16 = (self.w1_t.to(torch.bfloat16)
                             if self._kernels["l1"] == "bfloat16_gemm" else None)
         self._encode = model.encode if self._kernels["input"] == "encode" else None
+        # the step's constants, read once here rather than per call
+        self._k, self._units = cfg.k, int(model.unit_centre.shape[0])
+        self._window = cfg.uniqueness_window
 
     # ------------------------------------------------------------------ kernel choice
     @property
@@ -268,7 +271,7 @@ class NeuralInference(nn.Module):
 
     def _l3(self, h: torch.Tensor) -> torch.Tensor:
         k = self._kernels
-        n = self.config.k
+        n = self._k
         name = k["l3"]
         if name == "int8_gemm_or_embedding_bag":
             name = "int8_gemm" if h.shape[0] >= SMALL_BATCH else "embedding_bag"
@@ -300,24 +303,30 @@ class NeuralInference(nn.Module):
         Raises:
             NeuralError: bad frames, or a state of another type or size.
         """
-        state = checked_state(state, frames.shape[0], self.n_units, self.tracker)
-        with torch.no_grad():
-            e = self.evidence(frames)
-            diag = self.diagonals if self._kernels["ring"] == "banded" else None
-            if self.tracker is not None:  # adaptive velocity (neural/velocity.py)
-                activity, reference, confidence, state = adaptive_step(
-                    e, self.tracker.initial(e) if state is None else state,
-                    self.shift.to(e.dtype), self.params, diag, self.decide, self.tracker)
-                return NeuralStep(reference, confidence, activity), state
-            if state is None:
-                state = RingState(torch.zeros_like(e))
-            activity, state = ring_step(e, state, self.shift.to(e.dtype), self.params, diag)
-            reference, confidence = decide(activity, self.unit_centre,
-                                           self.config.uniqueness_window, self._kernels["decide"],
-                                           self.spans)
-        return NeuralStep(reference, confidence, activity), state
+        state = checked_state(state, frames.shape[0], self._units, self.tracker)
+        if torch.is_grad_enabled():  # no autograd (inference_mode / no_grad: already off)
+            with torch.no_grad():
+                return self._step(frames, state)
+        return self._step(frames, state)
 
     forward = step
+
+    def _step(self, frames: torch.Tensor, state) -> tuple[NeuralStep, RingState]:
+        """:meth:`step` after its checks, autograd off."""
+        e = self.evidence(frames)
+        diag = self.diagonals if self._kernels["ring"] == "banded" else None
+        if self.tracker is not None:  # adaptive velocity (neural/velocity.py)
+            activity, reference, confidence, state = adaptive_step(
+                e, self.tracker.initial(e) if state is None else state,
+                self.shift.to(e.dtype), self.params, diag, self.decide, self.tracker)
+            return NeuralStep(reference, confidence, activity), state
+        if state is None:
+            state = RingState(torch.zeros_like(e))
+        shift = self.shift if diag is not None else self.shift.to(e.dtype)  # banded: unused
+        activity, state = ring_step(e, state, shift, self.params, diag)
+        reference, confidence = decide(activity, self.unit_centre, self._window,
+                                       self._kernels["decide"], self.spans)
+        return NeuralStep(reference, confidence, activity), state
 
     @torch.inference_mode()
     def run(self, query: torch.Tensor,
@@ -354,7 +363,7 @@ class NeuralInference(nn.Module):
     @property
     def n_units(self) -> int:
         """Output units ``N``."""
-        return self.unit_centre.shape[0]
+        return self._units
 
     def scan(self, evidence: torch.Tensor) -> torch.Tensor:
         """Ring activity ``(T, N)`` of one stream's evidence ``(T, N)`` from a zero start."""
