@@ -184,8 +184,7 @@ def step_stages(inf, f1, st):
         x = fn(x)
     stages = {name: (lambda fn=fn, x=x: fn(x)) for (name, fn), x in zip(calls, inputs)}
 
-    def inline():
-        clock = time.perf_counter
+    def inline(clock=time.perf_counter):
         x, spent = f1, []
         for _, fn in calls:
             t0 = clock()
@@ -279,8 +278,8 @@ def stages(repeats: int) -> list[str]:
             "identical decisions on the query."]
 
 
-def glue(rounds: int, number: int) -> list[str]:
-    """Part 3: the step against the sum of its kernels, paired rounds; decisions per second."""
+def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
+    """Part 3: the step against the sum of its kernels; decisions per second."""
     import statistics
 
     import torch
@@ -288,25 +287,44 @@ def glue(rounds: int, number: int) -> list[str]:
     model, small = setup()
     inf = model.inference()
     f1, fb = small[:1], small[:256]
+    clock = time.perf_counter
     with torch.inference_mode():
         _, st = inf.step(f1)
         _, sb = inf.step(fb)
         calls, inline = step_stages(inf, f1, st)
+        names = list(calls)
         calls = {**calls, "STEP": lambda: inf.step(f1, st)}
-        per = {name: [] for name in calls}  # seconds per call, one entry per round
+        # (a) hot loops: in each round every kernel, then the step, `number` calls in a row
+        per = {name: [] for name in calls}
         cpu = {name: [] for name in calls}
-        ratios, inside = [], []
+        ratios = []
         for _ in range(rounds):
             for name, fn in calls.items():
                 fn()
-                t0, c0 = time.perf_counter(), time.process_time()
+                t0, c0 = clock(), time.process_time()
                 for _ in range(number):
                     fn()
-                per[name].append((time.perf_counter() - t0) / number)
+                per[name].append((clock() - t0) / number)
                 cpu[name].append((time.process_time() - c0) / number)
-            kernel_sum = sum(per[n][-1] for n in calls if n != "STEP")
-            ratios.append(per["STEP"][-1] / kernel_sum)
-            inside.append([min(v) for v in zip(*(inline() for _ in range(number)))])
+            ratios.append(per["STEP"][-1] / sum(per[n][-1] for n in names))
+        # (b) inside the step: the chained kernels, then the step, one call each, alternated;
+        # CPU time of this process (a preempted call does not count its wait)
+        cpu_clock = time.process_time
+        empty = statistics.median(-(cpu_clock() - cpu_clock()) for _ in range(1000))
+        chain, step, pair, wall = [], [], [], []
+        for i in range(calls_in_step):
+            if i % 2:
+                spent = inline(cpu_clock)
+            t0, c0 = clock(), cpu_clock()
+            inf.step(f1, st)
+            one, w = cpu_clock() - c0, clock() - t0
+            if not i % 2:
+                spent = inline(cpu_clock)
+            spent = [max(s - empty, 0.0) for s in spent]
+            chain.append(spent)
+            step.append(max(one - empty, 0.0))
+            wall.append(w)
+            pair.append(step[-1] / sum(spent))
         eager = [best_time(lambda: model.step(f1, st), 1, max(1, number // 5))
                  for _ in range(max(3, rounds // 5))]
         many = [best_time(lambda: inf.step(fb, sb), 1, 2) for _ in range(max(3, rounds // 5))]
@@ -314,37 +332,41 @@ def glue(rounds: int, number: int) -> list[str]:
     def us(v):
         return f"{v * 1e6:.1f}"
 
-    names = [n for n in calls if n != "STEP"]
+    med = statistics.median
     lo = {n: min(per[n]) for n in calls}
-    med = {n: statistics.median(per[n]) for n in calls}
+    mid = {n: med(per[n]) for n in calls}
     cpu_lo = {n: min(cpu[n]) for n in calls}
-    in_lo = [min(col) for col in zip(*inside)]
-    rows = [f"| {n} | {us(lo[n])} | {us(med[n])} | {us(cpu_lo[n])} | {us(in_lo[i])} |"
+    inside = [med(col) for col in zip(*chain)]
+    sums = [sum(c) for c in chain]
+    rows = [f"| {n} | {us(lo[n])} | {us(mid[n])} | {us(cpu_lo[n])} | {us(inside[i])} |"
             for i, n in enumerate(names)]
-    k_lo, k_med = sum(lo[n] for n in names), sum(med[n] for n in names)
-    k_cpu, k_in = sum(cpu_lo[n] for n in names), sum(in_lo)
-    step_lo, step_med = lo["STEP"], med["STEP"]
+    k_lo, k_mid = sum(lo[n] for n in names), sum(mid[n] for n in names)
+    k_cpu = sum(cpu_lo[n] for n in names)
+    step_lo, step_mid = lo["STEP"], mid["STEP"]
+    quart = statistics.quantiles(pair, n=4)
     return [
-        f"{rounds} rounds; in each, every kernel and then the whole step run {number} times "
-        "(wall clock and this process's CPU time); the stage sum inside the step is the "
-        "same calls chained, a clock between stages, best of each stage.", "",
-        "| stage (chosen kernel, batch 1) | us, min | us, median | CPU us, min | "
-        "us inside the step, min |", "|---|---|---|---|---|", *rows,
-        f"| **sum of the stages' kernels** | **{us(k_lo)}** | **{us(k_med)}** | "
-        f"**{us(k_cpu)}** | **{us(k_in)}** |",
+        "| stage (chosen kernel, batch 1) | hot loop, us, min | hot loop, us, median | "
+        "hot loop, CPU us, min | inside the step, CPU us, median |", "|---|---|---|---|---|", *rows,
+        f"| **sum of the stages' kernels** | **{us(k_lo)}** | **{us(k_mid)}** | "
+        f"**{us(k_cpu)}** | **{us(med(sums))}** |",
         f"| **whole step** `inf.step(frame[None], state)` | **{us(step_lo)}** | "
-        f"**{us(step_med)}** | **{us(cpu_lo['STEP'])}** | |",
-        f"| **step / kernel sum** | **{step_lo / k_lo:.2f}x** | **{step_med / k_med:.2f}x** | "
-        f"**{cpu_lo['STEP'] / k_cpu:.2f}x** | {step_lo / k_in:.2f}x |", "",
-        f"Median of the {rounds} per-round ratios (step / kernel sum, wall clock): "
-        f"**{statistics.median(ratios):.2f}x** (min {min(ratios):.2f}x, max "
-        f"{max(ratios):.2f}x).", "",
+        f"**{us(step_mid)}** | **{us(cpu_lo['STEP'])}** | **{us(med(step))}** |",
+        f"| **step / kernel sum** | **{step_lo / k_lo:.2f}x** | **{step_mid / k_mid:.2f}x** | "
+        f"**{cpu_lo['STEP'] / k_cpu:.2f}x** | **{med(step) / med(sums):.2f}x** |", "",
+        f"Hot loops: {rounds} rounds, in each every kernel and then the whole step {number} "
+        f"times in a row (wall clock, and this process's CPU time); median of the per-round "
+        f"ratios {med(ratios):.2f}x (min {min(ratios):.2f}x). Inside the step: {calls_in_step} "
+        "single calls of the chained kernels (each stage's input the previous stage's "
+        "output, this process's CPU time read between stages, less one reading) alternated "
+        f"with single calls of the step; median of the per-pair ratios **{med(pair):.2f}x** "
+        f"(quartiles {quart[0]:.2f}x-{quart[2]:.2f}x"
+        f"); fastest step {us(min(step))} against fastest chain {us(min(sums))} CPU us.", "",
         "| decisions per second (one thread) | best | median |", "|---|---|---|",
-        f"| 1 stream, `inf.step` (batch 1) | {1 / step_lo:,.0f} | {1 / step_med:,.0f} |",
+        f"| 1 stream, `inf.step` (batch 1) | {1 / min(wall):,.0f} | {1 / med(wall):,.0f} |",
         f"| 256 streams, `inf.step` (batch 256) | {256 / min(many):,.0f} | "
-        f"{256 / statistics.median(many):,.0f} |",
+        f"{256 / med(many):,.0f} |",
         f"| 1 stream, `model.step` (the eager layers, the definition) | {1 / min(eager):,.0f} | "
-        f"{1 / statistics.median(eager):,.0f} |",
+        f"{1 / med(eager):,.0f} |",
     ]
 
 
@@ -356,6 +378,8 @@ def main(argv=None) -> str:
                    help="another checkout to measure beside this one ('none': skip)")
     p.add_argument("--glue-rounds", type=int, default=60)
     p.add_argument("--number", type=int, default=20, help="calls per timing in the glue part")
+    p.add_argument("--calls-in-step", type=int, default=3000,
+                   help="single calls of the chained kernels and of the step (glue part)")
     p.add_argument("--no-docs", action="store_true",
                    help="do not update docs/results/neural-step.md")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
@@ -374,7 +398,7 @@ def main(argv=None) -> str:
     other = Path(args.compare)
     if args.compare != "none" and other.exists() and other.resolve() != ROOT:
         lines += compare(other.resolve(), args.rounds, args.repeats) + [""]
-    lines += glue(args.glue_rounds, args.number) + [""]
+    lines += glue(args.glue_rounds, args.number, args.calls_in_step) + [""]
     lines += stages(args.repeats)
     table = "\n".join(lines)
     print(table)
