@@ -282,6 +282,7 @@ def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
     """Part 3: the step against the sum of its kernels; decisions per second."""
     import statistics
 
+    import numpy as np
     import torch
 
     model, small = setup()
@@ -325,6 +326,28 @@ def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
             step.append(max(one - empty, 0.0))
             wall.append(w)
             pair.append(step[-1] / sum(spent))
+        # (c) why the stages cost more inside the step: the five stages after the L1 product,
+        # single calls, after the L1 product, after reading 4 MB of other data, after
+        # themselves (CPU time medians)
+        post = [calls[n] for n in names[4:]]
+        flush = np.ones(4 << 20, np.uint8)
+
+        def post_l1():
+            total = 0.0
+            for fn in post:
+                c0 = cpu_clock()
+                fn()
+                total += cpu_clock() - c0 - empty
+            return total
+
+        after = {"the L1 product": [], "reading 4 MB": [], "themselves": []}
+        for _ in range(calls_in_step // 2):
+            calls[names[3]]()
+            after["the L1 product"].append(post_l1())
+            flush.sum()
+            after["reading 4 MB"].append(post_l1())
+            post_l1()
+            after["themselves"].append(post_l1())
         eager = [best_time(lambda: model.step(f1, st), 1, max(1, number // 5))
                  for _ in range(max(3, rounds // 5))]
         many = [best_time(lambda: inf.step(fb, sb), 1, 2) for _ in range(max(3, rounds // 5))]
@@ -361,6 +384,9 @@ def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
         f"with single calls of the step; median of the per-pair ratios **{med(pair):.2f}x** "
         f"(quartiles {quart[0]:.2f}x-{quart[2]:.2f}x"
         f"); fastest step {us(min(step))} against fastest chain {us(min(sums))} CPU us.", "",
+        "The five stages after the L1 product (k-WTA to decision), single calls, CPU us "
+        "(median): " + ", ".join(f"after {k} {us(med(v))}" for k, v in after.items())
+        + ".", "",
         "| decisions per second (one thread) | best | median |", "|---|---|---|",
         f"| 1 stream, `inf.step` (batch 1) | {1 / min(wall):,.0f} | {1 / med(wall):,.0f} |",
         f"| 256 streams, `inf.step` (batch 256) | {256 / min(many):,.0f} | "
