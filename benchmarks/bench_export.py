@@ -3,9 +3,9 @@
     .venv/bin/python benchmarks/bench_export.py [--quick] [--doc docs/results/export.md]
 
 Default-size Neural SeqSLAM (NeuralConfig()) fitted on the demo route (200 reference frames,
-so N = 200 output units). Variants: PyTorch eager (``model.step`` after ``fold``), float ONNX,
+so N = 200 output units). Variants: PyTorch (``model.inference().step``, the fast form), float ONNX,
 quantised ONNX, integer ONNX, NumPy integer runtime; plus single-stream traverse throughput
-of ``model.run`` (feed-forward batched over time, blocked ring scan) and of the integer
+of ``inf.run`` (feed-forward batched over time, blocked ring scan) and of the integer
 ``StreamRuntime`` (the integer file's arithmetic batched over time), and the bare per-call
 overhead of onnxruntime and of a PyTorch call. Prints a Markdown table and writes it into
 ``docs/results/export.md`` between the ``bench_export`` markers.
@@ -63,7 +63,7 @@ def main() -> None:
     demo = make_demo()
     model = NeuralSeqSLAM(NeuralConfig())
     model.fit(demo.reference, log=False)
-    model.fold()
+    inf = model.inference()  # the fast PyTorch form: its step and run
     size = model.config.input_size
     n = model.n_units
     small = resize(demo.query.float(), size)  # (Q, 24, 32) float
@@ -85,19 +85,19 @@ def main() -> None:
                                     "state": np.zeros((batch, n), np.float32)},
                  "ONNX integer": {"frames": f8, "state": np.zeros((batch, n), np.int32)}}
         with torch.inference_mode():
-            t = timed(lambda: model.step(f32, state_t), secs)
-        rows.append(("PyTorch eager (model.step)", batch, t))
+            t = timed(lambda: inf.step(f32, state_t), secs)
+        rows.append(("PyTorch (model.inference().step)", batch, t))
         for name, sess in sessions.items():
             t = timed(lambda s=sess, f=feeds[name]: s.run(None, f), secs)
             rows.append((name, batch, t))
         state_i = runtime.initial_state(batch)
         t = timed(lambda: runtime.step(f8, state_i), secs if batch == 1 else 0.1, 1)
         rows.append(("NumPy integer runtime", batch, t))
-    # single stream, whole traverse: model.run batches the feed-forward over time; frames at
+    # single stream, whole traverse: inf.run batches the feed-forward over time; frames at
     # the input size like every variant above, then raw 96x128 frames (resize included)
     for frames, what in ((small, "frames at the input size"), (demo.query, "raw 96x128 frames")):
-        t = timed(lambda f=frames: model.run(f), secs)
-        rows.append((f"PyTorch model.run (one stream, {frames.shape[0]} {what})",
+        t = timed(lambda f=frames: inf.run(f), secs)
+        rows.append((f"PyTorch inf.run (one stream, {frames.shape[0]} {what})",
                      frames.shape[0], t))
     stream = StreamRuntime(im1)  # the integer file's arithmetic, batched over time
     t = timed(lambda: stream.run(u8), secs)

@@ -1,21 +1,29 @@
-"""Neural SeqSLAM speed on one CPU thread: the online step, its stages, streams, run, ONNX.
+"""Neural SeqSLAM speed on one CPU thread: the online step, its stages, the glue, streams, run.
 
-    .venv/bin/python benchmarks/bench_neural.py [--no-docs] [--repeats 5] [--compare DIR]
+    .venv/bin/python benchmarks/bench_neural.py [--no-docs] [--repeats 5] [--rounds 3]
+        [--compare DIR | --compare none]
 
-Two parts, printed as Markdown tables and written into docs/results/neural.md between the
+Printed as Markdown tables and written into docs/results/neural-step.md between the
 ``bench`` markers:
 
-1. **This tree beside another checkout** (``--compare``, default ``../main`` when it exists):
-   the same measurements run in worker processes, one per tree (``PYTHONPATH`` set to it),
-   alternated for ``--rounds`` rounds in this one run; the best of each is kept and the
-   ratio printed. Measured: the online step (one frame in, one decision out, batch 1,
-   default model, ``step(frame[None], state)`` under ``torch.inference_mode()`` once the
-   model is prepared: ``fold()`` here; on older trees ``run`` prepared it), 256 streams
-   through ``step``, ``run`` on one stream, the float ONNX graph at batch 1 and 256.
+1. **This tree beside another checkout** (``--compare``, default ``../main`` when it exists;
+   ``none`` skips it): the same measurements run in worker processes, one per tree
+   (``PYTHONPATH`` set to it), alternated for ``--rounds`` rounds in this one run; the best
+   of each is kept and the ratio printed. Measured through ``model.inference()``'s module
+   (default model, ``inf.step(frame[None], state)`` under ``torch.inference_mode()``): the
+   online step, 256 streams, ``run`` on one stream, the float ONNX graph at batch 1 and 256.
 2. **The online step by stage** (this tree only): each stage's kernels, the one chosen
-   marked, and whether the prepared step makes exactly the eager step's decisions.
+   marked, and whether the module's step makes exactly the eager step's decisions.
+3. **The glue**: the module's whole step at batch 1 against the sum of the chosen kernels of
+   its stages, timed in the same rounds (each round: every kernel, then the step, each
+   ``--number`` calls; ``--glue-rounds`` rounds, the minimum and the median of each kept,
+   and the median of the per-round ratios); the stage sum is also timed *inside* the step
+   (the same calls in the step's order, a clock between stages), where the caches hold
+   what the step leaves in them; then decisions per second for one stream and for 256, and
+   the eager layers' step (``model.step``) beside it.
 
-Frames are given at the model's input size (24x32).
+Frames are given at the model's input size (24x32). On a shared machine, read the minimum
+and the medians, not a single run's mean.
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench:start -->", "<!-- bench:end -->"
+DOCS = ROOT / "docs" / "results" / "neural-step.md"
 
 
 def best_time(fn, repeats: int, number: int, clock=time.perf_counter) -> float:
@@ -64,31 +73,23 @@ def setup():
     return model, resize(demo.query, model.config.input_size)
 
 
-def prepare(model, small):
-    """Prepare for inference with whatever API the imported tree has."""
-    if hasattr(model, "kernels"):
-        model.fold()
-    else:  # before the inference module: run folded the weights and step took them
-        model.run(small[:5])
-
-
 def worker(repeats: int) -> dict:
     """The measurements of part 1 for the tree on ``sys.path``: microseconds per frame."""
     import numpy as np
     import torch
 
     model, small = setup()
-    prepare(model, small)
+    inf = model.inference()  # the documented fast path (both trees have it)
     out = {}
     with torch.inference_mode():
         f1 = small[:1]
-        _, st = model.step(f1)
-        out["online step, batch 1"] = best_time(lambda: model.step(f1, st), repeats, 200) * 1e6
+        _, st = inf.step(f1)
+        out["online step, batch 1"] = best_time(lambda: inf.step(f1, st), repeats, 200) * 1e6
         out["online step, batch 1, CPU time"] = best_time(
-            lambda: model.step(f1, st), repeats, 500, time.process_time) * 1e6
+            lambda: inf.step(f1, st), repeats, 500, time.process_time) * 1e6
         fb = small[:256]
-        _, sb = model.step(fb)
-        out["step, 256 streams"] = best_time(lambda: model.step(fb, sb), repeats, 3) * 1e6 / 256
+        _, sb = inf.step(fb)
+        out["step, 256 streams"] = best_time(lambda: inf.step(fb, sb), repeats, 3) * 1e6 / 256
         q = small.shape[0]
         out[f"run, one stream of {q} frames"] = best_time(
             lambda: model.run(small), repeats, 1) * 1e6 / q
@@ -133,8 +134,69 @@ def compare(other: Path, rounds: int, repeats: int) -> list[str]:
     return lines
 
 
+def step_stages(inf, f1, st):
+    """The chosen kernels of the module's step at batch 1, in the step's order.
+
+    Returns ``(stages, inline)``: ``stages`` maps ``"stage (kernel)"`` to a call of that
+    kernel on the inputs the step gives it; ``inline()`` runs the same calls in sequence,
+    each feeding the next as in the step, and returns the seconds each took.
+    """
+    import numpy as np
+    import torch
+
+    from torchseq.layers import cohort_normalise, ring_step
+    from torchseq.layers import kernels as K
+    from torchseq.neural.readout import decide
+    from torchseq.preprocess import zscore_pixel_major
+
+    kern, cfg = inf.kernels, inf.config
+    if kern["input"] != "numpy" or kern["kwta"] != "partition" or kern["ring"] != "banded":
+        raise SystemExit(f"this benchmark follows the auto CPU kernels, got {kern}")
+    steps = np.float32(cfg.input_steps)
+    int8 = kern["l1"] == "int8_gemm"
+
+    def grid(z):  # the step's input grid (evidence(): uint8 for the int8 L1, else float)
+        if int8:
+            q = np.rint(z.numpy() * steps)
+            q += 128
+            return torch.from_numpy(q.astype(np.uint8).transpose(1, 2, 0).reshape(1, -1))
+        x = z.permute(1, 2, 0).reshape(1, -1)
+        return torch.round(x * cfg.input_steps) / cfg.input_steps
+
+    l1 = inf.l1_int8 if int8 else (lambda x: x @ inf.w1_t)
+    calls = [
+        ("frame checks, grey (-)", lambda f: inf._grey(f)),
+        ("patch z-score (numpy)", lambda g: zscore_pixel_major(g, cfg.patch_size, "numpy")),
+        ("input grid (-)", grid),
+        (f"L1 product ({kern['l1']})", l1),
+        ("k-WTA winners (partition)", lambda h: K.kwta_partition_indices(h, cfg.k)),
+        ("L3 product (embedding_bag)", lambda idx: K.sum_rows(idx, inf.w3_t)),
+        (f"cohort normalisation ({kern['cohorts']})",
+         lambda e: cohort_normalise(e, inf.cohorts, cfg.eps, cfg.rectify, kern["cohorts"])),
+        ("ring step (banded)", lambda e: ring_step(e, st, inf.shift, inf.params,
+                                                   inf.diagonals)[0]),
+        (f"decision ({kern['decide']})",
+         lambda a: decide(a, inf.unit_centre, cfg.uniqueness_window, kern["decide"], inf.spans)),
+    ]
+    inputs, x = [], f1
+    for _, fn in calls:  # each stage's input, as the step computes it
+        inputs.append(x)
+        x = fn(x)
+    stages = {name: (lambda fn=fn, x=x: fn(x)) for (name, fn), x in zip(calls, inputs)}
+
+    def inline(clock=time.perf_counter):
+        x, spent = f1, []
+        for _, fn in calls:
+            t0 = clock()
+            x = fn(x)
+            spent.append(clock() - t0)
+        return spent
+
+    return stages, inline
+
+
 def stages(repeats: int) -> list[str]:
-    """Part 2: the online step of this tree by stage, kernels side by side."""
+    """Part 2: the online step of this tree by stage, every kernel side by side."""
     import numpy as np
     import torch
 
@@ -145,7 +207,7 @@ def stages(repeats: int) -> list[str]:
     from torchseq.preprocess import zscore_pixel_major
 
     model, small = setup()
-    inf = model.fold()
+    inf = model.inference()
     kern, cfg = inf.kernels, model.config
     rows = []
 
@@ -193,7 +255,7 @@ def stages(repeats: int) -> list[str]:
         for kernel in ("numpy", "torch"):
             row("cohort normalisation, rectify", kernel,
                 lambda: cohort_normalise(e, inf.cohorts, cfg.eps, True, kernel), key="cohorts")
-        _, st = model.step(f1)
+        _, st = inf.step(f1)
         if inf.diagonals is not None:
             row("ring step", "banded", lambda: ring_step(e, st, inf.shift, inf.params,
                                                          inf.diagonals), key="ring")
@@ -201,37 +263,151 @@ def stages(repeats: int) -> list[str]:
         a = st.activity
         row("decision", "numpy", lambda: decide(a, inf.unit_centre, 5, "numpy"), key="decide")
         row("decision", "torch", lambda: decide(a, inf.unit_centre, 5, "torch"), key="decide")
-        total = best_time(lambda: model.step(f1, st), repeats, 300) * 1e6
-        total_cpu = best_time(lambda: model.step(f1, st), repeats, 500, time.process_time) * 1e6
-        model.unfold()
-        eager = best_time(lambda: model.step(f1, st), repeats, 50) * 1e6
         # exactly the eager step's decisions, frame by frame over the whole query
         s_fast = s_eager = None
         same, n = 0, small.shape[0]
-        inf_step = inf
         for t in range(n):
-            o1, s_fast = inf_step(small[t:t + 1], s_fast)
+            o1, s_fast = inf.step(small[t:t + 1], s_fast)
             o2, s_eager = model.step(small[t:t + 1], s_eager)
             same += int(torch.equal(o1.reference, o2.reference))
-    lines = [f"Kernels chosen (`model.fold().kernels`): "
-             f"`{json.dumps(kern)}`; int8 expected on this machine: {int8_expected()}.", "",
-             "| stage (batch 1) | kernel | used | us |", "|---|---|---|---|", *rows,
-             f"| **whole online step**, prepared (`fold()`), inference_mode | | | "
-             f"**{total:.1f}** |",
-             f"| the same, CPU time of this process (`time.process_time`) | | | "
-             f"**{total_cpu:.1f}** |",
-             f"| whole step, eager layers (not folded) | | | {eager:.1f} |", "",
-             f"Prepared online step vs eager step: {same}/{n} identical decisions on the "
-             f"query."]
-    return lines
+    return [f"Kernels chosen (`model.inference().kernels`): "
+            f"`{json.dumps(kern)}`; int8 expected on this machine: {int8_expected()}.", "",
+            "| stage (batch 1) | kernel | used | us (best of the repeats) |", "|---|---|---|---|",
+            *rows, "",
+            f"The module's step (`inf.step`) against the eager step (`model.step`): {same}/{n} "
+            "identical decisions on the query."]
+
+
+def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
+    """Part 3: the step against the sum of its kernels; decisions per second."""
+    import statistics
+
+    import numpy as np
+    import torch
+
+    model, small = setup()
+    inf = model.inference()
+    f1, fb = small[:1], small[:256]
+    clock = time.perf_counter
+    with torch.inference_mode():
+        _, st = inf.step(f1)
+        _, sb = inf.step(fb)
+        calls, inline = step_stages(inf, f1, st)
+        names = list(calls)
+        calls = {**calls, "STEP": lambda: inf.step(f1, st)}
+        # (a) hot loops: in each round every kernel, then the step, `number` calls in a row
+        per = {name: [] for name in calls}
+        cpu = {name: [] for name in calls}
+        ratios = []
+        for _ in range(rounds):
+            for name, fn in calls.items():
+                fn()
+                t0, c0 = clock(), time.process_time()
+                for _ in range(number):
+                    fn()
+                per[name].append((clock() - t0) / number)
+                cpu[name].append((time.process_time() - c0) / number)
+            ratios.append(per["STEP"][-1] / sum(per[n][-1] for n in names))
+        # (b) inside the step: the chained kernels, then the step, one call each, alternated;
+        # CPU time of this process (a preempted call does not count its wait)
+        cpu_clock = time.process_time
+        empty = statistics.median(-(cpu_clock() - cpu_clock()) for _ in range(1000))
+        chain, step, pair, wall = [], [], [], []
+        for i in range(calls_in_step):
+            if i % 2:
+                spent = inline(cpu_clock)
+            t0, c0 = clock(), cpu_clock()
+            inf.step(f1, st)
+            one, w = cpu_clock() - c0, clock() - t0
+            if not i % 2:
+                spent = inline(cpu_clock)
+            spent = [max(s - empty, 0.0) for s in spent]
+            chain.append(spent)
+            step.append(max(one - empty, 0.0))
+            wall.append(w)
+            pair.append(step[-1] / sum(spent))
+        # (c) why the stages cost more inside the step: the five stages after the L1 product,
+        # single calls, after the L1 product, after reading 4 MB of other data, after
+        # themselves (CPU time medians)
+        post = [calls[n] for n in names[4:]]
+        flush = np.ones(4 << 20, np.uint8)
+
+        def post_l1():
+            total = 0.0
+            for fn in post:
+                c0 = cpu_clock()
+                fn()
+                total += cpu_clock() - c0 - empty
+            return total
+
+        after = {"the L1 product": [], "reading 4 MB": [], "themselves": []}
+        for _ in range(calls_in_step // 2):
+            calls[names[3]]()
+            after["the L1 product"].append(post_l1())
+            flush.sum()
+            after["reading 4 MB"].append(post_l1())
+            post_l1()
+            after["themselves"].append(post_l1())
+        eager = [best_time(lambda: model.step(f1, st), 1, max(1, number // 5))
+                 for _ in range(max(3, rounds // 5))]
+        many = [best_time(lambda: inf.step(fb, sb), 1, 2) for _ in range(max(3, rounds // 5))]
+
+    def us(v):
+        return f"{v * 1e6:.1f}"
+
+    med = statistics.median
+    lo = {n: min(per[n]) for n in calls}
+    mid = {n: med(per[n]) for n in calls}
+    cpu_lo = {n: min(cpu[n]) for n in calls}
+    inside = [med(col) for col in zip(*chain)]
+    sums = [sum(c) for c in chain]
+    rows = [f"| {n} | {us(lo[n])} | {us(mid[n])} | {us(cpu_lo[n])} | {us(inside[i])} |"
+            for i, n in enumerate(names)]
+    k_lo, k_mid = sum(lo[n] for n in names), sum(mid[n] for n in names)
+    k_cpu = sum(cpu_lo[n] for n in names)
+    step_lo, step_mid = lo["STEP"], mid["STEP"]
+    quart = statistics.quantiles(pair, n=4)
+    return [
+        "| stage (chosen kernel, batch 1) | hot loop, us, min | hot loop, us, median | "
+        "hot loop, CPU us, min | inside the step, CPU us, median |", "|---|---|---|---|---|", *rows,
+        f"| **sum of the stages' kernels** | **{us(k_lo)}** | **{us(k_mid)}** | "
+        f"**{us(k_cpu)}** | **{us(med(sums))}** |",
+        f"| **whole step** `inf.step(frame[None], state)` | **{us(step_lo)}** | "
+        f"**{us(step_mid)}** | **{us(cpu_lo['STEP'])}** | **{us(med(step))}** |",
+        f"| **step / kernel sum** | **{step_lo / k_lo:.2f}x** | **{step_mid / k_mid:.2f}x** | "
+        f"**{cpu_lo['STEP'] / k_cpu:.2f}x** | **{med(step) / med(sums):.2f}x** |", "",
+        f"Hot loops: {rounds} rounds, in each every kernel and then the whole step {number} "
+        f"times in a row (wall clock, and this process's CPU time); median of the per-round "
+        f"ratios {med(ratios):.2f}x (min {min(ratios):.2f}x). Inside the step: {calls_in_step} "
+        "single calls of the chained kernels (each stage's input the previous stage's "
+        "output, this process's CPU time read between stages, less one reading) alternated "
+        f"with single calls of the step; median of the per-pair ratios **{med(pair):.2f}x** "
+        f"(quartiles {quart[0]:.2f}x-{quart[2]:.2f}x"
+        f"); fastest step {us(min(step))} against fastest chain {us(min(sums))} CPU us.", "",
+        "The five stages after the L1 product (k-WTA to decision), single calls, CPU us "
+        "(median): " + ", ".join(f"after {k} {us(med(v))}" for k, v in after.items())
+        + ".", "",
+        "| decisions per second (one thread) | best | median |", "|---|---|---|",
+        f"| 1 stream, `inf.step` (batch 1) | {1 / min(wall):,.0f} | {1 / med(wall):,.0f} |",
+        f"| 256 streams, `inf.step` (batch 256) | {256 / min(many):,.0f} | "
+        f"{256 / med(many):,.0f} |",
+        f"| 1 stream, `model.step` (the eager layers, the definition) | {1 / min(eager):,.0f} | "
+        f"{1 / med(eager):,.0f} |",
+    ]
 
 
 def main(argv=None) -> str:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--rounds", type=int, default=3)
-    p.add_argument("--compare", type=Path, default=ROOT.parent / "main")
-    p.add_argument("--no-docs", action="store_true", help="do not update docs/results/neural.md")
+    p.add_argument("--compare", default=str(ROOT.parent / "main"),
+                   help="another checkout to measure beside this one ('none': skip)")
+    p.add_argument("--glue-rounds", type=int, default=60)
+    p.add_argument("--number", type=int, default=20, help="calls per timing in the glue part")
+    p.add_argument("--calls-in-step", type=int, default=3000,
+                   help="single calls of the chained kernels and of the step (glue part)")
+    p.add_argument("--no-docs", action="store_true",
+                   help="do not update docs/results/neural-step.md")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
@@ -245,12 +421,14 @@ def main(argv=None) -> str:
     lines = [f"Machine: {platform.processor() or platform.machine()}, torch "
              f"{torch.__version__}, 1 thread; model: default NeuralConfig, demo route of 555 "
              "reference frames (555 output units).", ""]
-    if args.compare.exists() and args.compare.resolve() != ROOT:
-        lines += compare(args.compare.resolve(), args.rounds, args.repeats) + [""]
+    other = Path(args.compare)
+    if args.compare != "none" and other.exists() and other.resolve() != ROOT:
+        lines += compare(other.resolve(), args.rounds, args.repeats) + [""]
+    lines += glue(args.glue_rounds, args.number, args.calls_in_step) + [""]
     lines += stages(args.repeats)
     table = "\n".join(lines)
     print(table)
-    docs = ROOT / "docs" / "results" / "neural.md"
+    docs = DOCS
     if not args.no_docs and docs.exists():
         text = docs.read_text()
         if START in text and END in text:

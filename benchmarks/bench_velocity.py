@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_velocity.py [--repeats 5]
 
 Both models fitted on the same demo route (555 reference frames, 555 units, query at 0.8x):
-the prepared online step (``fold()``, batch 1, one frame in, one decision out) and ``run``
+the online step of ``model.inference()`` (batch 1, one frame in, one decision out) and ``run``
 over the whole query. Fixed: the banded ring step and the blocked NumPy ring scan. Adaptive
 (``NeuralConfig.adaptive_velocity()``): the speed-mixed ring step, the estimator and, in
 ``run``, the ``"velocity_loop"`` scan (frame by frame). Times are CPU seconds of this process
@@ -54,8 +54,8 @@ def main(argv=None) -> None:
         models[label] = m
     frames = resize(d.query.float(), models["fixed (default)"].config.input_size)
     rows = {}
-    for label, m in models.items():
-        m.fold()
+    for label, model in models.items():
+        m = model.inference()  # the fast form; its step and run
         state = [None]
         t = [0]
 

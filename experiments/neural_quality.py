@@ -313,9 +313,9 @@ LONG_RINGS = {  # the rings of the long-route and several-frames tables (--long-
 def median_speed_estimate(model: NeuralSeqSLAM, query: torch.Tensor) -> float:
     """An adaptive model's speed estimate, stepped frame by frame over ``query``: the
     median over its second half."""
-    state, v = None, []
+    inf, state, v = model.inference(), None, []
     for t in range(len(query)):
-        _, state = model.step(query[t:t + 1], state)
+        _, state = inf.step(query[t:t + 1], state)
         v.append(float(state.velocity[0]))
     return float(np.median(v[len(v) // 2:]))
 

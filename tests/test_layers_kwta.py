@@ -4,7 +4,7 @@ import torch
 from conftest import DEVICES
 
 from torchseq.layers import KWinnersTakeAll, kwta
-from torchseq.layers.functional import kwta_numpy
+from torchseq.layers.kernels import kwta_numpy
 
 DTYPES = [torch.float32, torch.float64]
 

@@ -98,16 +98,15 @@ def test_auto_cpu_step_dispatch(grid_model, route, batch):
 
 def test_auto_cpu_run_dispatch(grid_model, route):
     inf = grid_model.inference()
-    grid_model.fold()
-    try:
-        with recording(grid_model._inference) as ran:
-            grid_model.run(route.query)
-    finally:
-        grid_model.unfold()
+    with recording(inf) as ran:
+        got = inf.run(route.query)
     int8 = inf.kernels["l1"] == "int8_gemm"
     assert ran[0] == "input:numpy" and ran[-2:] == ["scan:numpy", "decide:numpy"]
     assert ("l1:int8_gemm" in ran) == int8
     assert "ring:banded" not in ran  # the sequence form, not the step
+    want = grid_model.run(route.query)  # the model's run: a new module with the auto kernels
+    assert torch.equal(got.matches.reference, want.matches.reference)
+    assert torch.equal(got.activity, want.activity)
 
 
 def test_portable_kernels_are_plain_torch(grid_model, route):
@@ -144,23 +143,20 @@ def test_explicit_kernels_and_wrapped_ring(grid_model, route):
 
 
 def test_kernels_do_not_follow_grad_mode_or_history(grid_model, route):
-    assert grid_model.kernels is None  # not folded: step runs the layers
+    inf = grid_model.inference()
+    logs = []
+    for ctx in (torch.enable_grad, torch.no_grad, torch.inference_mode):
+        with recording(inf) as ran, ctx():
+            inf.step(route.query[:2])
+        logs.append(ran)
+    assert logs[0] == logs[1] == logs[2] and logs[0]
     grid_model.run(route.query[:5])
-    assert grid_model.kernels is None  # run does not fold the model for step
-    inf = grid_model.fold()
-    try:
-        assert grid_model.kernels == inf.kernels
-        logs = []
-        for ctx in (torch.enable_grad, torch.no_grad, torch.inference_mode):
-            with recording(inf) as ran, ctx():
-                grid_model.step(route.query[:2])
-            logs.append(ran)
-        assert logs[0] == logs[1] == logs[2] and logs[0]
-    finally:
-        grid_model.unfold()
-    with recording(inf) as ran:
-        grid_model.step(route.query[:2])
-    assert ran == []  # unfolded: the layers ran, no kernel
+    with pytest.warns(DeprecationWarning):
+        grid_model.fold()
+    for ctx in (torch.enable_grad, torch.inference_mode):
+        with recording(inf) as ran, ctx():
+            grid_model.step(route.query[:2])
+        assert ran == []  # the model's step is the layers whatever ran before: no kernel
 
 
 def test_bad_kernel_requests(grid_model):

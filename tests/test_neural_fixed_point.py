@@ -116,11 +116,7 @@ def test_int8_path_equals_float_path(model):
         torch.testing.assert_close(one, slow.evidence(demo.query[:1]), rtol=1e-5, atol=1e-5)
     a, b = m.run(demo.query), m.run(demo.query)
     assert torch.equal(a.activity, b.activity)
-    m.fold({"l1": "float32_gemm", "l3": "embedding_bag"})
-    try:
-        c = m.run(demo.query)
-    finally:
-        m.unfold()
+    c = slow.run(demo.query)
     assert torch.equal(a.matches.reference, c.matches.reference)
     torch.testing.assert_close(a.activity, c.activity, rtol=1e-4, atol=1e-5)
 

@@ -88,18 +88,18 @@ def test_interpolating_readout_recovers_resolution_of_coarse_units():
     _, _, centre, _ = _recall("centre", 40)
     model, d, within, result = _recall("interpolate", 40)
     assert within >= 0.95 and within - centre >= 0.1, (centre, within)
-    # one definition: the streaming step (eager and folded) makes run's decisions
+    # one definition: the streaming step (eager and the inference module) makes run's decisions
     state, eager = None, []
     for t in range(40):
         out, state = model.step(d.query[t:t + 1], state)
         eager.append(int(out.reference[0]))
     assert eager == result.matches.reference[:40].tolist()
-    model.fold()
-    state, folded = None, []
+    inf = model.inference()
+    state, fast = None, []
     for t in range(40):
-        out, state = model.step(d.query[t:t + 1], state)
-        folded.append(int(out.reference[0]))
-    assert folded == eager
+        out, state = inf.step(d.query[t:t + 1], state)
+        fast.append(int(out.reference[0]))
+    assert fast == eager
 
 
 def test_readout_setting_is_checked_and_old_checkpoints_read_centre():

@@ -1,5 +1,6 @@
-"""Every path of the step gives the eager layers' numbers: ``step`` before and after ``run``,
-under ``torch.inference_mode()``, batched, and ``run`` frame by frame.
+"""Every path of the step gives the eager layers' numbers: the model's ``step`` (whatever ran
+before it) and its inference module's ``step``, under ``torch.inference_mode()``, batched, and
+``run`` frame by frame.
 
 The reference here composes the ``torchseq.layers`` modules of the model by hand (the
 definition in docs/guide/neural.md, "Step maths"), so no fast kernel is involved in it.
@@ -59,21 +60,18 @@ def test_step_after_run_under_inference_mode_equals_eager(route, rectify, n_coho
                                                           batch):
     model = fitted(route, rectify, n_cohorts)
     model.run(route.query[:5])  # whatever run leaves behind must not change step's numbers
-    if prepared:  # the inference module with its auto kernels runs the step
-        assert model.fold().kernels == model.kernels
-    try:
-        state, a_ref = None, torch.zeros(batch, model.n_units)
-        for t in range(12):
-            frames = streams(route, t, batch)
-            with torch.inference_mode():
-                out, state = model.step(frames, state)
-            ref, conf, a_ref = eager_step(model, frames, a_ref)
-            torch.testing.assert_close(out.activity, a_ref, atol=1e-5, rtol=1e-5)
-            torch.testing.assert_close(out.confidence, conf, atol=1e-5, rtol=1e-5)
-            assert torch.equal(out.reference, ref)
-            assert float(out.activity.abs().max()) > 0  # the evidence reached the ring
-    finally:
-        model.unfold()
+    # prepared: the inference module with its auto kernels runs the step
+    stepper = model.inference() if prepared else model
+    state, a_ref = None, torch.zeros(batch, model.n_units)
+    for t in range(12):
+        frames = streams(route, t, batch)
+        with torch.inference_mode():
+            out, state = stepper.step(frames, state)
+        ref, conf, a_ref = eager_step(model, frames, a_ref)
+        torch.testing.assert_close(out.activity, a_ref, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(out.confidence, conf, atol=1e-5, rtol=1e-5)
+        assert torch.equal(out.reference, ref)
+        assert float(out.activity.abs().max()) > 0  # the evidence reached the ring
 
 
 @pytest.mark.parametrize("rectify", [True, False])
@@ -106,17 +104,38 @@ def test_run_equals_step_frame_by_frame(route, n_cohorts):
 def test_prepared_step_checks_frames_at_the_input_size(route):
     from torchseq.neural import NeuralError
 
+    inf = fitted(route, True, 1).inference()
+    frame = torch.rand(1, *inf.config.input_size) * 255  # the online fast path
+    for bad in (float("nan"), float("inf")):
+        broken = frame.clone()
+        broken[0, 3, 4] = bad
+        with pytest.raises(NeuralError, match="NaN"):
+            inf.step(broken)
+    big = torch.full((1, *inf.config.input_size), 2.0**120)  # finite; the sum overflows
+    out, _ = inf.step(big)
+    assert out.reference.shape == (1,)
+
+
+def test_the_model_holds_no_mode_and_fold_is_a_deprecated_alias(route):
+    """``fold``/``unfold`` warn and change nothing: ``step`` is the layers whatever ran."""
     model = fitted(route, True, 1)
-    model.fold()
+    frames = streams(route, 3)
+    want, _ = model.step(frames)
+    with pytest.warns(DeprecationWarning, match="inference"):
+        inf = model.fold()
+    assert inf.kernels == model.inference().kernels  # the alias returns a new module
+    with pytest.warns(DeprecationWarning, match="inference"):
+        assert model.kernels is None
+    assert not any(isinstance(m, type(inf)) for m in model.modules())  # nothing kept inside
+    assert not [k for k in model.state_dict() if "inference" in k]
+    ran = []
+    original = type(inf).step
+    type(inf).step = lambda self, *a, **k: ran.append(1) or original(self, *a, **k)
     try:
-        frame = torch.rand(1, *model.config.input_size) * 255  # the online fast path
-        for bad in (float("nan"), float("inf")):
-            broken = frame.clone()
-            broken[0, 3, 4] = bad
-            with pytest.raises(NeuralError, match="NaN"):
-                model.step(broken)
-        big = torch.full((1, *model.config.input_size), 2.0**120)  # finite; the sum overflows
-        out, _ = model.step(big)
-        assert out.reference.shape == (1,)
+        got, _ = model.step(frames)
     finally:
+        type(inf).step = original
+    assert ran == []  # the layers ran, not an inference module
+    assert torch.equal(got.activity, want.activity)
+    with pytest.warns(DeprecationWarning, match="nothing"):
         model.unfold()

@@ -22,20 +22,19 @@ def models():
     return out, d.query[:6]
 
 
-@pytest.mark.parametrize("folded", [False, True])
-def test_a_fixed_ring_reads_a_velocity_states_activity(models, folded):
+def steppers(m, fast):
+    """The models' layers, or their inference modules (both check the same way)."""
+    return {name: model.inference() if fast else model for name, model in m.items()}
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_a_fixed_ring_reads_a_velocity_states_activity(models, fast):
     (m, query) = models
-    fixed, adaptive = m["fixed"], m["adaptive"]
+    fixed, adaptive = steppers(m, fast).values()
     _, vstate = adaptive.step(query[:2])  # a real VelocityState, (2, 40) activity
     assert isinstance(vstate, VelocityState)
-    if folded:
-        fixed.fold()
-    try:
-        want_step, want_state = fixed.step(query[2:4], RingState(vstate.activity))
-        got_step, got_state = fixed.step(query[2:4], vstate)
-    finally:
-        if folded:
-            fixed.unfold()
+    want_step, want_state = fixed.step(query[2:4], RingState(vstate.activity))
+    got_step, got_state = fixed.step(query[2:4], vstate)
     assert type(got_state) is RingState
     assert torch.equal(got_state.activity, want_state.activity)
     assert torch.equal(got_step.activity, want_step.activity)
@@ -45,8 +44,10 @@ def test_a_fixed_ring_reads_a_velocity_states_activity(models, folded):
     assert not torch.equal(cold.activity, got_step.activity)
 
 
-def test_an_adaptive_ring_refuses_a_ring_state_naming_both(models):
+@pytest.mark.parametrize("fast", [False, True])
+def test_an_adaptive_ring_refuses_a_ring_state_naming_both(models, fast):
     (m, query) = models
+    m = steppers(m, fast)
     _, state = m["fixed"].step(query[:1])
     with pytest.raises(NeuralError) as err:
         m["adaptive"].step(query[1:2], state)
@@ -55,16 +56,20 @@ def test_an_adaptive_ring_refuses_a_ring_state_naming_both(models):
 
 @pytest.mark.parametrize("state", [torch.zeros(1, 40), (torch.zeros(1, 40),),
                                    RingState([[0.0] * 40])])
-def test_a_fixed_ring_refuses_other_types_naming_both(models, state):
+@pytest.mark.parametrize("fast", [False, True])
+def test_a_fixed_ring_refuses_other_types_naming_both(models, state, fast):
     (m, query) = models
+    m = steppers(m, fast)
     with pytest.raises(NeuralError) as err:
         m["fixed"].step(query[:1], state)
     text = str(err.value)
     assert "RingState" in text and type(state).__name__ in text
 
 
-def test_a_velocity_state_of_the_wrong_batch_is_refused(models):
+@pytest.mark.parametrize("fast", [False, True])
+def test_a_velocity_state_of_the_wrong_batch_is_refused(models, fast):
     (m, query) = models
+    m = steppers(m, fast)
     _, vstate = m["adaptive"].step(query[:2])
     with pytest.raises(NeuralError, match=r"state must be \(3, 40\), got \(2, 40\)"):
         m["fixed"].step(query[:3], vstate)

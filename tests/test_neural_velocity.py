@@ -62,25 +62,20 @@ def test_speed_one_is_ring_step_bit_for_bit():
     torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5)
 
 
-@pytest.mark.parametrize("folded", [False, True])
-def test_pinned_adaptive_model_steps_like_the_fixed_model(route, folded):
+@pytest.mark.parametrize("fast", [False, True])
+def test_pinned_adaptive_model_steps_like_the_fixed_model(route, fast):
     fixed = fitted(route)
     pinned = fitted(route, ring_velocity="adaptive", velocity_min=1.0, velocity_max=1.0)
-    if folded:
-        fixed.fold()
-        pinned.fold()
-    try:
-        s_fixed = s_pinned = None
-        for t in range(30):
-            frames = torch.stack([route.query[t], route.reference[t]])  # two streams
-            out_f, s_fixed = fixed.step(frames, s_fixed)
-            out_p, s_pinned = pinned.step(frames, s_pinned)
-            assert torch.equal(out_p.activity, out_f.activity)
-            assert torch.equal(out_p.reference, out_f.reference)
-            assert torch.equal(s_pinned.velocity, torch.ones(2, dtype=torch.float64))
-    finally:
-        fixed.unfold()
-        pinned.unfold()
+    if fast:  # the inference modules' step, else the layers'
+        fixed, pinned = fixed.inference(), pinned.inference()
+    s_fixed = s_pinned = None
+    for t in range(30):
+        frames = torch.stack([route.query[t], route.reference[t]])  # two streams
+        out_f, s_fixed = fixed.step(frames, s_fixed)
+        out_p, s_pinned = pinned.step(frames, s_pinned)
+        assert torch.equal(out_p.activity, out_f.activity)
+        assert torch.equal(out_p.reference, out_f.reference)
+        assert torch.equal(s_pinned.velocity, torch.ones(2, dtype=torch.float64))
 
 
 # ---------------------------------------------------------------- a plain-loop reference
@@ -129,7 +124,7 @@ def test_step_and_run_follow_a_plain_loop(route, kw):
     assert model.run(q).matches.reference.tolist() == refs  # run: the inference module
 
 
-def test_run_scans_with_the_velocity_loop_and_equals_folded_step(route):
+def test_run_scans_with_the_velocity_loop_and_equals_the_modules_step(route):
     model = fitted(route, ring_velocity="adaptive")
     module = model.inference()
     assert module.kernels["scan"] == "velocity_loop"
@@ -140,15 +135,11 @@ def test_run_scans_with_the_velocity_loop_and_equals_folded_step(route):
     with pytest.raises(NeuralError, match="velocity_loop"):
         fitted(route).inference({"scan": "velocity_loop"})
     res = model.run(route.query)
-    model.fold()
-    try:
-        state, refs = None, []
-        for t in range(len(route.query)):
-            out, state = model.step(route.query[t:t + 1], state)
-            refs.append(int(out.reference))
-            torch.testing.assert_close(out.activity[0], res.activity[t], atol=1e-5, rtol=1e-5)
-    finally:
-        model.unfold()
+    state, refs = None, []
+    for t in range(len(route.query)):
+        out, state = module.step(route.query[t:t + 1], state)
+        refs.append(int(out.reference))
+        torch.testing.assert_close(out.activity[0], res.activity[t], atol=1e-5, rtol=1e-5)
     assert refs == res.matches.reference.tolist()
 
 

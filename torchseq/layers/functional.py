@@ -10,7 +10,6 @@ import torch
 import torch.nn.functional as F
 
 from torchseq.layers import kernels
-from torchseq.layers.kernels import kwta_numpy  # noqa: F401
 from torchseq.layers.ring import RingParams, RingState, ring_scan, ring_step  # noqa: F401
 
 
@@ -95,7 +94,8 @@ def kwta(
     The ``k``-th largest value ``v`` is found; winners are all entries ``> v`` plus the
     lowest-index entries ``== v`` until there are exactly ``k``.
 
-    Kernels: ``"topk"`` takes ``v`` from ``torch.topk`` (any device, differentiable);
+    Kernels (:mod:`~torchseq.layers.kernels`): ``"topk"`` takes ``v`` from ``torch.topk``
+    (:func:`~torchseq.layers.kernels.kwta_topk`, any device, differentiable);
     ``"partition"`` from NumPy's introselect (:func:`~torchseq.layers.kernels.kwta_numpy`,
     several times faster on one CPU thread; CPU, no gradients, no NaN). During ONNX export
     the winners are ONNX ``TopK``'s indices, whose tie rule (TopK-11: the lower index) is
@@ -125,11 +125,7 @@ def kwta(
             raise ValueError("kwta's partition kernel needs a CPU tensor without gradients")
         win = kernels.kwta_partition(x, k)
     elif kernel == "topk":
-        v = torch.topk(x, k, dim=-1).values[..., -1:]  # (..., 1) the k-th largest value
-        greater = x > v
-        equal = x == v
-        room = k - greater.sum(-1, keepdim=True)  # how many tied entries still win
-        win = greater | (equal & (equal.to(torch.int64).cumsum(-1) <= room))
+        win = kernels.kwta_topk(x, k)
     else:
         raise ValueError(f"kernel must be one of {KWTA_KERNELS}, got {kernel!r}")
     y = win.to(x.dtype) if binary else x * win.to(x.dtype)

@@ -7,6 +7,8 @@ checks which one ran.
 
 - :func:`kwta_numpy` / :func:`kwta_partition`: the binary code of ``kwta`` from NumPy's
   introselect.
+- :func:`kwta_topk`: the winners of ``kwta`` from ``torch.topk`` (any device, exportable
+  ops, the gradient path of the valued code).
 - :func:`topk_indices`: the winners' indices of ``kwta`` from ``torch.topk``.
 - :func:`sum_rows`: a binary code times a matrix as the sum of the winners' rows
   (``F.embedding_bag``): ``k * N`` reads per frame instead of ``M * N``.
@@ -53,6 +55,20 @@ def kwta_numpy(values: np.ndarray, k: int) -> np.ndarray:
         win[tied] = greater | (equal & (equal.cumsum(1, dtype=np.int32) <= room))
     return win
 
+
+
+def kwta_topk(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Winners of ``kwta`` as a bool tensor ``(..., N)``, from ``torch.topk`` (any device).
+
+    Kernel of :func:`torchseq.layers.functional.kwta` (``kernel="topk"``): the ``k``-th
+    largest value ``v``; winners are the entries ``> v`` and the lowest-index entries ``== v``
+    until there are ``k``.
+    """
+    v = torch.topk(x, k, dim=-1).values[..., -1:]  # (..., 1) the k-th largest value
+    greater = x > v
+    equal = x == v
+    room = k - greater.sum(-1, keepdim=True)  # how many tied entries still win
+    return greater | (equal & (equal.to(torch.int64).cumsum(-1) <= room))
 
 
 def kwta_partition(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -125,9 +141,7 @@ def topk_indices(h: torch.Tensor, k: int) -> torch.Tensor:
     v = vals.amin(dim=1, keepdim=True)  # (B, 1)
     if not has_tie(h, v, k):
         return idx
-    from torchseq.layers.functional import kwta  # the definition settles the ties
-
-    return kwta(h, k, binary=True).nonzero()[:, 1].reshape(h.shape[0], k)
+    return kwta_topk(h, k).nonzero()[:, 1].reshape(h.shape[0], k)  # kwta's tie rule
 
 
 def has_tie(h: torch.Tensor, v: torch.Tensor, k: int) -> bool:

@@ -44,13 +44,17 @@ import numpy as np
 import torch
 from torch import nn
 
+from torchseq._checks import as_frames
 from torchseq.layers import RingState, cohort_normalise, kwta
 from torchseq.layers import kernels as K
 from torchseq.layers.kernels import TIE_STEP, Int8Linear
 from torchseq.layers.ring import band_diagonals, ring_power, ring_scan, ring_step
+from torchseq.matches import Matches
+from torchseq.neural.checks import checked_grey, checked_state
 from torchseq.neural.config import NeuralError
+from torchseq.neural.progress import Progress, as_progress, chunks
 from torchseq.neural.readout import decide
-from torchseq.neural.results import NeuralStep
+from torchseq.neural.results import NeuralResult, NeuralStep
 from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import block_order, zscore_pixel_major
 from torchseq.quantise import factor_power_of_two, factor_rows
@@ -129,6 +133,9 @@ class NeuralInference(nn.Module):
             self.w1_bf16 = (self.w1_t.to(torch.bfloat16)
                             if self._kernels["l1"] == "bfloat16_gemm" else None)
         self._encode = model.encode if self._kernels["input"] == "encode" else None
+        # the step's constants, read once here rather than per call
+        self._k, self._units = cfg.k, int(model.unit_centre.shape[0])
+        self._window = cfg.uniqueness_window
 
     # ------------------------------------------------------------------ kernel choice
     @property
@@ -249,8 +256,6 @@ class NeuralInference(nn.Module):
         return cohort_normalise(e, self.cohorts, cfg.eps, cfg.rectify, k["cohorts"])
 
     def _grey(self, frames: torch.Tensor) -> torch.Tensor:
-        from torchseq.neural.model import checked_grey
-
         return checked_grey(frames, self.config.input_size, self.w1_t.device)
 
     def _l1(self, x: torch.Tensor) -> torch.Tensor:
@@ -266,7 +271,7 @@ class NeuralInference(nn.Module):
 
     def _l3(self, h: torch.Tensor) -> torch.Tensor:
         k = self._kernels
-        n = self.config.k
+        n = self._k
         name = k["l3"]
         if name == "int8_gemm_or_embedding_bag":
             name = "int8_gemm" if h.shape[0] >= SMALL_BATCH else "embedding_bag"
@@ -281,26 +286,84 @@ class NeuralInference(nn.Module):
         return K.sum_rows(idx, self.w3_t)
 
     # ------------------------------------------------------------------ step and run
-    def forward(self, frames: torch.Tensor,
-                state: RingState | None = None) -> tuple[NeuralStep, RingState]:
-        """One streaming step for ``B`` streams (see :meth:`NeuralSeqSLAM.step`)."""
-        with torch.no_grad():
-            e = self.evidence(frames)
-            diag = self.diagonals if self._kernels["ring"] == "banded" else None
-            if self.tracker is not None:  # adaptive velocity (neural/velocity.py)
-                activity, reference, confidence, state = adaptive_step(
-                    e, self.tracker.initial(e) if state is None else state,
-                    self.shift.to(e.dtype), self.params, diag, self.decide, self.tracker)
-                return NeuralStep(reference, confidence, activity), state
-            if state is None:
-                state = RingState(torch.zeros_like(e))
-            activity, state = ring_step(e, state, self.shift.to(e.dtype), self.params, diag)
-            reference, confidence = decide(activity, self.unit_centre,
-                                           self.config.uniqueness_window, self._kernels["decide"],
-                                           self.spans)
+    def step(self, frames: torch.Tensor,
+             state: RingState | None = None) -> tuple[NeuralStep, RingState]:
+        """One streaming step for ``B`` streams: :meth:`NeuralSeqSLAM.step`'s numbers.
+
+        Args:
+            frames: ``(B, H, W)`` (or ``(B, H, W, 3)``) one new frame per stream.
+            state: the previous step's state (None: start of the streams), as for
+                :meth:`NeuralSeqSLAM.step`: a :class:`~torchseq.layers.RingState` (or a
+                :class:`~torchseq.neural.VelocityState`, whose activity a fixed ring reads),
+                with ``ring_velocity="adaptive"`` a ``VelocityState``.
+
+        Returns:
+            ``(NeuralStep, new state)``.
+
+        Raises:
+            NeuralError: bad frames, or a state of another type or size.
+        """
+        state = checked_state(state, frames.shape[0], self._units, self.tracker)
+        if torch.is_grad_enabled():  # no autograd (inference_mode / no_grad: already off)
+            with torch.no_grad():
+                return self._step(frames, state)
+        return self._step(frames, state)
+
+    forward = step
+
+    def _step(self, frames: torch.Tensor, state) -> tuple[NeuralStep, RingState]:
+        """:meth:`step` after its checks, autograd off."""
+        e = self.evidence(frames)
+        diag = self.diagonals if self._kernels["ring"] == "banded" else None
+        if self.tracker is not None:  # adaptive velocity (neural/velocity.py)
+            activity, reference, confidence, state = adaptive_step(
+                e, self.tracker.initial(e) if state is None else state,
+                self.shift.to(e.dtype), self.params, diag, self.decide, self.tracker)
+            return NeuralStep(reference, confidence, activity), state
+        if state is None:
+            state = RingState(torch.zeros_like(e))
+        shift = self.shift if diag is not None else self.shift.to(e.dtype)  # banded: unused
+        activity, state = ring_step(e, state, shift, self.params, diag)
+        reference, confidence = decide(activity, self.unit_centre, self._window,
+                                       self._kernels["decide"], self.spans)
         return NeuralStep(reference, confidence, activity), state
 
-    step = forward
+    @torch.inference_mode()
+    def run(self, query: torch.Tensor,
+            progress: bool | Progress | None = None) -> NeuralResult:
+        """A whole query traverse as one stream, from a zero state.
+
+        The evidence runs in batches of ``config.chunk`` frames (it does not depend on the
+        state), then the ring over all frames by the ``scan`` kernel (the blocked
+        :func:`~torchseq.layers.ring_scan`; the adaptive ring frame by frame,
+        :meth:`stream`), then the read-out. Same numbers as :meth:`step` once per frame, up
+        to float rounding.
+
+        Args:
+            query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames (a tensor or a NumPy array).
+            progress: a callback ``(frames done, frames in all)`` (``True``: a tqdm bar).
+
+        Returns:
+            :class:`~torchseq.neural.NeuralResult`.
+        """
+        query = as_frames(query, "query")
+        if query.dim() not in (3, 4) or query.shape[0] == 0:
+            raise NeuralError(f"query must be a non-empty (T, H, W), got {tuple(query.shape)}")
+        parts = [self.evidence(query[lo:hi])
+                 for lo, hi in chunks(query.shape[0], self.config.chunk,
+                                      as_progress(progress, "run"))]
+        if self._kernels["scan"] == "velocity_loop":  # adaptive: decisions feed the ring
+            activity, reference, confidence = self.stream(torch.cat(parts))
+        else:
+            activity = self.scan(torch.cat(parts))  # (T, N)
+            reference, confidence = self.decide(activity)
+        matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
+        return NeuralResult(matches, activity.cpu())
+
+    @property
+    def n_units(self) -> int:
+        """Output units ``N``."""
+        return self._units
 
     def scan(self, evidence: torch.Tensor) -> torch.Tensor:
         """Ring activity ``(T, N)`` of one stream's evidence ``(T, N)`` from a zero start."""

@@ -12,16 +12,15 @@ import math
 import warnings
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import nn
 
 from torchseq._checks import as_frames
 from torchseq.layers import KWinnersTakeAll, MaskedLinear, OutputRing, RingState
 from torchseq.layers.functional import cohort_normalise
-from torchseq.matches import Matches
 from torchseq.neural import memory
 from torchseq.neural.checkpoint import load_model, save_checkpoint
+from torchseq.neural.checks import checked_grey, checked_state
 from torchseq.neural.config import NeuralConfig, NeuralError
 from torchseq.neural.inference import NeuralInference
 from torchseq.neural.learning import (
@@ -32,11 +31,12 @@ from torchseq.neural.learning import (
 )
 from torchseq.neural.memory import seqslam_bytes
 from torchseq.neural.progress import Progress, as_progress
+from torchseq.neural.progress import chunks as _chunks
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
 from torchseq.neural.selfcheck import SELF_CHECK_FLOOR, disturbed, self_recall
-from torchseq.neural.velocity import VelocityState, VelocityTracker, adaptive_step
-from torchseq.preprocess import patch_normalise, quantise_input, resize, to_grey, zscore_blocks
+from torchseq.neural.velocity import VelocityTracker, adaptive_step
+from torchseq.preprocess import patch_normalise, quantise_input, zscore_blocks
 from torchseq.quantise import integer_weights
 
 __all__ = ["NeuralFitLog", "NeuralResult", "NeuralSeqSLAM", "NeuralStep", "seqslam_bytes"]
@@ -64,10 +64,7 @@ class NeuralSeqSLAM(nn.Module):
         self.l2 = KWinnersTakeAll(k=cfg.k, binary=True)
         self.l3: MaskedLinear | None = None
         self.ring: OutputRing | None = None
-        self._inference: NeuralInference | None = None  # set by fold(): step uses it
         self.self_check: float | None = None  # set by fit (selfcheck.py)
-        self._run_modules: dict = {}  # run's own inference modules, by l1 dtype
-        self.register_state_dict_post_hook(_drop_derived)
 
     # ------------------------------------------------------------------ structure
     @property
@@ -91,7 +88,6 @@ class NeuralSeqSLAM(nn.Module):
         self.register_buffer("unit_to_reference", torch.zeros(n_units, 2, dtype=torch.int64,
                                                               device=dev))
         self.register_buffer("unit_centre", torch.zeros(n_units, dtype=torch.int64, device=dev))
-        self.unfold()
 
     @property
     def readout_spans(self) -> torch.Tensor | None:
@@ -138,7 +134,13 @@ class NeuralSeqSLAM(nn.Module):
 
     def step(self, frames: torch.Tensor,
              state: RingState | None = None) -> tuple[NeuralStep, RingState]:
-        """One streaming step for ``B`` independent streams.
+        """One streaming step for ``B`` independent streams, through the model's layers.
+
+        This is the definition (eager ``nn.Module`` layers, any device and grad mode). For
+        streaming, hold :meth:`inference`'s module and call its ``step``: the same numbers
+        through one named fast kernel per stage, about five times faster at batch 1
+        (``docs/results/neural-step.md``). Nothing the model was called with before changes
+        what this method runs.
 
         Args:
             frames: ``(B, H, W)`` (or ``(B, H, W, 3)``) one new frame per stream.
@@ -151,23 +153,11 @@ class NeuralSeqSLAM(nn.Module):
 
         Returns:
             ``(NeuralStep, new state)``.
-
-        The model's layers run it (the definition), unless :meth:`fold` prepared an
-        inference module: then that module and its kernels (:attr:`kernels`) run it, in any
-        grad mode, without autograd. Nothing else switches paths.
         """
         self._require_fit()
         adaptive = self.config.ring_velocity == "adaptive"
         tracker = VelocityTracker.from_model(self) if adaptive else None
-        if state is not None and adaptive:
-            tracker.check(state, frames.shape[0], self.n_units)
-        elif state is not None:
-            state = _ring_state(state)
-            if tuple(state.activity.shape) != (frames.shape[0], self.n_units):
-                raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
-                                  f"{tuple(state.activity.shape)}")
-        if self._inference is not None:
-            return self._inference(frames, state)
+        state = checked_state(state, frames.shape[0], self.n_units, tracker)
         e = self.evidence(self.code(self.encode(frames)))  # (B, N)
         if adaptive:  # the ring at each stream's speed estimate (neural/velocity.py)
             activity, reference, confidence, state = adaptive_step(
@@ -253,43 +243,53 @@ class NeuralSeqSLAM(nn.Module):
 
     # ------------------------------------------------------------------ recognition
     def inference(self, kernels: str | dict = "auto") -> NeuralInference:
-        """A new :class:`~torchseq.neural.inference.NeuralInference` of this fitted model.
+        """The fast form of this fitted model: a new :class:`NeuralInference` to hold.
+
+        Streaming: ``inf = model.inference()``, then ``out, state = inf.step(frame[None],
+        state)`` per frame; a whole traverse: ``inf.run(query)``. The module copies what it
+        needs when it is built (later changes to the model do not reach it) and names its
+        kernel per stage in ``inf.kernels``.
 
         Args:
             kernels: ``"auto"``, ``"portable"`` or ``{stage: kernel}`` (see
-                :mod:`torchseq.neural.inference`); the choice is its :attr:`kernels`.
+                :mod:`torchseq.neural.inference`).
         """
         self._require_fit()
         return NeuralInference(self, kernels)
 
     def fold(self, kernels: str | dict = "auto") -> NeuralInference:
-        """Prepare for inference: :meth:`step` runs through :meth:`inference`'s module.
+        """Deprecated: use :meth:`inference` and call the returned module's ``step``.
 
-        Until :meth:`unfold`, :meth:`fit` or :meth:`load_state_dict`. Returns the module.
+        Returns ``self.inference(kernels)``. It no longer changes what :meth:`step` runs
+        (the model holds no mode): :meth:`step` is always the layers.
         """
-        self._inference = self.inference(kernels)
-        return self._inference
+        warnings.warn("NeuralSeqSLAM.fold() is deprecated and no longer changes step(): hold "
+                      "inf = model.inference() and call inf.step(frames, state)",
+                      DeprecationWarning, stacklevel=2)
+        return self.inference(kernels)
 
     def unfold(self) -> None:
-        """Back to the layers: :meth:`step` runs the model's own modules again."""
-        self._inference = None
-        self._run_modules = {}
+        """Deprecated: does nothing (the model holds no folded module; step is the layers)."""
+        warnings.warn("NeuralSeqSLAM.unfold() is deprecated and does nothing: step() always "
+                      "runs the layers; model.inference() returns the fast module",
+                      DeprecationWarning, stacklevel=2)
 
     @property
-    def kernels(self) -> dict[str, str] | None:
-        """The kernels :meth:`step` runs (None: the model's layers, not folded)."""
-        return None if self._inference is None else self._inference.kernels
+    def kernels(self) -> None:
+        """Deprecated: always None (step runs the layers); see ``inference().kernels``."""
+        warnings.warn("NeuralSeqSLAM.kernels is deprecated (always None: step() runs the "
+                      "layers); the kernels are model.inference().kernels",
+                      DeprecationWarning, stacklevel=2)
+        return None
 
-    @torch.inference_mode()
     def run(self, query: torch.Tensor, progress: bool | Progress | None = None,
             l1_dtype: torch.dtype | None = None) -> NeuralResult:
         """Stream a whole query traverse through the network (one stream).
 
-        The evidence runs in batches of ``config.chunk`` frames (it does not depend on the
-        state), then the ring in blocks of frames (:func:`~torchseq.layers.ring_scan`),
-        through the module of :meth:`fold` or else one of :meth:`inference` with the
-        ``"auto"`` kernels (kept for the next call; :meth:`step` is not affected). Same
-        numbers as :meth:`step` once per frame, up to float rounding.
+        Builds ``self.inference()`` (``"auto"`` kernels) and calls its
+        :meth:`~NeuralInference.run`; callers that run several traverses hold the module
+        themselves and save the build. Same numbers as :meth:`step` once per frame, up to
+        float rounding.
 
         Args:
             query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames (a tensor or a NumPy array).
@@ -303,32 +303,10 @@ class NeuralSeqSLAM(nn.Module):
             :class:`NeuralResult`.
         """
         self._require_fit()
-        query = as_frames(query, "query")
-        if query.dim() not in (3, 4) or query.shape[0] == 0:
-            raise NeuralError(f"query must be a non-empty (T, H, W), got {tuple(query.shape)}")
-        module = self._run_module(l1_dtype)
-        parts = [module.evidence(query[lo:hi])
-                 for lo, hi in _chunks(query.shape[0], self.config.chunk,
-                                       as_progress(progress, "run"))]
-        if module.kernels["scan"] == "velocity_loop":  # adaptive: decisions feed the ring
-            activity, reference, confidence = module.stream(torch.cat(parts))
-        else:
-            activity = module.scan(torch.cat(parts))  # (T, N)
-            reference, confidence = module.decide(activity)
-        matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
-        return NeuralResult(matches, activity.cpu())
-
-    def _run_module(self, l1_dtype: torch.dtype | None) -> NeuralInference:
         if l1_dtype is not None and l1_dtype not in (torch.bfloat16, torch.float32):
             raise NeuralError(f"l1_dtype must be torch.bfloat16 or None, got {l1_dtype}")
-        if l1_dtype in (None, torch.float32) and self._inference is not None:
-            return self._inference
-        key = "bfloat16" if l1_dtype == torch.bfloat16 else "auto"
-        if key not in self._run_modules:
-            kernels = {"l1": "bfloat16_gemm"} if key == "bfloat16" else "auto"
-            with torch.inference_mode(False):
-                self._run_modules[key] = self.inference(kernels)
-        return self._run_modules[key]
+        kernels = {"l1": "bfloat16_gemm"} if l1_dtype == torch.bfloat16 else "auto"
+        return self.inference(kernels).run(query, progress)
 
     # ------------------------------------------------------------------ persistence
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
@@ -337,7 +315,6 @@ class NeuralSeqSLAM(nn.Module):
             n = int(state_dict["unit_to_reference"].shape[0])
             if n != self.n_units:
                 self._build_output(n)
-        self.unfold()
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def save(self, path: str | Path, extra: dict | None = None) -> None:
@@ -371,29 +348,6 @@ class NeuralSeqSLAM(nn.Module):
         """Bytes stored beside classic SeqSLAM's (see :mod:`torchseq.neural.memory`)."""
         self._require_fit()
         return memory.memory_comparison(self, descriptor)
-
-
-def checked_grey(frames: torch.Tensor, size: tuple[int, int], device) -> torch.Tensor:
-    """Checked raw frames ``(B, H, W)`` / ``(B, H, W, 3)`` -> float32 grey ``(B, h, w)``."""
-    if frames.dim() not in (3, 4) or (frames.dim() == 4 and frames.shape[-1] != 3):
-        raise NeuralError(f"frames must be (B, H, W) or (B, H, W, 3), got "
-                          f"{tuple(frames.shape)}")
-    if frames.shape[0] == 0:
-        raise NeuralError("frames are empty (no frame in the batch)")
-    if (frames.dim() == 3 and frames.dtype == torch.float32 and frames.device.type == "cpu"
-            and torch.device(device).type == "cpu" and tuple(frames.shape[1:]) == tuple(size)):
-        # the online case (one float32 frame at the input size): one NumPy sum
-        flat = frames.detach().numpy().reshape(-1)
-        with np.errstate(over="ignore", invalid="ignore"):
-            total = float(np.add.reduce(flat))
-        if not math.isfinite(total) and not np.isfinite(flat).all():
-            raise NeuralError("frames hold NaN or infinite values")
-        return frames
-    x = to_grey(frames.to(device)).to(torch.float32)
-    # one sum first (NaN and inf propagate), the element-wise test only when it fails
-    if not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
-        raise NeuralError("frames hold NaN or infinite values")
-    return resize(x, size)
 
 
 COARSE_UNIT_FRAMES = 8  # frames per unit past which even the interpolating readout fails
@@ -486,38 +440,3 @@ def _codes_of(winners: torch.Tensor, hidden: int, chunk: int, device):
         idx = winners[lo:lo + chunk].to(device, torch.int64)
         code = torch.zeros(idx.shape[0], hidden, device=device)
         yield lo, lo + idx.shape[0], code.scatter_(1, idx, 1.0)
-
-
-def _drop_derived(module, state_dict, prefix, local_metadata) -> None:
-    """State-dict post-hook: the folded inference module's buffers are derived, not state.
-
-    A folded model's ``state_dict`` (and checkpoint) holds the model's own tensors only.
-    """
-    for key in [k for k in state_dict if k.startswith(prefix + "_inference.")]:
-        del state_dict[key]
-
-
-def _ring_state(state) -> RingState:
-    """A fixed-velocity model's state: a RingState, or a VelocityState's activity."""
-    if isinstance(state, VelocityState):
-        return RingState(state.activity)
-    if not isinstance(state, RingState) or not isinstance(state.activity, torch.Tensor):
-        raise NeuralError(f"a fixed-velocity model steps with a RingState (or a VelocityState, "
-                          f"whose activity it reads; None at the start), got "
-                          f"{type(state).__name__}")
-    return state
-
-
-def _chunks(n: int, size: int, progress: Progress | None = None):
-    """``(lo, hi)`` bounds of batches of ``size``, reporting to ``progress``.
-
-    ``progress(0, n)`` comes first (a bar starts its clock before the work), then
-    ``progress(hi, n)`` after each batch.
-    """
-    if progress is not None:
-        progress(0, n)
-    for lo in range(0, n, size):
-        hi = min(lo + size, n)
-        yield lo, hi
-        if progress is not None:
-            progress(hi, n)

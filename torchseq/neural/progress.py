@@ -33,3 +33,18 @@ def as_progress(progress: bool | Progress | None, desc: str) -> Progress | None:
     if not callable(progress):
         raise TypeError(f"progress must be a bool or a callable(done, total), got {progress!r}")
     return progress
+
+
+def chunks(n: int, size: int, progress: Progress | None = None):
+    """``(lo, hi)`` bounds of batches of ``size``, reporting to ``progress``.
+
+    ``progress(0, n)`` comes first (a bar starts its clock before the work), then
+    ``progress(hi, n)`` after each batch.
+    """
+    if progress is not None:
+        progress(0, n)
+    for lo in range(0, n, size):
+        hi = min(lo + size, n)
+        yield lo, hi
+        if progress is not None:
+            progress(hi, n)
