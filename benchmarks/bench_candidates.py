@@ -405,6 +405,8 @@ def main() -> None:
                    help="the 3,576-place route only: exact and candidate mode (K = 100, "
                         "ds = 20), interleaved, minimum of --repeats")
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--crossover", action="store_true",
+                   help="the crossover table alone: --crossover-sizes, --k, 200 queries, ds 20")
     args = p.parse_args()
     import torch
 
@@ -417,6 +419,8 @@ def main() -> None:
         print("\n".join(scale_table(args.sizes, args.kinds.split(","), args.k, args.queries)))
     if args.layouts:
         print("\n".join(layouts_table(args.layouts, 300, args.k)))
+    if args.crossover:
+        print("\n" + "\n".join(crossover_table(args.crossover_sizes, 200, args.k, 20)))
     if args.route:
         print("\n" + "\n".join(route_repeats(100, 20, args.repeats)))
     if args.reuse:
