@@ -375,7 +375,7 @@ def test_shared_layout_equals_per_window(over, k, blocks, monkeypatch):
     want = cm.CandidateSeqSLAM(ref, config, layout="per-window").match_descriptors(query)
     engine = cm.CandidateSeqSLAM(ref, config)
     got = engine.match_descriptors(query)
-    assert want.kernels == {"layout": "per-window"}
+    assert want.kernels["layout"] == "per-window"
     assert got.kernels["layout"] == "shared" and engine.layout == "shared"
     windows = 45 - config.sequence_length
     assert got.kernels["blocks"] == {"default": 1, "small": -(-windows // 5),
@@ -439,3 +439,28 @@ def test_streaming_reuses_tiles_of_earlier_steps(over, monkeypatch):
     ds = engine.ds
     assert n_cached < n_fresh / 3, (n_cached, n_fresh)  # one stream, ds 10: 400 of 3300
     assert int((cached.tiles.keys // (2 * -(-300 // cm.TILE_ROWS))).min()) >= len(frames) - ds
+
+
+DENSE_CASES = [({}, 600, 2, "shared"), ({}, 600, 2, "per-window"), ({}, 150, 150, "shared"),
+               (dict(metric="l2"), 600, 2, "shared"), (dict(metric="cosine"), 600, 2, "shared"),
+               (dict(enhance_window=0), 150, 150, "shared"),
+               (dict(enhance_window=5, ds=5), 600, 3, "shared")]
+
+
+@pytest.mark.parametrize(("over", "n_ref", "k", "layout"), DENSE_CASES)
+def test_dense_columns_equal_tile_windows(over, n_ref, k, layout):
+    """Columns that need most tiles are computed whole and each tile's window sliced from
+    them (every pair once): bit for bit the values of computing each window on its own, for
+    a mix of dense and tiled columns (K = 2, 3) and all dense (K >= R), integer or not."""
+    rng = np.random.default_rng(21 + k)
+    ref, query = (torch.tensor(x) for x in route(rng, n_ref, 45, 0.9,
+                                                 integer=over.get("enhance_window") != 0))
+    config = SeqSLAMConfig(candidates=k, **over)
+    tiled = cm.CandidateSeqSLAM(ref, config, layout=layout, dense=False)
+    want = tiled.match_descriptors(query)
+    got = cm.CandidateSeqSLAM(ref, config, index=tiled.index, layout=layout).match_descriptors(
+        query)
+    assert want.kernels["dense_keys"] == 0 and want.kernels["tile_keys"] > 0
+    assert got.kernels["dense_keys"] > 0
+    assert (got.kernels["tile_keys"] > 0) == (k < n_ref), got.kernels  # a mix, or all dense
+    assert_same_result(got, want)

@@ -75,6 +75,10 @@ CENTRES_PER_BLOCK = 64
 # A tile needed by at least this many query columns has its reference rows converted once
 # and met by all of them (no per-key gather of D-dimensional rows).
 TILE_SHARED_COLUMNS = 8
+# Reference rows per block of a dense column's differences (see :class:`TileTable`).
+DENSE_BLOCK_ROWS = 64
+# Most elements of one chunk of dense columns' differences held at once (64 MB of float32).
+DENSE_CHUNK_ELEMENTS = 2**24
 # Layouts of candidate mode's search (``CandidateSeqSLAM(layout=...)``): "shared" lays the
 # windows of consecutive centres over one compact axis (each difference tile, enhanced value
 # and candidate position computed once for all windows that use it); "per-window" gives
@@ -185,6 +189,20 @@ def compact_bands(starts: torch.Tensor, n_ref: int, span: int,
 class TileTable:
     """Enhanced (and raw) differences of whole tiles of ``TILE_ROWS`` rows of query columns.
 
+    Each tile is enhanced over its window of ``L = TILE_ROWS + 2 (window // 2)`` reference rows
+    (clipped to the reference), so its values are the exact mode's. The window's differences
+    come from one of two kernels, both :func:`pair_differences` (the same values):
+
+    - ``"tiles"``: each key's ``L`` rows against its column (a tile that many columns need has
+      its rows converted once and met by all of them; the rest are gathered per key).
+    - ``"dense"``: a column that needs so many tiles that its tiles' windows hold at least
+      ``R`` rows (``tiles * L >= R``, the halos of neighbouring tiles counted again) has its
+      whole column computed once, reference block by block (each block met by all such
+      columns), and every tile window is a slice of it: no row is computed twice. Only for a
+      plain tensor reference (a shard's rows do not hold whole columns) with ``dense=True``.
+
+    ``kernels`` counts the keys each kernel computed.
+
     Args:
         reference: ``(R, D)`` reference descriptors (any real dtype; rows are converted to
             ``dtype`` as they are gathered).
@@ -192,10 +210,11 @@ class TileTable:
         keys: ``(n,)`` int64 distinct tile keys ``column * n_tiles + tile``.
         metric: the engine's metric.
         window: contrast enhancement window (0 = off).
+        dense: allow the ``"dense"`` kernel (False: every key by ``"tiles"``).
     """
 
     def __init__(self, reference: torch.Tensor, columns: torch.Tensor, keys: torch.Tensor,
-                 metric: str, window: int) -> None:
+                 metric: str, window: int, dense: bool = True) -> None:
         n_ref, dim = reference.shape
         self.n_tiles = -(-n_ref // TILE_ROWS)
         self.keys = keys.sort().values
@@ -212,10 +231,18 @@ class TileTable:
         self.seconds = {"difference": 0.0, "enhance": 0.0}
         t = time.perf_counter()
         d = torch.empty(len(keys), length, dtype=dtype, device=keys.device)  # (n, L)
+        # columns whose tiles' windows hold at least R rows: whole columns, once
+        per_column = torch.bincount(col, minlength=len(columns))
+        whole = per_column[col] * length >= n_ref
+        if not (dense and isinstance(reference, torch.Tensor)):
+            whole = torch.zeros_like(whole)
+        if bool(whole.any()):
+            self._dense(reference, columns, col, lo, whole, d, metric)
+        self.kernels = {"dense": int(whole.sum()), "tiles": len(keys) - int(whole.sum())}
         # tiles that many columns need: their rows are converted once and met by every column
         # (a slice, no gather); the rest: their rows gathered per key
-        count = torch.bincount(tile, minlength=self.n_tiles)
-        shared = count[tile] >= TILE_SHARED_COLUMNS
+        count = torch.bincount(tile[~whole], minlength=self.n_tiles)
+        shared = (count[tile] >= TILE_SHARED_COLUMNS) & ~whole
         if bool(shared.any()):
             at = shared.nonzero()[:, 0]
             at = at[torch.sort(tile[at], stable=True).indices]  # grouped by tile
@@ -229,7 +256,7 @@ class TileTable:
                     idx = at[b0:min(b0 + block, i0 + n)]
                     d[idx] = pair_differences(ref, columns[col[idx]][:, None, :], metric)
                 i0 += n
-        rest = (~shared).nonzero()[:, 0]
+        rest = (~shared & ~whole).nonzero()[:, 0]
         block = max(1, PAIR_BLOCK_ELEMENTS // (length * dim))
         for t0 in range(0, len(rest), block):  # cache-sized blocks of gathered rows
             idx = rest[t0:t0 + block]
@@ -244,6 +271,40 @@ class TileTable:
             self.difference = d.gather(1, local).masked_fill_(outside, math.inf)
         self.seconds["enhance"] += time.perf_counter() - t
 
+    @staticmethod
+    def _dense(reference: torch.Tensor, columns: torch.Tensor, col: torch.Tensor,
+               lo: torch.Tensor, whole: torch.Tensor, d: torch.Tensor, metric: str) -> None:
+        """Fill the windows ``d[whole]`` from whole columns, each pair computed once.
+
+        Args:
+            reference: ``(R, D)`` reference descriptors.
+            columns: ``(C, D)`` query descriptors in the working dtype.
+            col: ``(n,)`` column id of each key.
+            lo: ``(n,)`` first reference row of each key's window.
+            whole: ``(n,)`` bool, the keys of dense columns.
+            d: ``(n, L)`` windows, written at ``whole``.
+            metric: the engine's metric.
+        """
+        n_ref, dim = reference.shape
+        length = d.shape[1]
+        at = whole.nonzero()[:, 0]
+        ids, slot = torch.unique(col[at], return_inverse=True)  # dense columns, each key's
+        per_chunk = max(1, DENSE_CHUNK_ELEMENTS // n_ref)
+        block = max(1, PAIR_BLOCK_ELEMENTS // (DENSE_BLOCK_ROWS * dim))
+        for c0 in range(0, len(ids), per_chunk):
+            chunk = ids[c0:c0 + per_chunk]
+            full = torch.empty(len(chunk), n_ref, dtype=d.dtype, device=d.device)  # (m, R)
+            for r0 in range(0, n_ref, DENSE_BLOCK_ROWS):  # rows converted once per block
+                ref = reference[r0:r0 + DENSE_BLOCK_ROWS].to(d.dtype)[None]  # (1, b, D)
+                for b0 in range(0, len(chunk), block):
+                    q = columns[chunk[b0:b0 + block]][:, None, :]  # (c, 1, D)
+                    full[b0:b0 + block, r0:r0 + DENSE_BLOCK_ROWS] = pair_differences(
+                        ref, q, metric)
+            mine = (slot >= c0) & (slot < c0 + len(chunk))
+            k = at[mine]
+            rows = lo[k, None] + torch.arange(length, device=d.device)  # (k, L)
+            d[k] = full[(slot[mine] - c0)[:, None], rows]
+
     @classmethod
     def from_values(cls, keys: torch.Tensor, values: torch.Tensor, n_tiles: int) -> TileTable:
         """A table of already computed enhanced tiles (``keys`` sorted, ``values (n, 32)``).
@@ -253,6 +314,7 @@ class TileTable:
         table = cls.__new__(cls)
         table.keys, table.values, table.n_tiles = keys, values, n_tiles
         table.difference, table.seconds = None, {"difference": 0.0, "enhance": 0.0}
+        table.kernels = {"dense": 0, "tiles": 0}
         return table
 
     def lookup(self, column: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
@@ -522,17 +584,21 @@ class CandidateSeqSLAM:
             (see :meth:`search`); 1 = take its K as they are.
         layout: ``"shared"`` (default) or ``"per-window"``, see :data:`LAYOUTS`; both give
             the same results (tested), ``result.kernels["layout"]`` says which ran.
+        dense: let columns that need most tiles be computed whole (:class:`TileTable`'s
+            ``"dense"`` kernel); False computes every tile's window on its own. Both give the
+            same results (tested).
     """
 
     def __init__(self, reference: torch.Tensor, config: SeqSLAMConfig | None = None,
                  candidates: int | None = None, index: str | CandidateIndex = "auto",
                  device: torch.device | str | None = None, dtype: torch.dtype | None = None,
                  index_options: dict | None = None, refine: int = 4,
-                 layout: str = "shared") -> None:
+                 layout: str = "shared", dense: bool = True) -> None:
         self.config = (config or SeqSLAMConfig()).validate()
         if layout not in LAYOUTS:
             raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
         self.layout = layout
+        self.dense = bool(dense)
         k = candidates if candidates is not None else self.config.candidates
         if k is None or isinstance(k, bool) or int(k) < 1:
             raise ValueError(f"candidate mode needs candidates K >= 1, got {k!r}")
@@ -609,7 +675,7 @@ class CandidateSeqSLAM:
     def table(self, columns: torch.Tensor, keys: torch.Tensor) -> TileTable:
         """Enhanced values of the tiles ``keys`` of the query ``columns (C, D)``."""
         return TileTable(self.reference, columns, keys, self.config.metric,
-                         self.config.enhance_window)
+                         self.config.enhance_window, self.dense)
 
     def _blocks(self, cand: torch.Tensor, rows_per_block: int):
         """Yield ``(c0, c1, columns (C, ds+1), rows, is_start)`` per block of centres."""
@@ -654,7 +720,9 @@ class CandidateSeqSLAM:
             ``enhanced`` are sparse ``(R, Q)`` COO tensors of the evaluated entries (whole
             tiles of :data:`TILE_ROWS` rows around the bands); ``seconds`` adds ``"index"``
             (building it, not in ``"total"``), ``"candidates"`` (querying it) and ``"bands"``;
-            ``kernels["layout"]`` is the layout that ran.
+            ``kernels["layout"]`` is the layout that ran, ``kernels["dense_keys"]`` and
+            ``kernels["tile_keys"]`` the tiles whose differences came from whole columns and
+            from their own windows (:class:`TileTable`).
         """
         c = self.config
         query = torch.as_tensor(query)
@@ -703,7 +771,9 @@ class CandidateSeqSLAM:
         seconds["search"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
         return self._result(table, floor, (match, best_score, uniqueness, ranked), seconds,
-                            {"layout": "shared", "blocks": len(blocks)})
+                            {"layout": "shared", "blocks": len(blocks),
+                             "dense_keys": table.kernels["dense"],
+                             "tile_keys": table.kernels["tiles"]})
 
     def _match_per_window(self, query: torch.Tensor, progress: bool):
         """:meth:`match_descriptors` with every window in its own layout (checked query)."""
@@ -741,7 +811,8 @@ class CandidateSeqSLAM:
         seconds["search"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
         return self._result(table, floor, (match, best_score, uniqueness, ranked), seconds,
-                            {"layout": "per-window"})
+                            {"layout": "per-window", "dense_keys": table.kernels["dense"],
+                             "tile_keys": table.kernels["tiles"]})
 
     def _outputs(self, n_query: int) -> tuple[torch.Tensor, ...]:
         """Empty ``match (Q,)``, ``best_score (Q,)``, ``uniqueness (Q,)``, ``ranked (Q, K)``."""

@@ -114,7 +114,11 @@ def _tiles(n_ref: int, n_query: int, half: int, budget: int, cpu: bool):
     n_seg_all = -(-n_ref // seg)
     segs = max(1, budget // (seg + 2 * half + 1))  # segments (of all columns) per tile
     if cpu:  # a band of columns wide enough for cheap transposed reads, rows to fill it
-        cols = max(1, min(n_query, CPU_COLUMNS, segs))
+        # columns of one segment or less (candidate mode's tiles): as many as the budget
+        # holds (each column's values do not depend on its band; 64 a call made the
+        # per-call overhead 10x the arithmetic on 42-row tiles)
+        wide = segs if n_seg_all == 1 else CPU_COLUMNS
+        cols = max(1, min(n_query, wide, segs))
         return cols, max(1, min(n_seg_all, segs // cols)), seg
     n_seg = min(n_seg_all, segs)  # whole columns first
     return max(1, min(n_query, segs // n_seg)), n_seg, seg

@@ -54,10 +54,10 @@ from torchseq.seqslam.candidates import (
     candidate_starts,
     compact_bands,
     pair_differences,
+    rank_bands,
 )
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.search import (
-    rank_scores,
     trajectory_offsets,
     trajectory_scores,
     velocities,
@@ -317,6 +317,9 @@ def rank_merged(starts: torch.Tensor, scores: torch.Tensor, vel: torch.Tensor, n
                 report: str | None = None, top_k: int | None = None):
     """Rank every shard's candidate starts of ``C`` centres as one machine ranks its bands.
 
+    The starts are laid out as one machine lays them out (:func:`compact_bands`) and ranked
+    by the same function (:func:`~torchseq.seqslam.candidates.rank_bands`).
+
     Args:
         starts: ``(C, P)`` int64 starts of all shards (padded with ``R``), any order.
         scores: ``(C, P)`` their exact scores.
@@ -335,7 +338,6 @@ def rank_merged(starts: torch.Tensor, scores: torch.Tensor, vel: torch.Tensor, n
         ``uniqueness (C,)``, ``ranked (C, top_k)``, best start ``(C,)`` (``-1`` if none) and
         its velocity index ``(C,)``.
     """
-    ds = config.sequence_length
     order = starts.argsort(dim=1)
     starts, scores, vel = (x.gather(1, order) for x in (starts, scores, vel))
     rows, is_start = compact_bands(starts, n_ref, span, gap)  # the one-machine layout
@@ -344,21 +346,8 @@ def rank_merged(starts: torch.Tensor, scores: torch.Tensor, vel: torch.Tensor, n
     grid[is_start] = scores[valid]
     best_v = torch.zeros(rows.shape, dtype=torch.int64)
     best_v[is_start] = vel[valid]
-    # as score_bands: position p reports rows[p] + offset[p]
-    report = report or config.match_rule
-    if report == "start":
-        offset = torch.full_like(rows, ds // 2)
-    else:
-        step = ds // 2 if report == "trajectory" else ds
-        offset = torch.tensor([off[step] for off in offsets])[best_v]
-    shift = rows + offset - torch.arange(rows.shape[1])
-    start, best, ratio, ranked = rank_scores(grid, ds, n_ref, config.rwindow,
-                                             top_k or config.top_k, shift)
-    ok = torch.isfinite(best)
-    match = torch.where(ok, (start + shift.gather(1, start[:, None])[:, 0]).clamp_max(n_ref - 1),
-                        -1)
-    first = torch.where(ok, rows.gather(1, start[:, None])[:, 0], -1)
-    return match, best, ratio, ranked, first, best_v.gather(1, start[:, None])[:, 0]
+    return rank_bands(grid, best_v, rows, is_start, config.sequence_length, offsets, n_ref,
+                      config.rwindow, top_k or config.top_k, report or config.match_rule)
 
 
 class _Local:
