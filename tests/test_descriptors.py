@@ -35,9 +35,9 @@ def run_eval(tmp_path, name, *args):
 
 
 @pytest.mark.parametrize("preset", [None, "openseqslam"])
-def test_own_descriptors_reproduce_the_pixel_run_exactly(tmp_path, preset):
+def test_own_descriptors_reproduce_the_pixel_run_exactly(tmp_path, preset, corridor):
     """SeqSLAM's patch-normalised descriptors as (T, D) files: same matches, same scores."""
-    root = shared_data("corridor")
+    root = corridor.root
     flags = ["--preset", preset] if preset else []
     config = SeqSLAMConfig.preset(preset) if preset else SeqSLAMConfig()
     engine = SeqSLAM(config)
@@ -54,8 +54,7 @@ def test_own_descriptors_reproduce_the_pixel_run_exactly(tmp_path, preset):
         assert pix["seqslam"][key] == desc["seqslam"][key]
     assert desc["inputs"]["descriptors"] == {"dim": 2048, "hook": None}
     # the Python API: the same tensors
-    a = engine.match(load_traverse(root / "ref", progress=False),
-                     load_traverse(root / "query", progress=False))
+    a = engine.match(corridor.ref, corridor.query)
     b = engine.match_descriptors(load_descriptors(tmp_path / "ref.npy"),
                                  load_descriptors(tmp_path / "query.npy"))
     assert torch.equal(a.matches.reference, b.matches.reference)
