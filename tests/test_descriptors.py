@@ -34,7 +34,7 @@ def run_eval(tmp_path, name, *args):
     return rows, json.loads((out / "metrics.json").read_text())
 
 
-@pytest.mark.parametrize("preset", [None, "openseqslam"])
+@pytest.mark.parametrize("preset", [None, pytest.param("openseqslam", marks=pytest.mark.slow)])
 def test_own_descriptors_reproduce_the_pixel_run_exactly(tmp_path, preset, corridor):
     """SeqSLAM's patch-normalised descriptors as (T, D) files: same matches, same scores."""
     root = corridor.root
@@ -145,6 +145,7 @@ def test_descriptor_hook_runs_batched_and_equals_its_file(tmp_path, monkeypatch)
         describe(iter(frames[:2]), lambda x: x.sum(), "cpu", 2)
 
 
+@pytest.mark.slow
 def test_descriptor_hook_on_the_command_line_equals_the_file(tmp_path, monkeypatch):
     root = shared_data("corridor")
     (tmp_path / "myhook.py").write_text(HOOK)
