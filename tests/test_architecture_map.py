@@ -8,6 +8,8 @@ folder.
 import re
 from pathlib import Path
 
+from test_import_graph import import_graph
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "torchseq"
 MAP = ROOT / "docs" / "architecture.md"
@@ -75,3 +77,72 @@ def test_the_front_end_move_list_is_current():
     moved = [f for f in FRONT_END_MOVE if not (PACKAGE / f).exists()]
     assert not moved, (f"front-end files moved: {moved}; delete FRONT_END_MOVE from "
                        "tests/test_architecture_map.py and check the map's cli/ rows")
+
+
+# Imports that go up a floor on purpose, each with its reason.
+UPWARD_ALLOWED = {
+    ("versions.py", "torchseq"): "reads torchseq.__version__ (inside the function)",
+    ("maps/build.py", "torchseq"): "records torchseq.__version__ in the map",
+}
+# export/cli.py uses the front end's flag helpers until it moves to cli/export.py.
+UPWARD_UNTIL_FRONT_END_MOVE = {"export/cli.py"}
+
+
+def floors(text: str) -> dict[str, int]:
+    """Floor of each file or package named in the map's floors block (parentheses ignored)."""
+    block = text.split("## Floors", 1)[1].split("```", 2)[1]
+    out, floor = {}, None
+    for line in block.splitlines():
+        line = re.sub(r"\([^)]*\)", "", line)
+        m = re.match(r"(\d+)\s", line)
+        if m:
+            floor = int(m.group(1))
+        for name in re.findall(r"[\w]+/|[\w]+\.py", line):
+            out[name] = floor
+    return out
+
+
+def floor_of(module: str, table: dict[str, int]) -> int | None:
+    """The floor of a dotted module name: its package's, or its own file's."""
+    parts = module.split(".")[1:]
+    if not parts:
+        return table.get("__init__.py", 4)  # the root package: the public face on floor 4
+    if f"{parts[0]}/" in table:
+        return table[f"{parts[0]}/"]
+    if f"{parts[0]}.py" in table:
+        return table[f"{parts[0]}.py"]
+    if f"{parts[0]}.py" in FRONT_END_MOVE or parts[0] == "__main__":
+        return table["cli/"]
+    return None
+
+
+def _rel(module: str) -> str:
+    parts = module.split(".")[1:]
+    path = "/".join(parts)
+    return (path + ".py") if (PACKAGE / (path + ".py")).exists() else (path or "torchseq")
+
+
+def test_imports_run_down_the_floors():
+    table = floors(MAP.read_text(encoding="utf-8"))
+    graph = import_graph()
+    unplaced = sorted(m for m in graph if floor_of(m, table) is None)
+    assert not unplaced, f"modules on no floor of docs/architecture.md: {unplaced}"
+    upward = []
+    for a, targets in graph.items():
+        for b in targets:
+            if floor_of(b, table) <= floor_of(a, table):
+                continue
+            key = (_rel(a), _rel(b))
+            if key in UPWARD_ALLOWED or key[0] in UPWARD_UNTIL_FRONT_END_MOVE:
+                continue
+            upward.append(f"{key[0]} (floor {floor_of(a, table)}) imports {key[1]} "
+                          f"(floor {floor_of(b, table)})")
+    assert not upward, "imports that run up the floors:\n" + "\n".join(sorted(upward))
+
+
+def test_the_upward_exceptions_are_current():
+    """Each allowed upward import still exists (a stale exception must be deleted)."""
+    graph = import_graph()
+    edges = {(_rel(a), _rel(b)) for a, bs in graph.items() for b in bs}
+    stale = sorted(k for k in UPWARD_ALLOWED if k not in edges)
+    assert not stale, f"these imports are gone: remove them from UPWARD_ALLOWED: {stale}"
