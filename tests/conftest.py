@@ -1,8 +1,10 @@
 import contextlib
+import dataclasses
 import os
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import settings
@@ -40,3 +42,60 @@ def coarse_units_expected():
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=COARSE_UNITS, category=UserWarning)
         yield
+
+
+@dataclasses.dataclass(frozen=True)
+class Corridor:
+    """The real corridor pair (../shared/data/corridor), loaded once per session.
+
+    Attributes:
+        root: the folder (``ref/``, ``query/``, ``ground_truth.csv``), for command-line tests.
+        ref: ``(111, 120, 160)`` float32 grey reference frames, as ``load_traverse`` gives them.
+        query: ``(111, 120, 160)`` float32 grey query frames.
+        ground_truth: ``(111, 111)`` bool, read-only: query q matches references q-2 ... q+2.
+
+    Shared by every test of the session: never modify ``ref`` or ``query`` in place (clone
+    first). The fixture checks at the end of the session that they are unchanged.
+    """
+
+    root: Path
+    ref: torch.Tensor
+    query: torch.Tensor
+    ground_truth: np.ndarray
+
+
+@pytest.fixture(scope="session")
+def corridor():
+    """The corridor pair, decoded once per session; skips with a reason when it is absent."""
+    from torchseq.ground_truth import load_ground_truth
+    from torchseq.sources import load_traverse
+
+    root = shared_data("corridor")
+    ref = load_traverse(root / "ref", progress=False)
+    query = load_traverse(root / "query", progress=False)
+    gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
+    gt.setflags(write=False)
+    data = Corridor(root, ref, query, gt)
+    pristine = (ref.clone(), query.clone())
+    yield data
+    assert torch.equal(ref, pristine[0]) and torch.equal(query, pristine[1]), \
+        "a test modified the shared corridor frames in place (clone them first)"
+
+
+def pytest_addoption(parser):
+    parser.addoption("--runslow", action="store_true",
+                     help="also run the tests marked slow (CI runs them as a second pass)")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The default run leaves out tests marked slow: ``--runslow`` or any ``-m`` brings them in.
+
+    ``python -m pytest -q`` is the quick run (under 3 minutes on 2 cores); CI then runs
+    ``python -m pytest -q -m slow`` (``.ci/run``), so every test still runs there.
+    """
+    if config.getoption("--runslow") or config.getoption("markexpr"):
+        return
+    slow = [item for item in items if item.get_closest_marker("slow") is not None]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [item for item in items if item.get_closest_marker("slow") is None]

@@ -98,6 +98,7 @@ def eval_run(tmp_path, runs, *extra):
     return ref, json.loads((out / "metrics.json").read_text())
 
 
+@pytest.mark.slow
 def test_eval_ensemble_equals_the_library_ensemble(tmp_path, runs):
     got, summary = eval_run(tmp_path, runs, "--window-ms", "5,10,20", "--edges")
     assert summary["inputs"]["window_ensemble_ms"] == list(WINDOWS)

@@ -82,6 +82,7 @@ def test_evt3_recording_shorter_than_one_window_suggests_the_flags(tmp_path, cap
     assert "--window-ms" in err and "--event-count" in err
 
 
+@pytest.mark.slow
 def test_transposed_image_size_is_warned_once(tmp_path, capsys):
     corridor = shared_data("corridor")
     args = ["--engine", "seqslam", "--reference", str(corridor / "ref"), "--query",

@@ -182,6 +182,7 @@ def _run(tmp_path, name, *args):
             json.loads((out / "metrics.json").read_text()))
 
 
+@pytest.mark.slow
 def test_dataset_flags_equal_the_explicit_run(tmp_path):
     root = shared_data("corridor")
     a_rows, a = _run(tmp_path, "a", "--dataset", "vpr-bench", "--root", str(root))

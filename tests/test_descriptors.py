@@ -34,10 +34,10 @@ def run_eval(tmp_path, name, *args):
     return rows, json.loads((out / "metrics.json").read_text())
 
 
-@pytest.mark.parametrize("preset", [None, "openseqslam"])
-def test_own_descriptors_reproduce_the_pixel_run_exactly(tmp_path, preset):
+@pytest.mark.parametrize("preset", [None, pytest.param("openseqslam", marks=pytest.mark.slow)])
+def test_own_descriptors_reproduce_the_pixel_run_exactly(tmp_path, preset, corridor):
     """SeqSLAM's patch-normalised descriptors as (T, D) files: same matches, same scores."""
-    root = shared_data("corridor")
+    root = corridor.root
     flags = ["--preset", preset] if preset else []
     config = SeqSLAMConfig.preset(preset) if preset else SeqSLAMConfig()
     engine = SeqSLAM(config)
@@ -54,8 +54,7 @@ def test_own_descriptors_reproduce_the_pixel_run_exactly(tmp_path, preset):
         assert pix["seqslam"][key] == desc["seqslam"][key]
     assert desc["inputs"]["descriptors"] == {"dim": 2048, "hook": None}
     # the Python API: the same tensors
-    a = engine.match(load_traverse(root / "ref", progress=False),
-                     load_traverse(root / "query", progress=False))
+    a = engine.match(corridor.ref, corridor.query)
     b = engine.match_descriptors(load_descriptors(tmp_path / "ref.npy"),
                                  load_descriptors(tmp_path / "query.npy"))
     assert torch.equal(a.matches.reference, b.matches.reference)
@@ -146,6 +145,7 @@ def test_descriptor_hook_runs_batched_and_equals_its_file(tmp_path, monkeypatch)
         describe(iter(frames[:2]), lambda x: x.sum(), "cpu", 2)
 
 
+@pytest.mark.slow
 def test_descriptor_hook_on_the_command_line_equals_the_file(tmp_path, monkeypatch):
     root = shared_data("corridor")
     (tmp_path / "myhook.py").write_text(HOOK)

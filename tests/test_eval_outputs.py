@@ -44,6 +44,7 @@ def test_matched_pairs_past_the_reference_are_left_out_and_said():
     assert titles and all(int(t.split()[1]) < 40 for t in titles)
 
 
+@pytest.mark.slow
 def test_checkpoint_of_a_longer_route_on_a_shorter_one_writes_its_plots(
         tmp_path, capsys, lens_checkpoint):
     lens = shared_data("lens-davis128")
@@ -87,6 +88,7 @@ def test_start_past_the_end_says_how_many_frames_the_route_has(tmp_path, capsys,
     assert f"must be below {n}" in lines[0] and "TensorList" not in lines[0]
 
 
+@pytest.mark.slow
 def test_ctrl_c_while_plotting_leaves_a_run_marked_incomplete(tmp_path, capsys, monkeypatch):
     corridor = shared_data("corridor")
     args = ["--engine", "seqslam", "--reference", str(corridor / "ref"), "--query",
@@ -118,6 +120,7 @@ def corridor_truth(corridor):
     return {int(q): {int(r) for r in refs.split()} for q, refs in rows}
 
 
+@pytest.mark.slow
 def test_matches_csv_has_correct_and_top_k_and_the_run_its_labels(tmp_path, capsys):
     corridor = shared_data("corridor")
     out = tmp_path / "o"

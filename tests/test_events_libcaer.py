@@ -185,6 +185,7 @@ def test_eval_frames_from_a_ddd20_file(tmp_path):
     assert frames.equal(load_event_frames(tmp_path / "same.npz", duration_ms=10))
 
 
+@pytest.mark.slow
 def test_torchseq_eval_on_ddd20_files_matches_the_same_events_as_aedat(tmp_path, capsys):
     """eval on the real DVS128 recording, rewritten as DDD20 packets, gives the AEDAT's metrics."""
     import json
@@ -243,6 +244,7 @@ def _mutate(packets, muts):
 SEED = _recording(seed=7, n_packets=5)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None, suppress_health_check=list(HealthCheck))
 @given(muts=st.lists(_mutation(len(SEED)), min_size=1, max_size=3),
        chunk=st.sampled_from([3, 1 << 20]))

@@ -145,18 +145,11 @@ def test_bad_step_input():
 
 
 @pytest.mark.slow
-def test_default_size_model_on_real_data():
+def test_default_size_model_on_real_data(corridor):
     """Default NeuralConfig fitted on the corridor reference, run on its query (real data)."""
-    from conftest import shared_data
-
-    from torchseq.ground_truth import load_ground_truth
     from torchseq.metrics import recall_at_k
-    from torchseq.sources import load_traverse
 
-    root = shared_data("corridor")
-    ref = load_traverse(root / "ref", progress=False)
-    query = load_traverse(root / "query", progress=False)
-    gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
+    ref, query, gt = corridor.ref, corridor.query, corridor.ground_truth
     model = NeuralSeqSLAM(NeuralConfig())
     model.fit(ref, log=False)
     pool = choose_pool(tuple(query.shape[1:3]), model.config.input_size)

@@ -192,18 +192,12 @@ def demo_report(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def corridor_report(tmp_path_factory):
-    from tests.conftest import shared_data
+def corridor_report(tmp_path_factory, corridor):
     from torchseq.export.nir_consumers import compare
-    from torchseq.ground_truth import load_ground_truth
     from torchseq.neural import NeuralConfig, NeuralSeqSLAM
     from torchseq.neural.spiking import SpikingSeqSLAM
-    from torchseq.sources import load_traverse
 
-    root = shared_data("corridor")
-    ref = load_traverse(root / "ref", progress=False)
-    qry = load_traverse(root / "query", progress=False)
-    gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(qry))
+    ref, qry, gt = corridor.ref, corridor.query, corridor.ground_truth
     model = NeuralSeqSLAM(NeuralConfig())
     model.fit(ref, log=False)
     sp = SpikingSeqSLAM.convert(model, ref)

@@ -165,7 +165,9 @@ def test_eval_takes_event_files(tmp_path, capsys):
 def test_run_folders_overwrite_and_config_replay(tmp_path, capsys, monkeypatch):
     out = tmp_path / "run"
     base = ["--engine", "seqslam", "--demo-frames", "40", "--ds", "6", "--no-tensorboard"]
-    run("eval.py", *base, "--out", str(out))  # the real script
+    # in-process (the real script as a subprocess: test_cli_contract and the slow
+    # test_eval_seqslam_on_demo_writes_every_output)
+    assert run_inprocess("eval", capsys, *base, "--out", str(out))[0] == 0
     first = json.loads((out / "metrics.json").read_text())["seqslam"]
     (out / "stale.png").write_bytes(b"x")
     code, err = run_inprocess("eval", capsys, *base, "--out", str(out))
@@ -191,8 +193,8 @@ def test_run_folders_overwrite_and_config_replay(tmp_path, capsys, monkeypatch):
 
 def test_sweep_writes_one_row_per_setting(tmp_path, capsys):
     out = tmp_path / "sweep"
-    run("eval.py", "--engine", "seqslam", "--demo-frames", "40", "--sweep", "ds=4,6,8",
-        "--no-tensorboard", "--out", str(out))
+    assert run_inprocess("eval", capsys, "--engine", "seqslam", "--demo-frames", "40",
+                         "--sweep", "ds=4,6,8", "--no-tensorboard", "--out", str(out))[0] == 0
     rows = list(csv.DictReader(open(out / "sweep.csv")))
     assert [r["setting"] for r in rows] == ["--ds 4", "--ds 6", "--ds 8"]
     assert all(r["engine"] == "seqslam" and 0 <= float(r["recall_at_1"]) <= 1 for r in rows)
@@ -211,12 +213,13 @@ def test_sweep_writes_one_row_per_setting(tmp_path, capsys):
         [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
 
 
-def test_neural_flags_place_resolution_and_recall_at_k(tmp_path):
+def test_neural_flags_place_resolution_and_recall_at_k(tmp_path, capsys):
     out = tmp_path / "n"
-    proc = run("eval.py", "--engine", "neural", "--demo-frames", "60", "--neural-hidden",
-               "256", "--neural-n-output", "20", "--neural-patch-size", "8",
-               "--no-tensorboard", "--out", str(out))
-    assert "one unit stands for about 3.0 frames" in proc.stderr
+    code, err = run_inprocess("eval", capsys, "--engine", "neural", "--demo-frames", "60",
+                              "--neural-hidden", "256", "--neural-n-output", "20",
+                              "--neural-patch-size", "8", "--no-tensorboard", "--out", str(out))
+    assert code == 0, err
+    assert "one unit stands for about 3.0 frames" in err
     m = json.loads((out / "metrics.json").read_text())
     n = m["neural"]
     assert n["parameters"]["hidden"] == 256 and n["parameters"]["patch_size"] == 8
@@ -235,10 +238,12 @@ def test_checkpoint_on_another_reference_is_said_plainly(tmp_path, capsys):
                               "--demo-frames", "40", "--no-tensorboard", "--out",
                               str(tmp_path / "same"))
     assert code == 0 and "warning" not in err
-    other = run("eval.py", "--engine", "neural", "--checkpoint", ckpt, "--demo-frames", "50",
-                "--no-tensorboard", "--out", str(tmp_path / "other"))
-    assert "does not match this reference" in other.stderr
-    assert "it learnt 40 reference frames, this reference has 50" in other.stderr
+    code, err = run_inprocess("eval", capsys, "--engine", "neural", "--checkpoint", ckpt,
+                              "--demo-frames", "50", "--no-tensorboard", "--out",
+                              str(tmp_path / "other"))
+    assert code == 0, err
+    assert "does not match this reference" in err
+    assert "it learnt 40 reference frames, this reference has 50" in err
     warnings = json.loads((tmp_path / "other" / "metrics.json").read_text())["warnings"]
     assert any("does not match" in w for w in warnings)
 

@@ -8,7 +8,6 @@ import pytest
 from conftest import shared_data
 
 from torchseq.demo import make_demo
-from torchseq.ground_truth import load_ground_truth
 from torchseq.metrics import evaluate
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.sources import load_traverse
@@ -24,11 +23,8 @@ def test_demo_recall_default_config():
 
 
 @pytest.mark.slow
-def test_corridor_recall_default_config():
-    root = shared_data("corridor")
-    ref = load_traverse(root / "ref", progress=False)
-    query = load_traverse(root / "query", progress=False)
-    gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
+def test_corridor_recall_default_config(corridor):
+    ref, query, gt = corridor.ref, corridor.query, corridor.ground_truth
     model = NeuralSeqSLAM()
     model.fit(ref, log=False)
     m = evaluate(model.run(query).matches, gt)
@@ -36,18 +32,11 @@ def test_corridor_recall_default_config():
     assert m["auc"] >= 0.72  # measured 0.777 (20% mask: 0.798)
 
 
-def _corridor():
-    root = shared_data("corridor")
-    ref = load_traverse(root / "ref", progress=False)
-    query = load_traverse(root / "query", progress=False)
-    return ref, query, load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
-
-
 @pytest.mark.slow
-def test_corridor_every_seed_at_least_080():
+def test_corridor_every_seed_at_least_080(corridor):
     """Issue 15: no model seed below 0.80 on the corridor (the L2 -> L3 mask draws were the
     spread: with density_out 0.2 the worst of these 8 seeds gives 0.676)."""
-    ref, query, gt = _corridor()
+    ref, query, gt = corridor.ref, corridor.query, corridor.ground_truth
     recalls = []
     for seed in range(8):
         model = NeuralSeqSLAM(NeuralConfig(seed=seed))

@@ -75,7 +75,7 @@ PUBLIC = {
     "torchseq.sources": [
         "EventFrameOptions", "FrameSelection", "TraverseError", "frames_from_array",
         "iter_image_folder", "iter_traverse", "iter_video", "load_image_folder",
-        "load_traverse", "load_traverse_sizes", "load_video", "natural_key", "thumbnail_size",
+        "load_traverse", "load_traverse_sizes", "natural_key", "thumbnail_size",
     ],
     # the command lines: one console script and the eval/train front ends it dispatches to
     "torchseq.cli": ["COMMANDS", "main"],

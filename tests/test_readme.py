@@ -48,3 +48,5 @@ def test_ci_runs_the_readme_test_command():
     assert any(c.endswith(".venv/bin/python -m pytest -q") for c in commands())
     assert ".venv/bin/python -m pytest -q\n" in ci and "-c constraints.txt" in ci
     assert "pip install -c constraints.txt -e ." in README  # the quickstart uses it too
+    # the quick run leaves out the tests marked slow (tests/conftest.py): CI runs them too
+    assert ".venv/bin/python -m pytest -q -m slow\n" in ci

@@ -6,7 +6,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from conftest import DEVICES, shared_data
+from conftest import DEVICES
 from seqslam_oracle import (
     _uniqueness,
     oracle_difference,
@@ -16,10 +16,8 @@ from seqslam_oracle import (
     rank_places,
 )
 
-from torchseq.ground_truth import load_ground_truth
 from torchseq.metrics import evaluate
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, StreamingSeqSLAM, difference_matrix
-from torchseq.sources import load_traverse
 
 faiss = pytest.importorskip(
     "faiss", reason="candidate mode needs FAISS (pip install 'torchseq[faiss]'); not installed")
@@ -273,11 +271,8 @@ def test_uint8_reference_gives_the_same_matches():
 
 
 @pytest.mark.slow
-def test_corridor_recall_with_few_candidates():
-    root = shared_data("corridor")
-    ref = load_traverse(root / "ref", progress=False)
-    query = load_traverse(root / "query", progress=False)
-    gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
+def test_corridor_recall_with_few_candidates(corridor):
+    ref, query, gt = corridor.ref, corridor.query, corridor.ground_truth
     engine = SeqSLAM()
     rd, qd = engine.descriptors(ref), engine.descriptors(query)
     exact = evaluate(engine.match_descriptors(rd, qd).matches, gt)["recall_at_1"]

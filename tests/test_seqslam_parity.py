@@ -3,14 +3,12 @@
 import numpy as np
 import pytest
 import torch
-from conftest import DEVICES, shared_data
+from conftest import DEVICES
 from seqslam_oracle import oracle_difference, oracle_enhance, oracle_seqslam
 
 from torchseq.demo import make_demo
-from torchseq.ground_truth import load_ground_truth
 from torchseq.metrics import evaluate
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, search, velocities
-from torchseq.sources import load_traverse
 
 
 def route(rng, n_ref, n_query, speed, dim=64, noise=1.5):
@@ -132,17 +130,9 @@ def test_uniqueness_edge_rules():
     assert (ranked == -1).all()
 
 
-def load_corridor():
-    root = shared_data("corridor")
-    ref = load_traverse(root / "ref", progress=False)
-    query = load_traverse(root / "query", progress=False)
-    gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(query))
-    return ref, query, gt
-
-
 @pytest.mark.slow
-def test_corridor_matches_oracle_and_recall():
-    ref, query, gt = load_corridor()
+def test_corridor_matches_oracle_and_recall(corridor):
+    ref, query, gt = corridor.ref, corridor.query, corridor.ground_truth
     engine = SeqSLAM()
     result = engine.match(ref, query)
     rd, qd = engine.descriptors(ref).double().numpy(), engine.descriptors(query).double().numpy()

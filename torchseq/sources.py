@@ -369,11 +369,6 @@ def load_image_folder(folder: Path, progress: bool = True,
                                                             workers=workers))))
 
 
-def load_video(path: Path, progress: bool = True) -> torch.Tensor:
-    """Load every frame of a video file as ``(T, H, W)`` float32 grey."""
-    return torch.from_numpy(np.stack(list(iter_video(path, progress))))
-
-
 def frames_from_array(array: np.ndarray | torch.Tensor, name: str = "array") -> torch.Tensor:
     """Check and convert a ``(T, H, W)`` or ``(T, H, W, 3)`` RGB array to grey float32 frames."""
     from torchseq.preprocess import to_grey

@@ -85,23 +85,6 @@ def sensor_wh(size) -> tuple[int, int]:
     return size
 
 
-def window_index(t: np.ndarray, window_us: int | None, event_count: int | None,
-                 t_start: int | None = None) -> tuple[np.ndarray, int]:
-    """``(N,)`` window of each event and the number of windows ``T`` (reference form).
-
-    ``t_start`` is the origin (default the first event); events must not precede it.
-    """
-    _check_window(window_us, event_count)
-    if event_count is not None:
-        idx = np.arange(len(t), dtype=np.int64) // int(event_count)
-    else:
-        t0 = int(t.min()) if t_start is None else int(t_start)
-        if t0 > t.min():
-            raise ValueError(f"t_start {t0} is after the first event ({int(t.min())} us)")
-        idx = (t.astype(np.int64) - t0) // int(window_us)
-    return idx, int(idx.max()) + 1
-
-
 def _check_window(window_us, event_count) -> None:
     if (window_us is None) == (event_count is None):
         raise ValueError("give exactly one of window_us and event_count")

@@ -21,24 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from torchseq.events.errors import EventFormatError, file_error
+
 EVENT_DTYPE = np.dtype([("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "u1")], align=True)
 MAX_SENSOR_SIDE = 1 << 15  # x, y are int16: the largest column index is 32767
 _T_RANGE = (-(1 << 63), (1 << 63) - 1)
 _XY_RANGE = (-(1 << 15), (1 << 15) - 1)
-
-
-class EventFormatError(ValueError):
-    """An event file or array is malformed; the message says why in one line.
-
-    Errors raised while reading a file name the file and, where the problem sits at a
-    place in it, the byte offset.
-    """
-
-
-def file_error(path, offset: int | None, msg: str) -> EventFormatError:
-    """An :class:`EventFormatError` ``"<path>: <msg> (at byte <offset>)"``."""
-    where = f" (at byte {offset})" if offset is not None else ""
-    return EventFormatError(f"{path}: {msg}{where}")
 
 
 def _checked_ints(v, name: str, lo: int, hi: int) -> np.ndarray:

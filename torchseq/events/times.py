@@ -27,7 +27,7 @@ import warnings
 
 import numpy as np
 
-from torchseq.events.stream import EventFormatError
+from torchseq.events.errors import EventFormatError
 
 FLOAT_SECONDS_BELOW = 1e5  # float times with fractions under this are seconds (27.7 hours)
 UNITS_PER_US = {"s": 1e-6, "ms": 1e-3, "us": 1.0, "ns": 1e3}

@@ -57,6 +57,7 @@ from torchseq.matches import Matches
 from torchseq.seqslam.ann_index import CandidateIndex
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.enhance import enhance_contrast
+from torchseq.seqslam.result import SeqSLAMResult
 from torchseq.seqslam.search import rank_scores, trajectory_offsets, trajectory_scores, velocities
 
 # Above this many reference x query pairs, ``candidates=None`` switches to candidate mode (with
@@ -716,7 +717,7 @@ class CandidateSeqSLAM:
         """Match ``(Q, D)`` query descriptors (as :meth:`SeqSLAM.match_descriptors`).
 
         Returns:
-            :class:`~torchseq.seqslam.engine.SeqSLAMResult` whose ``difference`` and
+            :class:`~torchseq.seqslam.result.SeqSLAMResult` whose ``difference`` and
             ``enhanced`` are sparse ``(R, Q)`` COO tensors of the evaluated entries (whole
             tiles of :data:`TILE_ROWS` rows around the bands); ``seconds`` adds ``"index"``
             (building it, not in ``"total"``), ``"candidates"`` (querying it) and ``"bands"``;
@@ -825,8 +826,6 @@ class CandidateSeqSLAM:
     def _result(self, table: TileTable, floor: float, outputs: tuple, seconds: dict,
                 kernels: dict):
         """The search's :class:`SeqSLAMResult`, its sparse matrices less the minimum ``floor``."""
-        from torchseq.seqslam.engine import SeqSLAMResult
-
         match, best_score, uniqueness, ranked = outputs
         table.values -= floor
         difference, enhanced = self._sparse(table, ranked.shape[0])

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
 import torch
 from torch import nn
@@ -21,43 +20,8 @@ from torchseq.seqslam.difference import (
     thermometer_product,
 )
 from torchseq.seqslam.enhance import enhance_contrast
+from torchseq.seqslam.result import SeqSLAMResult
 from torchseq.seqslam.search import search, velocities
-
-
-@dataclass
-class SeqSLAMResult:
-    """What one SeqSLAM run produces.
-
-    Attributes:
-        matches: per query, the matched reference (``-1`` for the first and last ``ds/2``
-            queries unless ``config.edges``, and where no trajectory is finite) and its
-            uniqueness ratio (``lower_is_better=True``; NaN without a match).
-        difference: ``(R, Q)`` difference matrix on CPU (None when the config does not keep
-            the full matrices, see ``SeqSLAMConfig.keep_matrices``).
-        enhanced: ``(R, Q)`` contrast-enhanced difference matrix on CPU (or None, as above).
-        ranked: ``(Q, top_k)`` int64 candidate references, best first, ``-1`` for none.
-        best_score: ``(Q,)`` best trajectory cost (NaN where unscored).
-        seconds: wall time of ``"difference"``, ``"enhance"``, ``"search"`` and ``"total"``.
-        kernels: which kernel ran per stage, e.g. ``{"difference": "thermometer"}``,
-            ``"threads"``: the worker threads each stage used, ``"matrices"``: ``"full"`` or
-            ``"banded"``.
-        preview: ``(R', Q')`` reduced copy of the enhanced matrix on CPU (area averages,
-            at most 1024 on a side) for plots, or None.
-        ranked_score: ``(Q, top_k)`` trajectory score of each ranked reference (lower is
-            better, NaN where ``ranked`` is ``-1``) for recall@K with ties
-            (:func:`torchseq.metrics.recall_at_ks`); None where the run does not keep it
-            (candidate runs).
-    """
-
-    matches: Matches
-    difference: torch.Tensor | None
-    enhanced: torch.Tensor | None
-    ranked: torch.Tensor
-    best_score: torch.Tensor
-    seconds: dict = field(default_factory=dict)
-    kernels: dict = field(default_factory=dict)
-    preview: torch.Tensor | None = None
-    ranked_score: torch.Tensor | None = None
 
 
 def _sync(device: torch.device) -> None:

@@ -57,6 +57,7 @@ from torchseq.seqslam.candidates import (
     rank_bands,
 )
 from torchseq.seqslam.config import SeqSLAMConfig
+from torchseq.seqslam.result import SeqSLAMResult
 from torchseq.seqslam.search import (
     trajectory_offsets,
     trajectory_scores,
@@ -468,12 +469,10 @@ class ShardedSeqSLAM:
         """Match ``(Q, D)`` query descriptors (as :meth:`CandidateSeqSLAM.match_descriptors`).
 
         Returns:
-            :class:`~torchseq.seqslam.engine.SeqSLAMResult` without matrices; ``seconds``:
+            :class:`~torchseq.seqslam.result.SeqSLAMResult` without matrices; ``seconds``:
             ``"candidates"``, ``"floor"`` (round 1), ``"scores"`` (round 2), ``"merge"``
             (the driver's layout and ranking) and ``"total"``; ``kernels["shards"]``.
         """
-        from torchseq.seqslam.engine import SeqSLAMResult
-
         c, ds = self.config, self.config.sequence_length
         query = torch.as_tensor(query)
         check_not_empty(query, "query descriptors")
