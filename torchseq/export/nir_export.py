@@ -85,8 +85,10 @@ def to_nir(spiking, dt: float = DT):
     levels = np.zeros((n * k, n), dtype=np.float32)
     rows = np.arange(n * k)
     levels[rows, rows // k] = np.tile(inv_theta, n)
-    # (N, N*K): column j*K+l = shift[:, j] * step[l] (level l's share of unit j's value)
-    shift = np.kron(_f32(spiking.shift), _f32(spiking.rung_step)[None, :]).astype(np.float32)
+    # (N, N*K): column j*K+l = shift[:, j] * step[l] (level l's share of unit j's value);
+    # a quantised model holds that matrix itself, quantised row by row
+    shift = (_f32(spiking.shift_dense) if spiking.shift_dense is not None else
+             np.kron(_f32(spiking.shift), _f32(spiking.rung_step)[None, :]).astype(np.float32))
     nodes = {
         "input": nir.Input(input_type={"input": np.array([s["input"]])}),
         "l1": nir.Linear(weight=_f32(spiking.w1)),
@@ -109,8 +111,25 @@ def to_nir(spiking, dt: float = DT):
         "steps_per_frame": 1,
         "kwta": KWTA_NOTE,
         "calibration": json.dumps(spiking.calibration),
+        **quantisation_metadata(spiking),
+        "input": ("analog current: the encoded frame (D values), one step per frame"
+                  if spiking.input_threshold is None else
+                  f"spikes: ON/OFF events, ON where the encoded pixel > {spiking.input_threshold}"
+                  f", OFF where < -{spiking.input_threshold} (2 D channels: ON then OFF)"),
     }
     return nir.NIRGraph(nodes=nodes, edges=edges, metadata=meta)
+
+
+def quantisation_metadata(spiking) -> dict:
+    """The graph's ``weight_bits`` (0: float32) and ``quantisation`` (what was done, words)."""
+    bits = spiking.calibration.get("weight_bits")
+    if bits is None:
+        return {"weight_bits": 0, "quantisation": "none: float32 weights"}
+    return {"weight_bits": int(bits),
+            "quantisation": f"l1, l3, levels and shift: signed {bits}-bit integers (symmetric, "
+                            f"|q| <= {2 ** (bits - 1) - 1}) times one power-of-two scale per "
+                            f"row (output neuron), rounded half away from zero; the stored "
+                            f"float32 weight is q * 2^e exactly; LIF thresholds 1"}
 
 
 def write_nir(spiking, path: str | Path, dt: float = DT):
