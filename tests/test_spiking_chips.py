@@ -204,3 +204,78 @@ class TestChips:
         placed, bad = speck_layers(big, CHIPS["speck"])
         assert "ring" not in placed and bad and bad[0].startswith("ring:")
         assert not check(big)["speck"]["fits"]
+
+
+# ------------------------------------------------------------------ nir 1.0.4
+NIR104_SCRIPT = """
+import sys, numpy as np, nir
+out = {}
+for i, path in enumerate(sys.argv[2:]):
+    g = nir.read(path)
+    out[f"{i}/meta/format"] = np.array(str(g.metadata["format"]))
+    for name, node in g.nodes.items():
+        out[f"{i}/{name}/type"] = np.array(type(node).__name__)
+        for field, value in vars(node).items():
+            if isinstance(value, np.ndarray):
+                out[f"{i}/{name}/{field}"] = value
+    out[f"{i}/edges"] = np.array(sorted(map(list, g.edges)))
+np.savez(sys.argv[1], **out)
+"""
+
+
+def nir104_python(tmp_path_factory) -> str:
+    """A Python with nir 1.0.4: ``$TORCHSEQ_NIR104_PYTHON``, else a venv made here (pip)."""
+    import os
+    import subprocess
+    import sys
+
+    given = os.environ.get("TORCHSEQ_NIR104_PYTHON")
+    if given:
+        return given
+    venv = tmp_path_factory.mktemp("nir104") / "venv"
+    try:
+        subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True,
+                       capture_output=True, timeout=120)
+        subprocess.run([str(venv / "bin" / "pip"), "install", "-q", "nir==1.0.4"], check=True,
+                       capture_output=True, timeout=600)
+    except (subprocess.SubprocessError, OSError) as err:
+        pytest.skip(f"no venv with nir 1.0.4 could be made here ({type(err).__name__})")
+    return str(venv / "bin" / "python")
+
+
+def test_lif_nodes_are_written_without_v_reset(files):
+    import h5py
+
+    for name, (sp, graph, path) in files.items():
+        with h5py.File(path, "r") as f:
+            for node in ("l2", "ring"):
+                assert "v_reset" not in f["node"]["nodes"][node], (name, node)
+        back = read_nir(path)  # nir >= 1.0.5 fills the default: 0
+        assert not back.nodes["ring"].v_reset.any()
+
+
+@pytest.mark.slow
+def test_nir_104_reads_our_files(files, tmp_path_factory):
+    import subprocess
+
+    py = nir104_python(tmp_path_factory)
+    version = subprocess.run([py, "-c", "import nir, importlib.metadata as m; "
+                              "print(m.version('nir'))"], capture_output=True, text=True)
+    if version.returncode != 0:
+        pytest.skip(f"{py} cannot import nir: {version.stderr.strip()[-200:]}")
+    assert version.stdout.strip() == "1.0.4"
+    out = tmp_path_factory.mktemp("nir104out") / "read.npz"
+    paths = [str(files[name][2]) for name in VARIANTS]
+    run = subprocess.run([py, "-c", NIR104_SCRIPT, str(out), *paths], capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    theirs = np.load(out)
+    for i, name in enumerate(VARIANTS):
+        ours = read_nir(files[name][2])
+        assert str(theirs[f"{i}/meta/format"]) == str(ours.metadata["format"])
+        for node_name, node in ours.nodes.items():
+            assert str(theirs[f"{i}/{node_name}/type"]) == type(node).__name__
+            for field, value in vars(node).items():
+                if isinstance(value, np.ndarray) and field != "v_reset":  # not in nir 1.0.4
+                    np.testing.assert_array_equal(theirs[f"{i}/{node_name}/{field}"], value)
+        assert theirs[f"{i}/edges"].tolist() == sorted(map(list, ours.edges))

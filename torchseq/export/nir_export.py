@@ -109,6 +109,9 @@ def to_nir(spiking, dt: float = DT):
         "unit_centre": spiking.unit_centre.cpu().numpy().astype(np.int64),
         "uniqueness_window": int(spiking.window),
         "steps_per_frame": 1,
+        "nir_compatibility": "readable by nir 1.0.4 and 1.0.8: the LIF nodes' v_reset (0) is "
+                             "not written (nir >= 1.0.5 reads it as 0; nir 1.0.4 resets by "
+                             "subtracting the threshold, the same spikes for tau = dt)",
         "kwta": KWTA_NOTE,
         "calibration": json.dumps(spiking.calibration),
         **quantisation_metadata(spiking),
@@ -139,7 +142,34 @@ def write_nir(spiking, path: str | Path, dt: float = DT):
     path = Path(path)
     with atomic_path(path) as tmp:  # gzip level 1: half the CPU of nir's default 4, +18%
         nir.write(tmp, graph, compression="gzip", compression_opts=1)
+        drop_zero_resets(tmp, graph)
     return graph
+
+
+def drop_zero_resets(path, graph) -> list[str]:
+    """Remove the LIF nodes' ``v_reset`` datasets from a written file, so nir 1.0.4 reads it.
+
+    nir 1.0.4's ``LIF`` has no ``v_reset`` (its reset subtracts the threshold) and refuses a
+    file that has one; nir >= 1.0.5 fills an absent ``v_reset`` with zeros. Every LIF of this
+    graph resets to 0 and has ``tau = dt`` (memoryless: ``v <- I`` every step), so both
+    readings give the same spikes. Only such nodes are touched.
+
+    Returns:
+        The nodes whose ``v_reset`` was removed.
+    """
+    import h5py
+    import nir
+
+    done = []
+    with h5py.File(path, "r+") as f:
+        nodes = f["node"]["nodes"]
+        for name, node in graph.nodes.items():
+            if isinstance(node, nir.LIF) and np.all(node.v_reset == 0) \
+                    and np.allclose(node.tau, float(graph.metadata["dt"]), rtol=1e-6) \
+                    and "v_reset" in nodes[name]:
+                del nodes[name]["v_reset"]
+                done.append(name)
+    return done
 
 
 def _whole(value, key: str, lo: int, hi: int) -> int:
