@@ -54,12 +54,15 @@ CONFIGS = {
     "S1: 12x16 events, hidden 128, 32 units, K=4, 8-bit": (
         {"input_size": (12, 16), "hidden": 128, "n_output": 32},
         SpikingConfig(levels=4, weight_bits=8, input_threshold=0.5), "speck"),
-    "S2: 12x16 events, hidden 128, 64 units, K=2, 8-bit": (
-        {"input_size": (12, 16), "hidden": 128, "n_output": 64},
-        SpikingConfig(levels=2, weight_bits=8, input_threshold=0.5), "speck"),
+    "S2: 12x16 events, hidden 128, 16 units, K=8 uniform, 8-bit": (
+        {"input_size": (12, 16), "hidden": 128, "n_output": 16},
+        SpikingConfig(levels=8, spacing="uniform", weight_bits=8, input_threshold=1.0), "speck"),
     "S3: 8x12 events, hidden 256, 32 units, K=4, 8-bit": (
         {"input_size": (8, 12), "hidden": 256, "n_output": 32},
         SpikingConfig(levels=4, weight_bits=8, input_threshold=0.5), "speck"),
+    "S4: 12x16 events, hidden 128, 8 units, K=16 uniform, 8-bit": (
+        {"input_size": (12, 16), "hidden": 128, "n_output": 8},
+        SpikingConfig(levels=16, spacing="uniform", weight_bits=8, input_threshold=0.5), "speck"),
 }
 
 # energy per synaptic operation (pJ) and its source; None: no published figure found

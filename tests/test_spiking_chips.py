@@ -279,3 +279,38 @@ def test_nir_104_reads_our_files(files, tmp_path_factory):
                 if isinstance(value, np.ndarray) and field != "v_reset":  # not in nir 1.0.4
                     np.testing.assert_array_equal(theirs[f"{i}/{node_name}/{field}"], value)
         assert theirs[f"{i}/edges"].tolist() == sorted(map(list, ours.edges))
+
+
+# ------------------------------------------------------------------ the export command
+def test_export_flags_reject_bad_bits(tmp_path, capsys):
+    from torchseq.export.cli import main
+
+    assert main(["missing.pt", "--out", str(tmp_path / "o"), "--nir-weight-bits", "1"]) == 2
+    assert "weight_bits must be None or an int in 2..16" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_export_command_reports_each_chip_at_8_bits(tmp_path, capsys):
+    import json
+
+    from tests.export_helpers import small_setup
+    from torchseq.export.cli import main
+
+    model, demo, *_ = small_setup()
+    np.save(tmp_path / "ref.npy", demo.reference.numpy())
+    model.save(tmp_path / "small.pt", extra={"reference": {"source": str(tmp_path / "ref.npy")}})
+    np.save(tmp_path / "query.npy", demo.query.numpy()[:20])
+    out = tmp_path / "export"
+    code = main([str(tmp_path / "small.pt"), "--out", str(out), "--query",
+                 str(tmp_path / "query.npy"), "--nir-weight-bits", "8", "--nir-levels", "8",
+                 "--no-progress"])
+    printed = capsys.readouterr().out
+    report = json.loads((out / "validation.json").read_text())["nir"]
+    assert code == 0 and report["weight_bits"] == 8 and report["levels"] == 8
+    assert int(read_nir(out / "model.nir").metadata["weight_bits"]) == 8
+    assert report["chips"]["loihi2"]["fits"], report["chips"]["loihi2"]
+    assert "nir_chip_loihi2: fits" in printed
+    assert "nir_chip_speck: does not fit: input is an analog current" in printed
+    for name in ("snntorch", "norse"):
+        c = report["consumers"][name]
+        assert "skipped" in c or c["agreement"] == 1.0
