@@ -29,7 +29,7 @@ SRC_LOIHI1 = ("M. Davies et al., 'Loihi: a neuromorphic manycore processor with 
 SRC_SPECK_ON = ("Open Neuromorphic, 'Speck - SynSense' (https://open-neuromorphic.org/"
                 "neuromorphic-computing/hardware/speck-synsense)")
 SRC_SPECK_SINABS = ("Sinabs documentation, 'Speck overview', Chip resources "
-                    "(https://sinabs.readthedocs.io/, docs/speck/overview.md)")
+                    "(https://sinabs.readthedocs.io/, the Speck section)")
 SRC_SPECK_MEM = ("Sinabs dynapcnn backend, per-layer kernel and neuron memory "
                  "(16Ki,16Ki,16Ki,32Ki,32Ki,64Ki,64Ki,16Ki,16Ki / 64Ki,64Ki,64Ki,32Ki,32Ki,"
                  "16Ki,16Ki,16Ki,16Ki entries; the memory-constraints table of its Speck overview)")
