@@ -388,7 +388,10 @@ class TestBudget:
         b = budget(tiny_file[2])
         res = check(b)
         assert set(res) == set(LIMITS)
-        assert res["loihi2"]["fits"]  # a few hundred neurons, analog input allowed
+        # a few hundred neurons, analog input allowed: only the float32 weights exceed
+        assert res["loihi2"]["exceeds"] == [
+            "weight precision float32 > 8 bits (export with SpikingConfig(weight_bits=8))"]
+        assert check(dict(b, weight_bits=8))["loihi2"]["fits"]
         xylo = " ".join(res["xylo_audio2"]["exceeds"])
         assert "input channels" in xylo and not res["xylo_audio2"]["fits"]
         big = dict(b, neurons=2_000_000)

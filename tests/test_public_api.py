@@ -84,11 +84,15 @@ PUBLIC = {
     "torchseq.cli_train": ["TrainConfig", "build_parser", "cli", "main", "parse_args"],
     # the spiking model and its NIR export (docs/guide/nir.md)
     "torchseq.neural.spiking": ["DT", "SpikingConfig", "SpikingError", "SpikingSeqSLAM",
-                                "SpikingState", "SpikingStep", "ladder", "lif_step"],
+                                "SpikingState", "SpikingStep", "ladder", "lif_step",
+                                "input_events", "quantise_rows"],
     "torchseq.export.nir_export": ["FORMAT", "NIRExportError", "read_nir", "require_nir",
-                                   "to_nir", "write_nir"],
+                                   "to_nir", "write_nir", "drop_zero_resets",
+                                   "quantisation_metadata"],
     "torchseq.export.nir_consumers": ["CONSUMERS", "available", "compare", "run_consumer"],
-    "torchseq.export.hardware_budget": ["LIMITS", "budget", "check"],
+    "torchseq.export.hardware_budget": ["LIMITS", "budget", "check", "CHIPS", "ChipLimits",
+                                        "memory_bytes", "layer_kernel_entries", "speck_layers",
+                                        "pow2_rows"],
     "torchseq.export.nir_validate": ["calibration_frames", "export_nir"],
     "torchseq.plots": [
         "figure_to_array", "plot_activity_raster", "plot_difference_matrix", "plot_matched_pairs",

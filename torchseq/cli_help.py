@@ -67,7 +67,8 @@ TRAIN = (
 )
 EXPORT = (
     ("inputs", ("checkpoint", "--query", "--ground-truth"), ()),
-    ("outputs", ("--out", "--frame-size", "--no-nir"), ("--no-progress",)),
+    ("outputs", ("--out", "--frame-size", "--no-nir", "--nir-weight-bits", "--nir-levels"),
+     ("--no-progress",)),
 )
 
 CHOICES = {  # flag -> the values it takes, shown as its metavar

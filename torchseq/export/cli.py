@@ -133,7 +133,7 @@ def _suggested_threshold(model, frames, gt) -> float | None:
 
 def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
                       frame_size: tuple[int, int] | None = None, nir: bool = True,
-                      progress: bool = False) -> bool:
+                      progress: bool = False, nir_config=None) -> bool:
     """Export a Neural SeqSLAM checkpoint to every deployment format and validate them.
 
     Args:
@@ -151,6 +151,8 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
             reference only) and validate it in snnTorch and Norse (``docs/guide/nir.md``; needs
             the ``nir`` extra and the learnt reference, else reported as skipped).
         progress: show each long step on stderr (:mod:`torchseq.export.progress`).
+        nir_config: the :class:`~torchseq.neural.spiking.SpikingConfig` of the NIR export
+            (None: defaults: float32 weights, 128 levels).
 
     Returns:
         True when every check passes (see ``validation.json`` ``checks``).
@@ -237,7 +239,7 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
             model, rec, replayed=frames if query is None else None,
             load=lambda: _recorded_frames(model, ckpt, rec))
         report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source,
-                                   progress=steps)
+                                   progress=steps, config=nir_config)
     else:
         report["nir"] = {"skipped": "--no-nir"}
     if "checks" in report["nir"]:
@@ -298,10 +300,27 @@ def summary_lines(out_dir) -> list[str]:
                                             f"model on the same inputs{cut}, spike agreement "
                                             f"{c.get('spike_agreement')}" if "agreement" in c
                                             else "; ".join(f"{k}: {v}" for k, v in c.items())))
+        for chip, r in nir.get("chips", {}).items():  # the hardware budget, per chip
+            lines.append(f"nir_chip_{chip}: " + ("fits" if r["fits"] else
+                                                  "does not fit: " + "; ".join(r["exceeds"])))
     lines += [f"warning: {w}" for w in report.get("warnings", [])]
     failed = [k for k, v in report["checks"].items() if not v]
     lines.append("PASS" if report["passed"] else f"FAIL: {', '.join(failed)}")
     return lines
+
+
+def _nir_config(args):
+    """The SpikingConfig of ``--nir-weight-bits`` / ``--nir-levels`` (ValueError when bad)."""
+    from torchseq.neural.spiking import SpikingConfig
+
+    kw = {}
+    if args.nir_weight_bits:
+        kw["weight_bits"] = args.nir_weight_bits
+    if args.nir_levels is not None:
+        kw["levels"] = args.nir_levels
+    cfg = SpikingConfig(**kw)
+    cfg.validate()  # SpikingError is a ValueError: exit 2 with its line
+    return cfg
 
 
 def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
@@ -320,6 +339,12 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
                     "takes (default: the checkpoint's reference frame size)")
     ap.add_argument("--no-nir", action="store_true", help="do not write model.nir (the "
                     "spiking model as a NIR graph) nor run it in snnTorch and Norse")
+    ap.add_argument("--nir-weight-bits", type=int, default=0, metavar="BITS",
+                    help="model.nir weights as signed BITS-bit integers times a power-of-two "
+                    "scale per row (2..16, 8 for Loihi 2 and Speck; default 0: float32)")
+    ap.add_argument("--nir-levels", type=int, default=None, metavar="K",
+                    help="ring neurons per output unit of the spiking model (default 128; "
+                    "fewer fit a chip's memory: docs/guide/nir.md)")
     ap.add_argument("--no-progress", action="store_true", help="do not show the long steps "
                     "on stderr (bars on a terminal, one line per step otherwise)")
     from torchseq import cli_help
@@ -337,7 +362,7 @@ def main(argv: list[str] | None = None, prog: str = "torchseq export") -> int:
         size = parse_size(args.frame_size)
         ok = export_checkpoint(args.checkpoint, args.out, args.query, args.ground_truth,
                                frame_size=size, nir=not args.no_nir,
-                               progress=not args.no_progress)
+                               progress=not args.no_progress, nir_config=_nir_config(args))
     except (ValueError, OSError, UsageError) as err:
         print(f"{prog}: error: {_first_line(err)}", file=sys.stderr)
         return 2

@@ -4,36 +4,130 @@
 the spiking neurons, the weights stored in the graph (and whether each matrix already sits on
 an int8 grid), the *effective* neuron-to-neuron
 synapses (a chain of Linear nodes between two spiking populations multiplied out, as a chip
-without analog intermediate layers would have to hold it), fan-in and fan-out, and memory
-at 8-bit weights. :func:`check` compares it with :data:`LIMITS`. Sources of the limits
-(figures as published; see ``docs/guide/nir.md``):
-
-- Speck: 328K integrate-and-fire neurons, 9 layers (https://open-neuromorphic.org/
-  neuromorphic-computing/hardware/speck-synsense); a layer's fan-out is 2 destination
-  layers, 8-bit weights, at most 1024 features per layer (SynSense samna docs, Speck 2b:
-  https://synsense-sys-int.gitlab.io/samna/models/speckSeries/speck2b.html).
-- Loihi 2: 1 million neurons, 120 million synapses, 128 neuron cores
-  (https://open-neuromorphic.org/neuromorphic-computing/hardware/loihi-2-intel/), 128 KB of
-  SRAM per core (https://fbhtechinfo.com/intels-new-loihi-2-chip-uses-1-million-neurons;
-  taken as the chip's 16 MiB for synapses and states together).
-- Xylo Audio 2: 16 input channels, 1000 hidden neurons, 8 outputs, 8-bit weights, fan-in
-  at most 63, 64,000 synaptic weights (https://open-neuromorphic.org/neuromorphic-computing/
-  hardware/xylo-synsense/); fan-out at most 64 (https://rockpool.ai/devices/
-  xylo-overview.html).
+without analog intermediate layers would have to hold it), fan-in and fan-out, recurrent
+synapses, memory at a chip's weight precision and, for a layered chip (Speck), each
+population's kernel and neuron memory as a layer. :func:`check` compares it with
+:data:`CHIPS`: per chip, whether the model fits and every limit it exceeds. Each figure of
+:data:`CHIPS` carries its source (``ChipLimits.sources``); the figures that are our estimates
+or readings rather than a published number are listed in ``ChipLimits.estimates``. The
+table with its sources: ``docs/guide/nir.md`` ("Chip limits").
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, field
+
 import numpy as np
 
-LIMITS = {
-    "speck": {"neurons": 328_000, "layers": 9, "features_per_layer": 1024, "weight_bits": 8,
-              "fanout_layers": 2, "analog_input": False},
-    "loihi2": {"neurons": 1_000_000, "synapses": 120_000_000, "memory_bytes": 128 * 128 * 1024,
-               "analog_input": True},
-    "xylo_audio2": {"neurons": 1000, "inputs": 16, "outputs": 8, "fan_in": 63, "fan_out": 64,
-                    "synapses": 64_000, "weight_bits": 8, "analog_input": False},
+SRC_LOIHI2_ON = ("Open Neuromorphic, 'Loihi 2 - Intel' (https://open-neuromorphic.org/"
+                 "neuromorphic-computing/hardware/loihi-2-intel/)")
+SRC_LOIHI2_MEM = ("fbhtechinfo, 'Intel's new Loihi 2 chip uses 1 million neurons' "
+                  "(https://fbhtechinfo.com/intels-new-loihi-2-chip-uses-1-million-neurons)")
+SRC_LOIHI1 = ("M. Davies et al., 'Loihi: a neuromorphic manycore processor with on-chip "
+              "learning', IEEE Micro 38(1), 2018")
+SRC_SPECK_ON = ("Open Neuromorphic, 'Speck - SynSense' (https://open-neuromorphic.org/"
+                "neuromorphic-computing/hardware/speck-synsense)")
+SRC_SPECK_SINABS = ("Sinabs documentation, 'Speck overview', Chip resources "
+                    "(https://sinabs.readthedocs.io/, the Speck section)")
+SRC_SPECK_MEM = ("Sinabs dynapcnn backend, per-layer kernel and neuron memory "
+                 "(16Ki,16Ki,16Ki,32Ki,32Ki,64Ki,64Ki,16Ki,16Ki / 64Ki,64Ki,64Ki,32Ki,32Ki,"
+                 "16Ki,16Ki,16Ki,16Ki entries; the memory-constraints table of its Speck overview)")
+SRC_SPECK_ARCH = ("Sinabs documentation, 'Available network architecture' FAQ (skip and "
+                  "recurrent connections between layers by manual configuration)")
+SRC_SAMNA = ("SynSense samna documentation, 'Speck 2b' (https://synsense-sys-int.gitlab.io/"
+             "samna/models/speckSeries/speck2b.html)")
+SRC_XYLO_ON = ("Open Neuromorphic, 'Xylo - SynSense' (https://open-neuromorphic.org/"
+               "neuromorphic-computing/hardware/xylo-synsense/)")
+SRC_XYLO_RP = "Rockpool documentation, 'Xylo overview' (https://rockpool.ai/devices/xylo-overview.html)"
+
+
+@dataclass(frozen=True)
+class ChipLimits:
+    """Published limits of one neuromorphic chip (None: no published figure, not checked).
+
+    Attributes:
+        title: the chip's name.
+        neurons: spiking neurons on the chip.
+        synapses: synapses (effective neuron-to-neuron connections).
+        memory_bytes: memory for synapses and neuron states together.
+        weight_bits: synaptic weight precision.
+        state_bits: neuron state precision (memory estimate).
+        fan_in: most synapses into one neuron.
+        fan_out: most synapses out of one neuron.
+        recurrent: whether a population may connect back to itself or an earlier one.
+        analog_input: whether the chip takes analog (graded) input, not only events.
+        inputs: input channels.
+        outputs: output channels.
+        layers: layered chips: the number of layers (one population per layer).
+        features_per_layer: layered chips: most channels (neurons) in and out of a layer.
+        layer_kernel_entries: layered chips: kernel memory of each layer (weights).
+        layer_neuron_entries: layered chips: neuron memory of each layer.
+        layer_destinations: layered chips: most destination layers of one layer.
+        sources: ``{field: source}`` of every figure given.
+        estimates: fields that are our estimate or reading, not a published number.
+    """
+
+    title: str
+    neurons: int | None = None
+    synapses: int | None = None
+    memory_bytes: int | None = None
+    weight_bits: int | None = None
+    state_bits: int = 16
+    fan_in: int | None = None
+    fan_out: int | None = None
+    recurrent: bool = True
+    analog_input: bool = False
+    inputs: int | None = None
+    outputs: int | None = None
+    layers: int | None = None
+    features_per_layer: int | None = None
+    layer_kernel_entries: tuple[int, ...] = ()
+    layer_neuron_entries: tuple[int, ...] = ()
+    layer_destinations: int | None = None
+    sources: dict = field(default_factory=dict)
+    estimates: tuple[str, ...] = ()
+
+
+KI = 1024
+CHIPS: dict[str, ChipLimits] = {
+    "loihi2": ChipLimits(
+        title="Intel Loihi 2 (one chip)", neurons=1_000_000, synapses=120_000_000,
+        memory_bytes=128 * 128 * KI, weight_bits=8, recurrent=True, analog_input=True,
+        sources={"neurons": SRC_LOIHI2_ON, "synapses": SRC_LOIHI2_ON,
+                 "memory_bytes": SRC_LOIHI2_MEM + ": 128 cores x 128 KB SRAM, flexibly "
+                 "partitioned", "weight_bits": SRC_LOIHI1 + " (1 to 9-bit weights on Loihi 1; "
+                 "Open Neuromorphic lists '<= 32-bit' for Loihi 2)",
+                 "recurrent": SRC_LOIHI2_ON + " (any core to any core over the mesh)",
+                 "analog_input": SRC_LOIHI2_ON + " (graded spikes)"},
+        estimates=("memory_bytes", "weight_bits")),
+    "speck": ChipLimits(
+        title="SynSense Speck (DYNAP-CNN)", neurons=328_000, weight_bits=8, recurrent=True,
+        analog_input=False, layers=9, features_per_layer=1024,
+        layer_kernel_entries=tuple(v * KI for v in (16, 16, 16, 32, 32, 64, 64, 16, 16)),
+        layer_neuron_entries=tuple(v * KI for v in (64, 64, 64, 32, 32, 16, 16, 16, 16)),
+        layer_destinations=2,
+        sources={"neurons": SRC_SPECK_ON + "; " + SRC_SPECK_SINABS + " (0.32M)",
+                 "weight_bits": SRC_SPECK_SINABS + "; " + SRC_SAMNA,
+                 "state_bits": SRC_SPECK_SINABS,
+                 "layers": SRC_SPECK_SINABS, "features_per_layer": SRC_SAMNA,
+                 "layer_kernel_entries": SRC_SPECK_MEM, "layer_neuron_entries": SRC_SPECK_MEM,
+                 "layer_destinations": SRC_SPECK_SINABS + "; " + SRC_SAMNA + " (fan-out of 2)",
+                 "recurrent": SRC_SPECK_ARCH,
+                 "analog_input": SRC_SPECK_SINABS + " (DVS or external events)"}),
+    "xylo_audio2": ChipLimits(
+        title="SynSense Xylo Audio 2", neurons=1000, synapses=64_000, weight_bits=8,
+        fan_in=63, fan_out=64, recurrent=True, analog_input=False, inputs=16, outputs=8,
+        sources={"neurons": SRC_XYLO_ON, "synapses": SRC_XYLO_ON, "weight_bits": SRC_XYLO_ON,
+                 "fan_in": SRC_XYLO_ON, "fan_out": SRC_XYLO_RP, "inputs": SRC_XYLO_ON,
+                 "outputs": SRC_XYLO_ON, "recurrent": SRC_XYLO_RP + " (recurrent hidden layer)",
+                 "analog_input": SRC_XYLO_ON + " (spike input channels)"}),
 }
+
+# the former flat view (kept for callers): {chip: {limit: value}} of the figures given
+LIMITS = {name: {k: v for k, v in vars(c).items()
+                 if k not in ("title", "sources", "estimates") and v not in (None, ())}
+          for name, c in CHIPS.items()}
 
 
 def _populations(graph) -> dict[str, int]:
@@ -142,6 +236,20 @@ def _counts(paths: list[tuple], fast: bool = True):
     return np.concatenate(rows), col, "row_blocks"
 
 
+def pow2_rows(w: np.ndarray, qmax: int = 127) -> bool:
+    """Whether each row is integers of at most ``qmax`` times a power-of-two scale of its own.
+
+    The scale tried is the one :func:`torchseq.quantise.quantise` picks (``per_row``,
+    ``power_of_two``): the row's peak over ``qmax``, rounded up to a power of two.
+    """
+    a = np.abs(np.atleast_2d(w)).astype(np.float64)
+    peak = a.max(axis=1, keepdims=True)
+    scale = np.where(peak > 0, np.exp2(np.ceil(np.log2(np.where(peak > 0, peak, 1.0) / qmax))),
+                     1.0)
+    q = a / scale
+    return bool(q.max() <= qmax and np.array_equal(q, np.rint(q)))
+
+
 def weight_grid(w: np.ndarray, tol: float = 1e-4) -> str:
     """How few bits a weight matrix needs as it stands (no quantisation applied).
 
@@ -158,6 +266,8 @@ def weight_grid(w: np.ndarray, tol: float = 1e-4) -> str:
 
     if on_grid(w):
         return "int8"
+    if pow2_rows(w):
+        return "int8_per_row"
     w = np.atleast_2d(w)
     step = max(1, 2**22 // max(w.shape[1], 1))
     for r0 in range(0, w.shape[0], step):  # each row on its own grid, a block at a time
@@ -170,6 +280,14 @@ def weight_grid(w: np.ndarray, tol: float = 1e-4) -> str:
     return "int8_per_row"
 
 
+def _meta_int(meta, key):
+    try:
+        v = meta.get(key) if isinstance(meta, dict) else None
+        return None if v is None or isinstance(v, (bool, np.bool_)) else int(v)
+    except (TypeError, ValueError):
+        return None
+
+
 def budget(graph, fast: bool = True) -> dict:
     """Neurons, weights, effective synapses, fan-in/out and memory of a spiking NIR graph.
 
@@ -179,6 +297,15 @@ def budget(graph, fast: bool = True) -> dict:
             operands' patterns (:func:`_selection`, exact; the default); False multiplies
             every product out block by block (the oracle). ``"count_kernels"`` in the
             result says which ran for each pair.
+
+    Returns:
+        A dict: ``neurons``, ``populations`` ``{name: size}``, ``inputs``, ``outputs``,
+        ``stored_weights``, ``effective_synapses`` (and ``_by_pair``), ``recurrent_synapses``
+        (pairs from a population to itself), ``max_fan_in`` / ``max_fan_out`` (and per
+        population), ``population_sources`` / ``population_destinations`` /
+        ``population_input_channels``, ``weight_grids``, ``weight_bits`` (the graph's
+        quantisation from its metadata, None: float32 weights), ``input_kind``
+        (``"analog"`` or ``"spikes"``, from the metadata), ``memory_bytes_8bit``.
     """
     import nir
 
@@ -191,6 +318,7 @@ def budget(graph, fast: bool = True) -> dict:
     syn = 0
     by_pair = {}
     kernels = {}
+    sources: dict[str, list[str]] = {}
     for (src, dst), paths in eff.items():
         row, col, kernels[f"{src}->{dst}"] = _counts(paths, fast)
         pair = int(row.sum())
@@ -198,20 +326,39 @@ def budget(graph, fast: bool = True) -> dict:
         syn += pair
         fan_in[dst] = row if dst not in fan_in else fan_in[dst] + row
         fan_out[src] = col if src not in fan_out else fan_out[src] + col
+        sources.setdefault(dst, []).append(src)
+    n_in = int(np.prod(graph.nodes["input"].output_type["output"]))
+    sizes = dict(pops, input=n_in)
     neurons = sum(pops.values())
+    meta = graph.metadata if isinstance(graph.metadata, dict) else {}
+    quant = meta.get("quantisation")
+    bits = _meta_int(meta, "weight_bits") or None  # 0 or absent: float32 weights
+    kind = meta.get("input", "analog")
+    kind = kind.decode() if isinstance(kind, bytes) else str(kind)
     return {
         "neurons": neurons, "populations": pops,
-        "inputs": int(np.prod(graph.nodes["input"].output_type["output"])),
+        "inputs": n_in,
         "outputs": int(np.prod(graph.nodes["output"].input_type["input"])),
         "stored_weights": stored, "stored_weights_total": sum(stored.values()),
         "effective_synapses": syn,
         "effective_synapses_by_pair": by_pair,
+        "recurrent_synapses": sum(v for k, v in by_pair.items()
+                                  if k.split("->")[0] == k.split("->")[1]),
         "count_kernels": kernels,
         "max_fan_in": max(int(v.max()) for v in fan_in.values()),
         "max_fan_in_by_population": {k: int(v.max()) for k, v in fan_in.items()},
         "max_fan_out": max(int(v.max()) for v in fan_out.values()),
+        "max_fan_out_by_population": {k: int(v.max()) for k, v in fan_out.items()},
         "mean_fan_out": {k: float(v.mean()) for k, v in fan_out.items()},
+        "population_sources": {k: sorted(v) for k, v in sources.items()},
+        "population_destinations": {s: sorted(d for d, v in sources.items() if s in v)
+                                    for s in sizes},
+        "population_input_channels": {d: int(sum(sizes[s] for s in v))
+                                      for d, v in sources.items()},
         "graph_weight_bits": 32,
+        "weight_bits": bits,
+        "quantisation": quant.decode() if isinstance(quant, bytes) else quant,
+        "input_kind": "spikes" if kind.startswith("spikes") else "analog",
         "weight_grids": {k: weight_grid(n.weight) for k, n in graph.nodes.items()
                          if isinstance(n, (nir.Linear, nir.Affine))},
         "memory_bytes_8bit": syn + 2 * neurons,  # 8-bit synapses, 16-bit neuron states
@@ -219,38 +366,105 @@ def budget(graph, fast: bool = True) -> dict:
     }
 
 
+def memory_bytes(b: dict, weight_bits: int, state_bits: int = 16) -> int:
+    """Synaptic and neuron-state memory of budget ``b`` at these precisions (bytes, rounded up)."""
+    return math.ceil(b["effective_synapses"] * weight_bits / 8) + \
+        math.ceil(b["neurons"] * state_bits / 8)
+
+
+def layer_kernel_entries(channels_in: int, features_out: int, kernel: int = 1) -> int:
+    """Kernel memory entries of a Speck layer: ``c * 2^(ceil log2(k_x k_y) + ceil log2 f)``.
+
+    A dense population is a ``1 x 1`` convolution over ``c`` input channels (Sinabs' Speck
+    overview, "Memory constraints and network sizing": the address encoding rounds the kernel
+    and output sizes up to powers of two).
+    """
+    def bits(n: int) -> int:
+        return 0 if n <= 1 else math.ceil(math.log2(n))
+
+    return channels_in * 2 ** (bits(kernel) + bits(features_out))
+
+
+def speck_layers(b: dict, chip: ChipLimits) -> tuple[dict, list[str]]:
+    """Place each spiking population on a layer of a layered chip; ``(placement, problems)``.
+
+    Each population is one layer whose input channels are all its sources (the input
+    included) and whose outputs are its neurons: kernel entries by
+    :func:`layer_kernel_entries`, neuron entries = its size. Populations are placed largest
+    kernel first on the free layer with the least kernel memory that holds both.
+    """
+    need = {p: (layer_kernel_entries(b["population_input_channels"].get(p, 0), n), n)
+            for p, n in b["populations"].items()}
+    free = list(range(len(chip.layer_kernel_entries)))
+    placed, bad = {}, []
+    for p in sorted(need, key=lambda q: -need[q][0]):
+        kern, neur = need[p]
+        fits = [i for i in free if chip.layer_kernel_entries[i] >= kern
+                and chip.layer_neuron_entries[i] >= neur]
+        if not fits:
+            bad.append(f"{p}: {kern} kernel entries ({b['population_input_channels'].get(p, 0)} "
+                       f"channels in, {neur} out) and {neur} neuron entries > any free layer "
+                       f"(largest kernel memory {max(chip.layer_kernel_entries)} entries)")
+            continue
+        i = min(fits, key=lambda j: (chip.layer_kernel_entries[j], j))
+        free.remove(i)
+        placed[p] = {"layer": i, "kernel_entries": kern, "neuron_entries": neur}
+    return placed, bad
+
+
 def check(b: dict) -> dict:
-    """Each chip of :data:`LIMITS`: ``{"fits": bool, "exceeds": [reasons]}``."""
+    """Each chip of :data:`CHIPS`: ``{"fits", "exceeds": [reasons], "notes": [...]}``.
+
+    A reason names the figure, the model's value and the limit (``"neurons 28672 > 1000"``).
+    Memory is counted at the chip's weight precision; weights stored as float32 (no
+    quantisation in the graph's metadata) or quantised to more bits than the chip holds
+    exceed its weight precision.
+    """
     out = {}
-    for chip, lim in LIMITS.items():
-        bad = []
-        if b["neurons"] > lim["neurons"]:
-            bad.append(f"{b['neurons']} neurons > {lim['neurons']}")
-        if "synapses" in lim and b["effective_synapses"] > lim["synapses"]:
-            bad.append(f"{b['effective_synapses']} synapses > {lim['synapses']}")
-        if "memory_bytes" in lim and b["memory_bytes_8bit"] > lim["memory_bytes"]:
-            bad.append(f"{b['memory_bytes_8bit']} bytes at 8-bit weights > "
-                       f"{lim['memory_bytes']} bytes of core memory")
-        if "fan_in" in lim and b["max_fan_in"] > lim["fan_in"]:
-            bad.append(f"fan-in {b['max_fan_in']} > {lim['fan_in']}")
-        if "fan_out" in lim and b["max_fan_out"] > lim["fan_out"]:
-            bad.append(f"fan-out {b['max_fan_out']} > {lim['fan_out']}")
-        if "inputs" in lim and b["inputs"] > lim["inputs"]:
-            bad.append(f"{b['inputs']} input channels > {lim['inputs']}")
-        if "outputs" in lim and b["outputs"] > lim["outputs"]:
-            bad.append(f"{b['outputs']} outputs > {lim['outputs']}")
-        if "features_per_layer" in lim:
-            big = {k: v for k, v in b["populations"].items() if v > lim["features_per_layer"]}
-            if big:
-                bad.append(f"populations {big} > {lim['features_per_layer']} features per "
-                           f"layer (dense layers as 1x1 convolutions)")
-        if "weight_bits" in lim:
-            off = sorted(k for k, g in b["weight_grids"].items() if g == "float")
-            if off:
-                bad.append(f"{', '.join(off)} are not on an int8 grid; {lim['weight_bits']}-bit "
-                           f"weights need quantising them (not done)")
-        if not lim["analog_input"]:
-            bad.append("the input is an analog current (the encoded frame); the chip takes "
-                       "events only")
-        out[chip] = {"fits": not bad, "exceeds": bad}
+    for chip, lim in CHIPS.items():
+        bad, notes = [], []
+
+        def over(what, value, limit):
+            if limit is not None and value > limit:
+                bad.append(f"{what} {value} > {limit}")
+
+        over("neurons", b["neurons"], lim.neurons)
+        over("synapses", b["effective_synapses"], lim.synapses)
+        if lim.memory_bytes is not None:
+            mem = memory_bytes(b, lim.weight_bits or 8, lim.state_bits)
+            over(f"memory at {lim.weight_bits}-bit weights and {lim.state_bits}-bit states "
+                 f"(bytes)", mem, lim.memory_bytes)
+        over("fan-in", b["max_fan_in"], lim.fan_in)
+        over("fan-out", b["max_fan_out"], lim.fan_out)
+        over("input channels", b["inputs"], lim.inputs)
+        over("outputs", b["outputs"], lim.outputs)
+        if lim.weight_bits is not None:
+            bits = b.get("weight_bits")
+            if bits is None:
+                bad.append(f"weight precision float32 > {lim.weight_bits} bits (export with "
+                           f"SpikingConfig(weight_bits={lim.weight_bits}))")
+            else:
+                over("weight bits", bits, lim.weight_bits)
+        if not lim.recurrent and b.get("recurrent_synapses", 0):
+            bad.append(f"recurrent synapses {b['recurrent_synapses']} > 0 (no recurrence)")
+        if not lim.analog_input and b.get("input_kind", "analog") != "spikes":
+            bad.append("input is an analog current (the encoded frame); the chip takes events "
+                       "only (convert with SpikingConfig(input_threshold=...))")
+        if lim.layers is not None:
+            over("spiking layers", b["spiking_layers"], lim.layers)
+            for p, n in b["populations"].items():
+                over(f"{p} features", n, lim.features_per_layer)
+            for p, c in b.get("population_input_channels", {}).items():
+                over(f"{p} input channels", c, lim.features_per_layer)
+            for p, d in b.get("population_destinations", {}).items():
+                over(f"{p} destination layers", len(d), lim.layer_destinations)
+            placed, problems = speck_layers(b, lim)
+            bad += problems
+            notes.append(f"layers: {placed}")
+        missing = [k for k in ("fan_in", "fan_out") if getattr(lim, k) is None]
+        if missing:
+            notes.append(f"no published {', '.join(missing)} limit: not checked")
+        if lim.estimates:
+            notes.append(f"estimated limits: {', '.join(lim.estimates)}")
+        out[chip] = {"fits": not bad, "exceeds": bad, "notes": notes}
     return out

@@ -85,8 +85,10 @@ def to_nir(spiking, dt: float = DT):
     levels = np.zeros((n * k, n), dtype=np.float32)
     rows = np.arange(n * k)
     levels[rows, rows // k] = np.tile(inv_theta, n)
-    # (N, N*K): column j*K+l = shift[:, j] * step[l] (level l's share of unit j's value)
-    shift = np.kron(_f32(spiking.shift), _f32(spiking.rung_step)[None, :]).astype(np.float32)
+    # (N, N*K): column j*K+l = shift[:, j] * step[l] (level l's share of unit j's value);
+    # a quantised model holds that matrix itself, quantised row by row
+    shift = (_f32(spiking.shift_dense) if spiking.shift_dense is not None else
+             np.kron(_f32(spiking.shift), _f32(spiking.rung_step)[None, :]).astype(np.float32))
     nodes = {
         "input": nir.Input(input_type={"input": np.array([s["input"]])}),
         "l1": nir.Linear(weight=_f32(spiking.w1)),
@@ -107,10 +109,30 @@ def to_nir(spiking, dt: float = DT):
         "unit_centre": spiking.unit_centre.cpu().numpy().astype(np.int64),
         "uniqueness_window": int(spiking.window),
         "steps_per_frame": 1,
+        "nir_compatibility": "readable by nir 1.0.4 and 1.0.8: the LIF nodes' v_reset (0) is "
+                             "not written (nir >= 1.0.5 reads it as 0; nir 1.0.4 resets by "
+                             "subtracting the threshold, the same spikes for tau = dt)",
         "kwta": KWTA_NOTE,
         "calibration": json.dumps(spiking.calibration),
+        **quantisation_metadata(spiking),
+        "input": ("analog current: the encoded frame (D values), one step per frame"
+                  if spiking.input_threshold is None else
+                  f"spikes: ON/OFF events, ON where the encoded pixel > {spiking.input_threshold}"
+                  f", OFF where < -{spiking.input_threshold} (2 D channels: ON then OFF)"),
     }
     return nir.NIRGraph(nodes=nodes, edges=edges, metadata=meta)
+
+
+def quantisation_metadata(spiking) -> dict:
+    """The graph's ``weight_bits`` (0: float32) and ``quantisation`` (what was done, words)."""
+    bits = spiking.calibration.get("weight_bits")
+    if bits is None:
+        return {"weight_bits": 0, "quantisation": "none: float32 weights"}
+    return {"weight_bits": int(bits),
+            "quantisation": f"l1, l3, levels and shift: signed {bits}-bit integers (symmetric, "
+                            f"|q| <= {2 ** (bits - 1) - 1}) times one power-of-two scale per "
+                            f"row (output neuron), rounded half away from zero; the stored "
+                            f"float32 weight is q * 2^e exactly; LIF thresholds 1"}
 
 
 def write_nir(spiking, path: str | Path, dt: float = DT):
@@ -120,7 +142,34 @@ def write_nir(spiking, path: str | Path, dt: float = DT):
     path = Path(path)
     with atomic_path(path) as tmp:  # gzip level 1: half the CPU of nir's default 4, +18%
         nir.write(tmp, graph, compression="gzip", compression_opts=1)
+        drop_zero_resets(tmp, graph)
     return graph
+
+
+def drop_zero_resets(path, graph) -> list[str]:
+    """Remove the LIF nodes' ``v_reset`` datasets from a written file, so nir 1.0.4 reads it.
+
+    nir 1.0.4's ``LIF`` has no ``v_reset`` (its reset subtracts the threshold) and refuses a
+    file that has one; nir >= 1.0.5 fills an absent ``v_reset`` with zeros. Every LIF of this
+    graph resets to 0 and has ``tau = dt`` (memoryless: ``v <- I`` every step), so both
+    readings give the same spikes. Only such nodes are touched.
+
+    Returns:
+        The nodes whose ``v_reset`` was removed.
+    """
+    import h5py
+    import nir
+
+    done = []
+    with h5py.File(path, "r+") as f:
+        nodes = f["node"]["nodes"]
+        for name, node in graph.nodes.items():
+            if isinstance(node, nir.LIF) and np.all(node.v_reset == 0) \
+                    and np.allclose(node.tau, float(graph.metadata["dt"]), rtol=1e-6) \
+                    and "v_reset" in nodes[name]:
+                del nodes[name]["v_reset"]
+                done.append(name)
+    return done
 
 
 def _whole(value, key: str, lo: int, hi: int) -> int:

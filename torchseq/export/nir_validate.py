@@ -75,7 +75,7 @@ def _roundtrip_equal(graph, back) -> bool:
 
 
 def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
-               progress=None) -> dict:
+               progress=None, config=None) -> dict:
     """Write ``model.nir`` and validate it; return the ``"nir"`` section of the report.
 
     Args:
@@ -87,6 +87,7 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
             ``calib_source`` as the reason).
         calib_source: where they came from (reported).
         progress: an :class:`~torchseq.export.progress.ExportProgress`, or None.
+        config: the :class:`~torchseq.neural.spiking.SpikingConfig` (None: defaults).
 
     Returns:
         ``{"file", "bytes", "round_trip_equal", "steps_per_frame", "time_steps", "levels",
@@ -112,7 +113,7 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
 
     query = torch.as_tensor(frames).to(torch.float32)
     with progress.step("NIR: spiking conversion and model.nir"):
-        sp = SpikingSeqSLAM.convert(model, torch.as_tensor(calib).to(torch.float32))
+        sp = SpikingSeqSLAM.convert(model, torch.as_tensor(calib).to(torch.float32), config)
         path = Path(out_dir) / NIR_FILE
         graph = write_nir(sp, path)
         back = read_nir(path)
@@ -131,6 +132,7 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
     return {
         "file": NIR_FILE, "bytes": path.stat().st_size, "round_trip_equal": same,
         "steps_per_frame": 1, "time_steps": int(x.shape[0]), "levels": sp.levels,
+        "weight_bits": sp.calibration.get("weight_bits"),
         "dt": float(graph.metadata["dt"]), "calibration_source": calib_source,
         "calibration": sp.calibration,
         "spiking": {

@@ -66,15 +66,36 @@ class SpikingConfig:
         spacing: the ring's ladder of values, ``"geometric"`` or ``"uniform"``.
         low: the geometric ladder's lowest rung as a fraction of the highest.
         chunk: reference frames encoded at once during calibration.
+        weight_bits: None: float32 weights. An int ``b``: every weight matrix of the graph
+            (``l1``, ``l3``, ``levels``, ``shift``) quantised to signed ``b``-bit integers
+            times one power-of-two scale per row (:func:`torchseq.quantise.quantise`), and
+            the model runs on exactly those weights (:func:`quantise_rows`).
+        input_threshold: None: the input is the analog encoded frame. A number ``t``: the
+            input is events, an ON spike where the encoded pixel is above ``t`` and an OFF
+            spike where it is below ``-t`` (``2 D`` input channels, :func:`input_events`);
+            L1 weighs OFF spikes by ``-W1``.
     """
 
     levels: int = 128
     spacing: str = "geometric"
     low: float = 0.01
     chunk: int = 256
+    weight_bits: int | None = None
+    input_threshold: float | None = None
 
     def validate(self) -> None:
         """Raise :class:`SpikingError` on an impossible setting."""
+        if self.weight_bits is not None and (
+                isinstance(self.weight_bits, bool) or not isinstance(self.weight_bits, int)
+                or not 2 <= self.weight_bits <= 16):
+            raise SpikingError(f"weight_bits must be None or an int in 2..16, got "
+                               f"{self.weight_bits!r}")
+        if self.input_threshold is not None and (
+                isinstance(self.input_threshold, bool)
+                or not isinstance(self.input_threshold, (int, float))
+                or not 0.0 <= float(self.input_threshold) < math.inf):
+            raise SpikingError(f"input_threshold must be None or a finite number >= 0, got "
+                               f"{self.input_threshold!r}")
         if not isinstance(self.levels, int) or not 1 <= self.levels <= 1024:
             raise SpikingError(f"levels must be an int in 1..1024, got {self.levels!r}")
         if self.spacing not in ("geometric", "uniform"):
@@ -147,7 +168,42 @@ def ladder(config: SpikingConfig, a_max: float) -> tuple[torch.Tensor, torch.Ten
     return g, theta
 
 
-def l1_sum_grid(w1: torch.Tensor, input_steps: int, l1_levels: int) -> float | None:
+def input_events(x: torch.Tensor, threshold: float) -> torch.Tensor:
+    """ON/OFF events of encoded frames: ``[x > t, x < -t]`` as 0/1 floats.
+
+    Args:
+        x: ``(..., D)`` encoded frames.
+        threshold: ``t >= 0``.
+
+    Returns:
+        ``(..., 2 D)``: ON events of the ``D`` pixels, then OFF events.
+    """
+    return torch.cat([(x > threshold), (x < -threshold)], dim=-1).to(torch.float32)
+
+
+def quantise_rows(w: torch.Tensor, bits: int | None) -> torch.Tensor:
+    """``w`` on a signed ``bits``-bit grid with one power-of-two scale per row (float32).
+
+    The one quantiser (:func:`torchseq.quantise.quantise`, ``per_row=True``,
+    ``power_of_two=True``, halves away from zero). Power-of-two scales keep every sum of
+    spikes times weights an integer times the row's scale: exact in float32 whatever the
+    summation order (below ``2**24`` steps), so the consumers' sums equal torchseq's.
+    ``bits`` None returns ``w`` unchanged.
+
+    Args:
+        w: ``(rows, cols)`` weights.
+        bits: 2..16, or None.
+    """
+    if bits is None:
+        return w
+    from torchseq.quantise import dequantise, quantise
+
+    q = quantise(w.detach().cpu(), bits, per_row=True, power_of_two=True)
+    return torch.from_numpy(dequantise(q)).to(torch.float32)
+
+
+def l1_sum_grid(w1: torch.Tensor, input_steps: int, l1_levels: int,
+                row_grids: bool = False) -> float | None:
     """The step ``q`` every L1 sum is a multiple of, or None where the sums are not on a grid.
 
     With the model's integer grids (:mod:`torchseq.quantise`: inputs multiples of
@@ -158,11 +214,29 @@ def l1_sum_grid(w1: torch.Tensor, input_steps: int, l1_levels: int) -> float | N
         w1: ``(M, D)`` folded L1 weights.
         input_steps: the model's ``input_steps`` (0: float input, no grid).
         l1_levels: the model's ``l1_levels`` (0: float weights, no grid).
+        row_grids: the rows were quantised on power-of-two grids of their own
+            (:func:`quantise_rows`): the step is the finest row step over ``input_steps``.
     """
-    if not input_steps or not l1_levels:
+    if not input_steps:
         return None
-    factored = factor_power_of_two(w1, l1_levels)
-    return None if factored is None else factored[1] / input_steps
+    factored = factor_power_of_two(w1, l1_levels) if l1_levels else None
+    if factored is not None:
+        return factored[1] / input_steps
+    if not row_grids:
+        return None
+    # rows on power-of-two grids of their own (quantise_rows): every sum is a multiple of the
+    # finest row step
+    a = w1.detach().double().abs()
+    nz = a[a > 0]
+    if nz.numel() == 0:
+        return None
+    e = torch.floor(torch.log2(nz.min())).item()
+    for _ in range(64):  # the largest power-of-two step every weight is a multiple of
+        q = a / 2.0 ** e
+        if torch.equal(q, torch.round(q)):
+            return 2.0 ** e / input_steps
+        e -= 1
+    return None
 
 
 class SpikingSeqSLAM(nn.Module):
@@ -178,17 +252,28 @@ class SpikingSeqSLAM(nn.Module):
     """
 
     def __init__(self, w1, w3, inv_theta, step, shift, unit_centre, window: int,
-                 calibration: dict, encode: Callable | None = None) -> None:
+                 calibration: dict, encode: Callable | None = None,
+                 shift_dense: torch.Tensor | None = None,
+                 input_threshold: float | None = None) -> None:
         super().__init__()
         for name, t in (("w1", w1), ("w3", w3), ("inv_theta", inv_theta),
                         ("rung_step", step), ("shift", shift)):
             self.register_buffer(name, t.detach().to(torch.float32).contiguous())
+        # the cycle's kernel, chosen here: "factored" (shift (N, N) times the rung steps
+        # (K,), float weights) or "dense" (the (N, N K) matrix of the graph's shift node,
+        # quantised row by row: it does not factor)
+        self.register_buffer("shift_dense", None if shift_dense is None else
+                             shift_dense.detach().to(torch.float32).contiguous())
+        self.shift_kernel = "factored" if shift_dense is None else "dense"
+        self.input_threshold = None if input_threshold is None else float(input_threshold)
         self.register_buffer("unit_centre", unit_centre.detach().clone())
         # synapse counts for synaptic_ops (derived, not state)
         self.register_buffer("_fan_l2", (self.w3 != 0).sum(0).float(), persistent=False)
-        self.register_buffer("_fan_ring", (self.shift != 0).sum(0).float().repeat_interleave(
-            self.inv_theta.shape[0]), persistent=False)
+        fan_ring = ((self.shift != 0).sum(0).float().repeat_interleave(self.inv_theta.shape[0])
+                    if shift_dense is None else (self.shift_dense != 0).sum(0).float())
+        self.register_buffer("_fan_ring", fan_ring, persistent=False)
         self._synapses_l1 = float((self.w1 != 0).sum())
+        self.register_buffer("_fan_input", (self.w1 != 0).sum(0).float(), persistent=False)
         self.window = int(window)
         self.calibration = dict(calibration)
         self._encode = encode
@@ -264,22 +349,32 @@ class SpikingSeqSLAM(nn.Module):
                            for i in range(0, reference.shape[0], cfg.chunk)])
         except ValueError as err:
             raise SpikingError(f"reference cannot be encoded: {err}") from None
+        events = cfg.input_threshold is not None
+        if events:  # ON/OFF events in, OFF weighted by -W1
+            x = input_events(x, float(cfg.input_threshold))
+            w1 = torch.cat([w1, -w1], dim=1)
+        bits = cfg.weight_bits
+        # quantised before theta2 is calibrated, so theta2 sees the deployed sums (the rate
+        # model's L1 integers (|n| <= 64 times a power of two) already fit 8 bits: unchanged)
+        w1 = quantise_rows(w1, bits)
         h = x @ w1.T  # (R, M)
         top = h.topk(min(k + 1, h.shape[1]), dim=1).values
         theta2 = float(torch.quantile((top[:, k - 1] + top[:, -1]) / 2, 0.5))
         if not theta2 > 0:
             raise SpikingError(f"degenerate L2 threshold {theta2} (a blank reference?)")
-        grid = l1_sum_grid(w1, mc.input_steps, mc.l1_levels)
+        steps = 1 if events else mc.input_steps
+        grid = l1_sum_grid(w1, steps, mc.l1_levels, row_grids=bits is not None)
         if grid is not None:  # halfway between two attainable sums: no sum ever ties with it
             theta2 = (math.floor(theta2 / grid) + 0.5) * grid
         z2 = (h > theta2).float()
+        w1n = w1 / theta2  # the graph's l1 (threshold 1)
         n_c = g.sum(0).clamp_min(1.0)  # (C,)
         e = z2 @ w3f.T  # (R, N)
         mu = (e @ g) / n_c  # (R, C)
         var = (((e - mu @ g.T) ** 2) @ g) / n_c
         sigma = torch.quantile(var.sqrt(), 0.5, dim=0).clamp_min(mc.eps)  # (C,)
         centred = w3f - g @ ((g / n_c).T @ w3f)  # (N, M): minus the cohort's mean row
-        w3 = centred * (g @ (gain / sigma))[:, None]
+        w3 = quantise_rows(centred * (g @ (gain / sigma))[:, None], bits)
         ev = z2 @ w3.T  # (R, N)
         a, a_max = torch.zeros(ev.shape[1]), 0.0
         for t in range(ev.shape[0]):  # unquantised ring on the reference
@@ -289,15 +384,20 @@ class SpikingSeqSLAM(nn.Module):
             raise SpikingError("the ring never becomes active on the reference: nothing to scale")
         g, theta = ladder(cfg, a_max)
         calibration = {"theta2": theta2, "l1_grid": grid, "sigma": [float(v) for v in sigma],
+                       "weight_bits": bits, "input_threshold": cfg.input_threshold,
                        "a_max": a_max,
                        "decay": decay, "gain": gain, "k": k, "levels": cfg.levels,
                        "spacing": cfg.spacing, "low": cfg.low,
                        "ladder": [float(v) for v in g], "thresholds": [float(v) for v in theta],
                        "reference_frames": int(reference.shape[0])}
         step = g - torch.cat([g.new_zeros(1), g[:-1]])
-        return cls(w1 / theta2, w3, (1.0 / theta).float(), step.float(), s * decay,
+        inv_theta = quantise_rows((1.0 / theta).float()[:, None], bits)[:, 0]
+        dense = None
+        if bits is not None:  # the graph's (N, N K) shift matrix, quantised row by row
+            dense = quantise_rows(torch.kron(s * decay, step.float()[None, :]), bits)
+        return cls(w1n, w3, inv_theta, step.float(), s * decay,
                    model.unit_centre.detach().cpu(), mc.uniqueness_window, calibration,
-                   model.encode)
+                   model.encode, shift_dense=dense, input_threshold=cfg.input_threshold)
 
     # ------------------------------------------------------------------ the step
     def zero_state(self, batch: int) -> SpikingState:
@@ -326,8 +426,11 @@ class SpikingSeqSLAM(nn.Module):
             raise SpikingError(f"state is for {tuple(state.ring.shape)} ring neurons, the step "
                                f"needs ({b}, {n * k})")
         z2, v2 = lif_step(x.to(self.w1.dtype) @ self.w1.T, state.v2)
-        prev = state.ring.view(b, n, k) @ self.rung_step  # (B, N): last step's ring values
-        u = z2 @ self.w3.T + prev @ self.shift.T
+        if self.shift_dense is None:  # (B, N): last step's ring values, then the shift
+            cycle = (state.ring.view(b, n, k) @ self.rung_step) @ self.shift.T
+        else:
+            cycle = state.ring @ self.shift_dense.T
+        u = z2 @ self.w3.T + cycle
         drive = (u[:, :, None] * self.inv_theta).reshape(b, n * k)  # (B, N * K)
         zr, vr = lif_step(drive, state.v_ring)
         counts = zr.view(b, n, k).sum(-1)
@@ -340,19 +443,44 @@ class SpikingSeqSLAM(nn.Module):
         """``(reference (B,), confidence (B,))`` from ring spike counts ``(B, N)``."""
         return decide(counts, self.unit_centre, self.window)
 
-    def synaptic_ops(self, l2_spikes: torch.Tensor, ring_spikes: torch.Tensor) -> torch.Tensor:
+    def _input_ops(self, x: torch.Tensor | None, batch: int) -> torch.Tensor:
+        if self.input_threshold is not None and x is not None:  # events: their synapses
+            return x @ self._fan_input
+        return self.w1.new_full((batch,), self._synapses_l1)  # analog: every L1 synapse
+
+    def synaptic_ops(self, l2_spikes: torch.Tensor, ring_spikes: torch.Tensor,
+                     x: torch.Tensor | None = None) -> torch.Tensor:
         """Synaptic operations of one step per stream ``(B,)``, on the exported graph.
 
-        ``nnz(w1)`` (the analog input drives every L1 synapse) + the non-zero ``w3`` entries
-        of the L2 units that fired + ``N * K`` (each unit's current to its ``K`` levels) +
-        the non-zero shift entries of the units whose ring neurons fired (per spike).
+        ``nnz(w1)`` (the analog input drives every L1 synapse; event input: the L1 synapses
+        of the events ``x``) + the non-zero ``w3`` entries of the L2 units that fired +
+        ``N * K`` (each unit's current to its ``K`` levels) + the non-zero shift entries of
+        the ring neurons that fired (per spike).
 
         Args:
             l2_spikes: ``(B, M)``.
             ring_spikes: ``(B, N * K)``.
+            x: ``(B, D)`` the step's input (needed for event input), or None.
         """
-        return (self._synapses_l1 + l2_spikes @ self._fan_l2 + self.n_units * self.levels
-                + ring_spikes @ self._fan_ring)
+        return (self._input_ops(x, l2_spikes.shape[0]) + l2_spikes @ self._fan_l2
+                + self.n_units * self.levels + ring_spikes @ self._fan_ring)
+
+    def chip_ops(self, l2_spikes: torch.Tensor, ring_spikes: torch.Tensor,
+                 x: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Synaptic operations of one step ``(B,)`` on a chip holding the effective synapses.
+
+        A chip without analog intermediate layers holds ``levels @ l3`` and
+        ``levels @ shift`` multiplied out (``hardware_budget``): an L2 spike reaches the
+        ``K`` ring neurons of every unit its ``w3`` column reaches, a ring spike the ``K``
+        ring neurons of every unit its shift column reaches.
+
+        Returns:
+            ``{"input", "l2", "ring"}``: the operations driven by the input, by L2 spikes
+            and by ring spikes.
+        """
+        return {"input": self._input_ops(x, l2_spikes.shape[0]),
+                "l2": (l2_spikes @ self._fan_l2) * self.levels,
+                "ring": (ring_spikes @ self._fan_ring) * self.levels}
 
     def counts(self, ring_spikes: torch.Tensor) -> torch.Tensor:
         """Spike counts per unit ``(..., N)`` of ring spikes ``(..., N * K)``."""
@@ -360,13 +488,18 @@ class SpikingSeqSLAM(nn.Module):
 
     @torch.no_grad()
     def encode(self, frames: torch.Tensor) -> torch.Tensor:
-        """The rate model's input stage: frames ``(T, H, W)`` -> ``(T, D)``."""
+        """The graph's input: frames ``(T, H, W)`` -> ``(T, D)`` (the rate model's encode).
+
+        With ``input_threshold`` the encoded frames become ON/OFF events ``(T, 2 D)``
+        (:func:`input_events`).
+        """
         if self._encode is None:
             raise SpikingError("this spiking model was built without the rate model's encode")
         try:
-            return self._encode(frames).float().cpu()
+            x = self._encode(frames).float().cpu()
         except ValueError as err:  # the rate model's NeuralError: shapes, NaN, ...
             raise SpikingError(f"frames cannot be encoded: {err}") from None
+        return x if self.input_threshold is None else input_events(x, self.input_threshold)
 
     @torch.no_grad()
     def run(self, query: torch.Tensor, encoded: bool = False, raster: bool = False) -> dict:
@@ -379,8 +512,9 @@ class SpikingSeqSLAM(nn.Module):
 
         Returns:
             ``{"reference" (T,), "confidence" (T,), "l2_spikes" (T,), "ring_spikes" (T,),
-            "synaptic_ops" (T,), "counts" (T, N)}`` (totals per frame), and ``"raster"``
-            if asked.
+            "input_events" (T,) (0 for analog input), "synaptic_ops" (T,) (on the graph),
+            "chip_ops" {"input", "l2", "ring"} (T,) each (:meth:`chip_ops`), "counts"
+            (T, N)}`` (totals per frame), and ``"raster"`` if asked.
         """
         x = query.float() if encoded else self.encode(query)
         if x.dim() != 2 or x.shape[0] < 1:
@@ -389,11 +523,16 @@ class SpikingSeqSLAM(nn.Module):
         for t in range(x.shape[0]):
             step, state = self.forward(x[t:t + 1], state)
             out.append(step)
+        chip = [self.chip_ops(o.l2_spikes, o.ring_spikes, x[t:t + 1]) for t, o in enumerate(out)]
         return {"reference": torch.cat([o.reference for o in out]),
                 "confidence": torch.cat([o.confidence for o in out]),
                 "l2_spikes": torch.stack([o.l2_spikes.sum() for o in out]),
                 "ring_spikes": torch.stack([o.ring_spikes.sum() for o in out]),
-                "synaptic_ops": torch.cat([self.synaptic_ops(o.l2_spikes, o.ring_spikes)
-                                           for o in out]),
+                "input_events": (x.sum(1) if self.input_threshold is not None
+                                 else torch.zeros(x.shape[0])),
+                "synaptic_ops": torch.cat([self.synaptic_ops(o.l2_spikes, o.ring_spikes,
+                                                             x[t:t + 1])
+                                           for t, o in enumerate(out)]),
+                "chip_ops": {k: torch.cat([c[k] for c in chip]) for k in chip[0]},
                 "counts": torch.cat([o.counts for o in out]),
                 **({"raster": torch.cat([o.ring_spikes for o in out])} if raster else {})}
