@@ -31,6 +31,7 @@ from torchseq.export.cli import ExportError
 from torchseq.export.int_onnx import run_step_session, write_onnx
 from torchseq.layers import RingState
 from torchseq.neural.inference import NeuralInference
+from torchseq.neural.search import refuse_export
 from torchseq.neural.velocity import VelocityState
 
 OPSET = 17
@@ -112,6 +113,7 @@ class StreamingStep(NeuralInference):
 
 def build_float_onnx(model) -> onnx.ModelProto:
     """Trace :class:`StreamingStep` into an ONNX model (dynamic batch axis ``batch``)."""
+    refuse_export(model, "float ONNX")
     step = StreamingStep(model).eval()
     h, w = step.input_size
     frames = torch.rand(2, h, w) * 255

@@ -35,6 +35,7 @@ from torchseq.neural.memory import seqslam_bytes
 from torchseq.neural.progress import Progress, as_progress
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
+from torchseq.neural.search import UnitSearch, search_active, search_step
 from torchseq.neural.selfcheck import SELF_CHECK_FLOOR, disturbed, self_recall
 from torchseq.neural.velocity import VelocityState, VelocityTracker, adaptive_step
 from torchseq.preprocess import patch_normalise, quantise_input, resize, to_grey, zscore_blocks
@@ -66,6 +67,7 @@ class NeuralSeqSLAM(nn.Module):
         self.ring: OutputRing | None = None
         self._inference: NeuralInference | None = None  # set by fold(): step uses it
         self.self_check: float | None = None  # set by fit (selfcheck.py)
+        self.search: UnitSearch | None = None  # set by fit where the route needs it (search.py)
         self._run_modules: dict = {}  # run's own inference modules, by l1 dtype
         self.register_state_dict_post_hook(_drop_derived)
 
@@ -161,11 +163,13 @@ class NeuralSeqSLAM(nn.Module):
         tracker = VelocityTracker.from_model(self) if adaptive else None
         if state is not None and adaptive:
             tracker.check(state, frames.shape[0], self.n_units)
-        elif state is not None:
+        elif state is not None and self.search is None:
             state = _ring_state(state)
             if tuple(state.activity.shape) != (frames.shape[0], self.n_units):
                 raise NeuralError(f"state must be ({frames.shape[0]}, {self.n_units}), got "
                                   f"{tuple(state.activity.shape)}")
+        if self.search is not None:  # the unit search decides (neural/search.py)
+            return search_step(self, frames, state)
         if self._inference is not None:
             return self._inference(frames, state)
         e = self.evidence(self.code(self.encode(frames)))  # (B, N)
@@ -234,6 +238,7 @@ class NeuralSeqSLAM(nn.Module):
         self.ring.learn(unit_of_frame)
         self.unit_to_reference.copy_(spans.to(dev))
         self.unit_centre.copy_(((spans[:, 0] + spans[:, 1] - 1) // 2).to(dev))
+        self._build_search()
         evidence = torch.empty(0, n_units)
         if log:
             parts = [self.evidence(self.code(self.encode(reference[lo:hi])))
@@ -313,8 +318,12 @@ class NeuralSeqSLAM(nn.Module):
         if module.kernels["scan"] == "velocity_loop":  # adaptive: decisions feed the ring
             activity, reference, confidence = module.stream(torch.cat(parts))
         else:
-            activity = module.scan(torch.cat(parts))  # (T, N)
-            reference, confidence = module.decide(activity)
+            evidence = torch.cat(parts)
+            activity = module.scan(evidence)  # (T, N)
+            if self.search is not None:  # the unit search decides (neural/search.py)
+                reference, confidence = self.search.scan(evidence, activity)
+            else:
+                reference, confidence = module.decide(activity)
         matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
         return NeuralResult(matches, activity.cpu())
 
@@ -338,7 +347,16 @@ class NeuralSeqSLAM(nn.Module):
             if n != self.n_units:
                 self._build_output(n)
         self.unfold()
-        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+        out = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        self._build_search()
+        return out
+
+    def _build_search(self) -> None:
+        """The unit search (:mod:`torchseq.neural.search`) where the config and route ask."""
+        self.search = None
+        if self.fitted and search_active(self.config, int(self.unit_to_reference[-1, 1]),
+                                         self.n_units):
+            self.search = UnitSearch(self.config, self.unit_to_reference)
 
     def save(self, path: str | Path, extra: dict | None = None) -> None:
         """Write the model atomically: ``{"format", "config", "state_dict", "extra"}``.
