@@ -204,7 +204,7 @@ def corridor_report(tmp_path_factory):
     ref = load_traverse(root / "ref", progress=False)
     qry = load_traverse(root / "query", progress=False)
     gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(qry))
-    model = NeuralSeqSLAM(NeuralConfig())
+    model = NeuralSeqSLAM(NeuralConfig(unit_search="off"))
     model.fit(ref, log=False)
     sp = SpikingSeqSLAM.convert(model, ref)
     path = tmp_path_factory.mktemp("corridor") / "corridor.nir"
@@ -526,7 +526,8 @@ def test_cohorts_and_a_wrapped_ring_export_and_run_alike(tmp_path):
     from torchseq.neural.spiking import SpikingConfig, SpikingSeqSLAM
 
     demo = make_demo(n_reference=36, size=(48, 64), seed=5)
-    model = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=18,
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", input_size=(8, 12), hidden=96, n_output=18,
                                        n_cohorts=3, ring_wrap=True))
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(demo.reference, log=False)
