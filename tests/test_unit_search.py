@@ -187,7 +187,7 @@ def test_every_export_refuses_a_searching_model_by_name(tmp_path):
         build_float_onnx(m)
     with pytest.raises(SpikingError, match="unit search"):
         SpikingSeqSLAM.convert(m, torch.as_tensor(d.reference))
-    m.save(tmp_path / "m.pt")
+    m.save(tmp_path / "m.pt")  # the command writes every form, so it refuses the model
     with pytest.raises(ExportError, match="unit search"):
         export_checkpoint(tmp_path / "m.pt", tmp_path / "out", query=d.query)
 
@@ -207,3 +207,21 @@ def test_search_lifts_a_real_route_at_three_frames_per_unit():
         m = _fit(ref, NeuralConfig(n_output=200, unit_search=mode))
         got[mode] = evaluate(m.run(query).matches, gt)["recall_at_1"]
     assert got["auto"] > got["off"] + 0.1, got
+
+
+def test_float_onnx_of_the_search_decides_as_the_model():
+    ort = pytest.importorskip("onnxruntime")
+    from torchseq.export.onnx_search import build_search_onnx, run_search_onnx
+
+    d, cfg = _coarse_demo()
+    m = _fit(d.reference, cfg)
+    res = m.run(d.query)
+    sess = ort.InferenceSession(build_search_onnx(m).SerializeToString())
+    frames = torch.cat([m._grey(torch.as_tensor(d.query[t:t + 1]))
+                        for t in range(len(d.query))]).numpy()
+    ref, conf = run_search_onnx(sess, frames)
+    assert ref.tolist() == res.matches.reference.tolist()
+    np.testing.assert_allclose(conf, res.matches.score.numpy(), atol=1e-4)
+    with pytest.raises(ValueError, match="does not use the unit search"):
+        build_search_onnx(_fit(d.reference, NeuralConfig(n_output=40, hidden=512,
+                                                         unit_search="off")))

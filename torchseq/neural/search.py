@@ -123,7 +123,8 @@ def search_step(model, frames: torch.Tensor, state) -> tuple[NeuralStep, SearchS
     return NeuralStep(reference, confidence, activity), SearchState(ring, history)
 
 
-def refuse_export(model, form: str, error: type[Exception] = NeuralError) -> None:
+def refuse_export(model, form: str, error: type[Exception] = NeuralError,
+                  hint: str = "") -> None:
     """Raise ``error`` naming the unit search when ``model`` uses it: ``form`` has no such stage.
 
     The search (:mod:`torchseq.layers.unit_search`) has a float definition only; an export
@@ -135,4 +136,4 @@ def refuse_export(model, form: str, error: type[Exception] = NeuralError) -> Non
     raise error(f"{form}: this model decides with the unit search (unit_search="
                 f"{model.config.unit_search!r}, a route of {n_frames} frames on {n_units} "
                 f"units), which has no {form} form; to export, fit with unit_search='off' "
-                "(the ring alone) or n_output >= the route's frames")
+                f"(the ring alone) or n_output >= the route's frames{hint}")
