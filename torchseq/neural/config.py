@@ -119,8 +119,9 @@ class NeuralConfig:
             than ``n_output`` so units stand for several frames and the ring blurs; routes
             of at most ``n_output`` frames keep the ring alone, bit for bit), ``"on"``
             (always) or ``"off"`` (the ring alone; older checkpoints). Measured on
-            nordland-b, ``docs/results/neural-long-routes.md``. No integer, ONNX or NIR
-            form yet: export refuses a model that uses it.
+            nordland-b, ``docs/results/neural-long-routes.md``. Float ONNX form:
+            ``torchseq.export.onnx_search``; no integer or NIR form yet, so ``torchseq
+            export`` refuses a model that uses it.
         search_length: frames of a search line (``L``).
         search_contrast: units on each side of the search's contrast window.
         search_ring_weight: weight of the standardised ring activity in the search score.

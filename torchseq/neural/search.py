@@ -127,8 +127,9 @@ def refuse_export(model, form: str, error: type[Exception] = NeuralError,
                   hint: str = "") -> None:
     """Raise ``error`` naming the unit search when ``model`` uses it: ``form`` has no such stage.
 
-    The search (:mod:`torchseq.layers.unit_search`) has a float definition only; an export
-    that dropped it would deploy a different model (the ring's decisions) without a word.
+    The search (:mod:`torchseq.layers.unit_search`) has a float definition and a float ONNX
+    form (:mod:`torchseq.export.onnx_search`) only; an export that dropped it would deploy
+    a different model (the ring's decisions) without a word.
     """
     if getattr(model, "search", None) is None:
         return
