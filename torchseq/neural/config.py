@@ -118,7 +118,8 @@ class NeuralConfig:
             beside the ring, :mod:`torchseq.layers.unit_search`, where the route is longer
             than ``n_output`` so units stand for several frames and the ring blurs; routes
             of at most ``n_output`` frames keep the ring alone, bit for bit), ``"on"``
-            (always) or ``"off"`` (the ring alone; older checkpoints). Measured on
+            (always) or ``"off"`` (the ring alone; older checkpoints). Where it runs it
+            decides instead of ``readout``. Measured on
             nordland-b, ``docs/results/neural-long-routes.md``. Float ONNX form:
             ``torchseq.export.onnx_search``; no integer or NIR form yet, so ``torchseq
             export`` refuses a model that uses it.
