@@ -113,7 +113,7 @@ class StreamingStep(NeuralInference):
 
 def build_float_onnx(model) -> onnx.ModelProto:
     """Trace :class:`StreamingStep` into an ONNX model (dynamic batch axis ``batch``)."""
-    refuse_export(model, "this float ONNX graph", hint="; its float ONNX form is "
+    refuse_export(model, "build_float_onnx", hint="; its float ONNX form is "
                   "torchseq.export.onnx_search.build_search_onnx")
     step = StreamingStep(model).eval()
     h, w = step.input_size

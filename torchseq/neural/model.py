@@ -435,7 +435,7 @@ def _warn_coarse_units(n_frames: int, n_units: int, readout: str, search: bool =
     if search and per_unit <= COARSE_UNIT_FRAMES:
         warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
                       f"{per_unit:.1f} frames per unit, so the ring alone blurs the route; the "
-                      f"unit search decides (unit_search={'auto'!r}). Expected effect, "
+                      f"unit search decides (NeuralConfig.unit_search). Expected effect, "
                       f"{SEARCH_EFFECT} (docs/results/neural-long-routes.md)", stacklevel=4)
         return
     if per_unit <= 1 or (readout == "interpolate" and per_unit <= COARSE_UNIT_FRAMES):

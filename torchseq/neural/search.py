@@ -134,7 +134,7 @@ def refuse_export(model, form: str, error: type[Exception] = NeuralError,
     if getattr(model, "search", None) is None:
         return
     n_frames, n_units = int(model.unit_to_reference[-1, 1]), model.n_units
-    raise error(f"{form}: this model decides with the unit search (unit_search="
+    raise error(f"{form} refuses this model: it decides with the unit search (unit_search="
                 f"{model.config.unit_search!r}, a route of {n_frames} frames on {n_units} "
-                f"units), which has no {form} form; to export, fit with unit_search='off' "
+                f"units), which has no form there yet; to export, fit with unit_search='off' "
                 f"(the ring alone) or n_output >= the route's frames{hint}")

@@ -237,7 +237,7 @@ class SpikingSeqSLAM(nn.Module):
             SpikingError: an unfitted model, a readout other than ``"centre"``, a bad
                 reference, or a degenerate calibration.
         """
-        refuse_export(model, "the spiking (NIR) model", SpikingError)
+        refuse_export(model, "the spiking (NIR) form", SpikingError)
         cfg = config or SpikingConfig()
         cfg.validate()
         if not getattr(model, "fitted", False):
