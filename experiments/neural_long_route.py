@@ -13,6 +13,7 @@ command per table (from the repository root), one thread:
     .venv/bin/python experiments/neural_long_route.py others    # the tries on corridor/LENS/demo
     .venv/bin/python experiments/neural_long_route.py selfcheck # fit's self-check vs real
     .venv/bin/python experiments/neural_long_route.py bytes     # model bytes vs SeqSLAM's
+    .venv/bin/python experiments/neural_long_route.py search --seeds 3  # section 2's result
 
 Each writes ``neural_long_route_<table>.json`` and ``.md`` under ``--out`` and prints the
 Markdown table (docs/results/neural-long-routes.md quotes them). SeqSLAM's results
@@ -98,6 +99,9 @@ def codes(model: NeuralSeqSLAM, frames: torch.Tensor) -> torch.Tensor:
 
 
 def fitted(n: int, ref, **kw) -> NeuralSeqSLAM:
+    """A model fitted on ``ref``; the ring alone (``unit_search="off"``) unless ``kw`` says:
+    the diagnosis tables describe the ring as it was before the unit search."""
+    kw.setdefault("unit_search", "off")
     model = NeuralSeqSLAM(NeuralConfig(**kw))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -391,8 +395,48 @@ def t_bytes(args) -> list[dict]:
     return rows
 
 
-TABLES = {"stages": t_stages, "overlap": t_overlap, "units": t_units, "ring": t_ring,
-          "shift": t_shift, "tries": t_tries, "others": t_others, "selfcheck": t_selfcheck,
+def t_search(args) -> list[dict]:
+    """Section 2's result: the default (unit search where units hold several frames) against
+    the ring alone, nordland-b 1,788 and 500 places, corridor (8 seeds), LENS and the demo;
+    and a demo route longer than the ring (1,500 frames at 0.8x speed)."""
+    from neural_quality import datasets
+
+    from torchseq.demo import make_demo
+
+    cases = []
+    for n in args.places:
+        ref, query, gt = nordland(n)
+        cases.append((f"nordland-b {n}", ref, query, gt, seqslam(n, args.cache)["seqslam ds=10"]))
+    cases += [(name, *v, None) for name, v in datasets().items()]
+    long_demo = make_demo(n_reference=1500)
+    cases.append(("demo 1,500 frames (0.8x)", long_demo.reference, long_demo.query,
+                  long_demo.ground_truth, None))
+    settings = (("default (unit_search auto)", {"unit_search": "auto"}),
+                ("ring alone (unit_search off)", {"unit_search": "off"}),
+                ("unit search, search_length 50", {"unit_search": "auto", "search_length": 50}))
+    rows = []
+    for name, ref, query, gt, sq in cases:
+        seeds = range(8) if name == "corridor" else range(args.seeds)
+        for label, kw in settings:
+            if "50" in label and not name.startswith("nordland-b 1788"):
+                continue
+            got, model = [], None
+            for seed in seeds:
+                model = fitted(len(ref), ref, seed=seed, **kw)
+                got.append(recall(model.run(query).matches, gt))
+            rows.append({"data": name, "setting": label,
+                         "frames/unit": f"{len(ref) / model.n_units:.1f}",
+                         "search active": "yes" if model.search is not None else "no",
+                         "recall@1 (seeds)": " ".join(f"{v:.3f}" for v in got),
+                         "mean": f"{np.mean(got):.3f}", "min": f"{min(got):.3f}",
+                         "SeqSLAM ds=10": "" if sq is None else f"{sq:.3f}"})
+            print(rows[-1], flush=True)
+    return rows
+
+
+TABLES = {"search": t_search, "stages": t_stages, "overlap": t_overlap, "units": t_units,
+          "ring": t_ring, "shift": t_shift, "tries": t_tries, "others": t_others,
+          "selfcheck": t_selfcheck,
           "bytes": t_bytes}
 
 

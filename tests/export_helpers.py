@@ -18,7 +18,8 @@ def small_setup(seed: int = 1, hidden: int = 1024, n_output: int = 40, n_referen
     """A small model fitted on a small demo route, its integer model and uint8 device frames."""
     demo = make_demo(n_reference=n_reference, size=(48, 64), seed=seed)
     torch.manual_seed(0)
-    model = NeuralSeqSLAM(NeuralConfig(hidden=hidden, n_output=n_output, readout=readout))
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", hidden=hidden, n_output=n_output, readout=readout))
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(demo.reference, log=False)
     pool = choose_pool(tuple(demo.query.shape[1:]), model.config.input_size)

@@ -67,7 +67,7 @@ def files(tmp_path_factory):
     (d / "corrupt.npz").write_bytes(b"PK\x03\x04" + b"\x01" * 200)
     huge_npy(d / "huge_frames.npy", (10 ** 12, 64, 64))
     huge_npy(d / "huge_gt.npy", (30, 10 ** 13), "|u1")
-    model = NeuralSeqSLAM(NeuralConfig(hidden=64, n_output=10))
+    model = NeuralSeqSLAM(NeuralConfig(unit_search="off", hidden=64, n_output=10))
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(torch.from_numpy(frames).float())
     model.save(d / "good.pt")

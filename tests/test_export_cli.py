@@ -54,7 +54,7 @@ def test_export_checkpoint_on_the_demo_route(tmp_path):
     from torchseq.demo import make_demo
     from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 
-    model = NeuralSeqSLAM(NeuralConfig(hidden=1024, n_output=100))
+    model = NeuralSeqSLAM(NeuralConfig(unit_search="off", hidden=1024, n_output=100))
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(make_demo().reference, log=False)
     model.save(tmp_path / "demo.pt", extra={"reference": {
@@ -77,7 +77,7 @@ def camera_checkpoint(tmp_path_factory):
     route = make_demo(n_reference=50, size=(120, 160), seed=7)
     frames = route.reference.round().clamp(0, 255).to(torch.uint8).numpy()
     np.save(folder / "ref.npy", frames)
-    model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=50))
+    model = NeuralSeqSLAM(NeuralConfig(unit_search="off", hidden=512, n_output=50))
     model.fit(torch.from_numpy(frames).float(), log=False)
     model.save(folder / "cam.pt", extra={"reference": {
         "source": str(folder / "ref.npy"), "n_frames": 50, "frame_size": [120, 160]}})

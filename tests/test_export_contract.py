@@ -24,7 +24,7 @@ def doc_snippet() -> dict:
 
 
 @pytest.mark.parametrize("config", [
-    NeuralConfig(hidden=512, n_output=40),
+    NeuralConfig(unit_search="off", hidden=512, n_output=40),
     # the adaptive ring's graph has three more state inputs the host must feed back
     NeuralConfig.adaptive_velocity(hidden=512, n_output=40),
 ], ids=["fixed", "adaptive-velocity"])

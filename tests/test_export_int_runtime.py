@@ -31,7 +31,7 @@ TINY = {
 
 def _tiny(kind: str):
     demo = make_demo(n_reference=12, size=(16, 16), seed=3)
-    cfg = NeuralConfig(input_size=(8, 8), hidden=64, n_output=9, **TINY[kind])
+    cfg = NeuralConfig(unit_search="off", input_size=(8, 8), hidden=64, n_output=9, **TINY[kind])
     model = NeuralSeqSLAM(cfg)
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(demo.reference, log=False)
@@ -150,7 +150,7 @@ def test_default_size_model_on_real_data(corridor):
     from torchseq.metrics import recall_at_k
 
     ref, query, gt = corridor.ref, corridor.query, corridor.ground_truth
-    model = NeuralSeqSLAM(NeuralConfig())
+    model = NeuralSeqSLAM(NeuralConfig(unit_search="off"))
     model.fit(ref, log=False)
     pool = choose_pool(tuple(query.shape[1:3]), model.config.input_size)
     assert pool == (5, 5)  # 120x160 camera frames summed in 5x5 blocks on the device

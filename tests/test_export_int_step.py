@@ -37,7 +37,8 @@ CONFIGS = {
 
 def tiny(**cfg):
     demo = make_demo(n_reference=12, size=(16, 16), seed=5)
-    model = NeuralSeqSLAM(NeuralConfig(input_size=(8, 8), hidden=64, n_output=9, **cfg))
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", input_size=(8, 8), hidden=64, n_output=9, **cfg))
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(demo.reference, log=False)
     pool = choose_pool((16, 16), (8, 8))

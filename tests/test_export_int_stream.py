@@ -19,7 +19,7 @@ from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 
 def fitted(**cfg):
     demo = make_demo(n_reference=70, seed=3)
-    model = NeuralSeqSLAM(NeuralConfig(hidden=1024, n_output=50, **cfg))
+    model = NeuralSeqSLAM(NeuralConfig(unit_search="off", hidden=1024, n_output=50, **cfg))
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(demo.reference, log=False)
     im = integer_model(model, (1, 1))

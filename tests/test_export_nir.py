@@ -198,7 +198,7 @@ def corridor_report(tmp_path_factory, corridor):
     from torchseq.neural.spiking import SpikingSeqSLAM
 
     ref, qry, gt = corridor.ref, corridor.query, corridor.ground_truth
-    model = NeuralSeqSLAM(NeuralConfig())
+    model = NeuralSeqSLAM(NeuralConfig(unit_search="off"))
     model.fit(ref, log=False)
     sp = SpikingSeqSLAM.convert(model, ref)
     path = tmp_path_factory.mktemp("corridor") / "corridor.nir"
@@ -523,7 +523,8 @@ def test_cohorts_and_a_wrapped_ring_export_and_run_alike(tmp_path):
     from torchseq.neural.spiking import SpikingConfig, SpikingSeqSLAM
 
     demo = make_demo(n_reference=36, size=(48, 64), seed=5)
-    model = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=18,
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", input_size=(8, 12), hidden=96, n_output=18,
                                        n_cohorts=3, ring_wrap=True))
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(demo.reference, log=False)

@@ -83,7 +83,7 @@ def test_unfitted_model_is_rejected():
     from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 
     with pytest.raises(ValueError, match="fit"):
-        StreamingStep(NeuralSeqSLAM(NeuralConfig(hidden=64, n_output=4)))
+        StreamingStep(NeuralSeqSLAM(NeuralConfig(unit_search="off", hidden=64, n_output=4)))
 
 
 def test_onnx_keeps_the_lowest_index_tie_rule_on_flat_frames(setup):
@@ -103,7 +103,8 @@ def test_seqslam_patch_mode_exports_the_same_centred_input():
     from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 
     demo = make_demo(n_reference=60, size=(48, 64), seed=2)
-    model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=40, patch_mode="seqslam"))
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", hidden=512, n_output=40, patch_mode="seqslam"))
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(demo.reference, log=False)
     small = resize(demo.query.float(), model.config.input_size)

@@ -89,7 +89,7 @@ def test_eventlab_runs_torchseq_and_scores_its_matches(dataset, tmp_path):
     assert r1["seqslam"] == pytest.approx(evaluate(result.matches, gt)["recall_at_1"])
     assert r1["seqslam"] > 0.9
     # Neural: S[r, q] is the activity of the unit that stands for reference frame r
-    ncfg = NeuralConfig(n_output=100)
+    ncfg = NeuralConfig(unit_search="off", n_output=100)
     model = NeuralSeqSLAM(ncfg)
     model.fit(resize(frames["sunset"], ncfg.input_size), progress=False)
     act = model.run(resize(frames["sunrise"], ncfg.input_size), progress=False).activity

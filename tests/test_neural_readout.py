@@ -73,7 +73,8 @@ def test_units_of_one_frame_report_that_frame(kernel):
 
 def _recall(readout, n_output, seed=0):
     d = make_demo()
-    model = NeuralSeqSLAM(NeuralConfig(n_output=n_output, readout=readout, seed=seed))
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", n_output=n_output, readout=readout, seed=seed))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model.fit(d.reference, log=False)
@@ -104,8 +105,8 @@ def test_interpolating_readout_recovers_resolution_of_coarse_units():
 
 def test_readout_setting_is_checked_and_old_checkpoints_read_centre():
     with pytest.raises(NeuralError, match="readout must be one of 'centre', 'interpolate'"):
-        NeuralConfig(readout="middle").validate()
-    d = NeuralConfig().to_dict()
+        NeuralConfig(unit_search="off", readout="middle").validate()
+    d = NeuralConfig(unit_search="off").to_dict()
     del d["readout"]  # a checkpoint written before the field existed
     assert NeuralConfig.from_dict(d).readout == "centre"
 
@@ -113,23 +114,28 @@ def test_readout_setting_is_checked_and_old_checkpoints_read_centre():
 def test_fit_warns_when_units_hold_several_frames():
     ref = make_demo(n_reference=60, size=(24, 32), step=4.0).reference
     with pytest.warns(UserWarning, match="3.0 frames per unit.*readout='interpolate'"):
-        NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=20)).fit(ref, log=False)
+        NeuralSeqSLAM(NeuralConfig(unit_search="off", hidden=256, n_output=20)).fit(ref, log=False)
     with pytest.warns(UserWarning, match="12.0 frames per unit.*raise n_output"):
-        NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=5, readout="interpolate")).fit(ref)
+        NeuralSeqSLAM(NeuralConfig(
+            unit_search="off", hidden=256, n_output=5, readout="interpolate")).fit(ref)
     with warnings.catch_warnings():  # no coarse-unit warning (the self-check has its tests)
         warnings.simplefilter("error")
-        NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=60)).fit(ref, log=False, check=False)
-        NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=20, readout="interpolate")).fit(
+        NeuralSeqSLAM(NeuralConfig(
+            unit_search="off", hidden=256, n_output=60)).fit(ref, log=False, check=False)
+        NeuralSeqSLAM(NeuralConfig(
+            unit_search="off", hidden=256, n_output=20, readout="interpolate")).fit(
             ref, check=False)
 
 
 def test_integer_export_holds_the_interpolating_readout():
     ref = make_demo(n_reference=60, size=(24, 32), step=4.0).reference
-    coarse = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=20, readout="interpolate"))
+    coarse = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", hidden=256, n_output=20, readout="interpolate"))
     coarse.fit(ref, log=False)
     # format version 2 (tests/test_export_int_readout.py checks it against the float rule)
     assert integer_model(coarse).params["readout"] == 1
-    fine = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=60, readout="interpolate"))
+    fine = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", hidden=256, n_output=60, readout="interpolate"))
     fine.fit(ref, log=False)
     integer_model(fine)  # units of one frame: the same decisions as the centre readout
 
@@ -141,7 +147,8 @@ def test_float_onnx_follows_the_interpolating_readout(batch):
     from torchseq.preprocess import resize
 
     d = make_demo(n_reference=60, size=(24, 32), step=4.0)
-    model = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=20, readout="interpolate"))
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", hidden=256, n_output=20, readout="interpolate"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model.fit(d.reference, log=False)

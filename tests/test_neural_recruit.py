@@ -153,7 +153,8 @@ def blocky_route(lengths, seed=5, size=(24, 32)) -> torch.Tensor:
 def test_fit_puts_unit_boundaries_at_the_scenery_changes():
     lengths = [6, 2, 11, 3, 8, 1, 5]
     ref = blocky_route(lengths)
-    cfg = NeuralConfig(hidden=512, n_output=len(lengths), recruit="novelty")
+    # the ring's decisions (unit_search="off"; the search decides alike for both rules here)
+    cfg = NeuralConfig(unit_search="off", hidden=512, n_output=len(lengths), recruit="novelty")
     model = NeuralSeqSLAM(cfg)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # several frames per unit
@@ -173,7 +174,7 @@ def test_fit_puts_unit_boundaries_at_the_scenery_changes():
     assert model.ring.shift[2, 2] > model.ring.shift[1, 1]
     # the reference played back is placed in the right stretch of scenery more often than
     # by units that straddle two stretches (the misses: the ring lags at each change)
-    uniform = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=len(lengths)))
+    uniform = NeuralSeqSLAM(NeuralConfig(unit_search="off", hidden=512, n_output=len(lengths)))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         uniform.fit(ref, log=False)
@@ -186,8 +187,8 @@ def test_fit_puts_unit_boundaries_at_the_scenery_changes():
 
 def test_routes_within_n_output_give_the_uniform_model_exactly():
     ref = make_demo(n_reference=30, size=(24, 32), step=4.0).reference
-    a = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=30))
-    b = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=40, recruit="novelty"))
+    a = NeuralSeqSLAM(NeuralConfig(unit_search="off", hidden=256, n_output=30))
+    b = NeuralSeqSLAM(NeuralConfig(unit_search="off", hidden=256, n_output=40, recruit="novelty"))
     a.fit(ref, log=False)
     with pytest.warns(UserWarning, match="recruit='novelty' has no effect on a route of 30 "
                       "frames with n_output=40"):
@@ -199,14 +200,15 @@ def test_routes_within_n_output_give_the_uniform_model_exactly():
 
 def test_recruit_is_validated_and_travels_in_checkpoints(tmp_path):
     with pytest.raises(NeuralError, match="recruit must be one of 'uniform', 'novelty'"):
-        NeuralConfig(recruit="surprise").validate()
+        NeuralConfig(unit_search="off", recruit="surprise").validate()
     with pytest.raises(NeuralError, match="recruit must be one of"):
-        NeuralConfig(recruit=True).validate()
+        NeuralConfig(unit_search="off", recruit=True).validate()
     d = NeuralConfig().to_dict()
     del d["recruit"]  # a checkpoint written before the field existed
     assert NeuralConfig.from_dict(d).recruit == "uniform"
     ref = blocky_route([4, 2, 6, 3])
-    model = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=4, recruit="novelty"))
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", hidden=256, n_output=4, recruit="novelty"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model.fit(ref, log=False)
@@ -220,7 +222,8 @@ def test_recruit_is_validated_and_travels_in_checkpoints(tmp_path):
 # ---------------------------------------------------------------- exports, unequal spans
 def test_integer_export_follows_unequal_spans():
     d = make_demo(n_reference=60, size=(48, 64), seed=1)
-    model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=20, readout="interpolate",
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", hidden=512, n_output=20, readout="interpolate",
                                        recruit="novelty"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -240,7 +243,8 @@ def test_spiking_form_follows_unequal_spans():
     from torchseq.neural.spiking import SpikingSeqSLAM
 
     d = make_demo(n_reference=100, size=(48, 64))
-    model = NeuralSeqSLAM(NeuralConfig(hidden=1024, n_output=50, recruit="novelty"))
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", hidden=1024, n_output=50, recruit="novelty"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model.fit(d.reference, log=False)

@@ -107,12 +107,14 @@ def test_train_and_eval_record_the_figure(tmp_path, capsys):
     assert code == 0, err
     saved = json.loads((out / "train.json").read_text())
     assert 0.0 <= saved["self_check"] <= 1.0
+    assert saved["seqslam_template_bytes"] == 40 * 32 * 64  # one uint8 64x32 frame a place
     ev = tmp_path / "e"
     code, err = run_inprocess("eval", capsys, "--engine", "neural", "--demo-frames", "40",
                               "--neural-hidden", "256", "--out", str(ev))
     assert code == 0, err
     m = json.loads((ev / "metrics.json").read_text())
     assert m["neural"]["self_check"] == pytest.approx(saved["self_check"])
+    assert m["neural"]["seqslam_template_bytes"] == 40 * 32 * 64
     code, err = run_inprocess("eval", capsys, "--engine", "neural", "--demo-frames", "40",
                               "--checkpoint", str(out / "model.pt"), "--out", str(tmp_path / "c"))
     assert code == 0, err

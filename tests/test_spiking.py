@@ -19,7 +19,8 @@ from torchseq.neural.spiking import SpikingConfig, SpikingError, SpikingSeqSLAM,
 def tiny():
     """A tiny model (small enough for a pure-Python loop) on a 40-frame demo route."""
     demo = make_demo(n_reference=40, size=(48, 64), seed=3)
-    model = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=20))
+    model = NeuralSeqSLAM(NeuralConfig(
+        unit_search="off", input_size=(8, 12), hidden=96, n_output=20))
     with coarse_units_expected():  # a small model: units of several frames
         model.fit(demo.reference, log=False)
     spiking = SpikingSeqSLAM.convert(model, demo.reference, SpikingConfig(levels=6))
@@ -29,7 +30,7 @@ def tiny():
 @lru_cache(maxsize=None)
 def demo_setup():
     demo = make_demo()
-    model = NeuralSeqSLAM(NeuralConfig())
+    model = NeuralSeqSLAM(NeuralConfig(unit_search="off"))
     model.fit(demo.reference, log=False)
     return model, demo, SpikingSeqSLAM.convert(model, demo.reference)
 
@@ -217,7 +218,8 @@ class TestCalibration:
         assert margin >= sp.calibration["l1_grid"] / 2 * (1 - 1e-9)
 
     def test_float_model_has_no_grid(self):
-        model = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=20,
+        model = NeuralSeqSLAM(NeuralConfig(
+            unit_search="off", input_size=(8, 12), hidden=96, n_output=20,
                                            input_steps=0, l1_levels=0))
         demo = make_demo(n_reference=20, size=(48, 64), seed=3)
         model.fit(demo.reference, log=False)
@@ -252,7 +254,8 @@ class TestCalibration:
     def test_bad_input_raises_spiking_error(self):
         model, demo, sp = tiny()
         with pytest.raises(SpikingError, match="fit"):
-            SpikingSeqSLAM.convert(NeuralSeqSLAM(NeuralConfig(hidden=64)), demo.reference)
+            SpikingSeqSLAM.convert(NeuralSeqSLAM(NeuralConfig(
+                unit_search="off", hidden=64)), demo.reference)
         with pytest.raises(SpikingError, match="R >= 2"):
             SpikingSeqSLAM.convert(model, demo.reference[:1])
         with pytest.raises(SpikingError, match="levels"):
@@ -269,7 +272,8 @@ class TestCalibration:
             sp.run(torch.zeros(3, 5))
         with pytest.raises(SpikingError, match="state"):
             sp(sp.encode(demo.query[:2]), sp.zero_state(3))
-        interp = NeuralSeqSLAM(NeuralConfig(input_size=(8, 12), hidden=96, n_output=20,
+        interp = NeuralSeqSLAM(NeuralConfig(
+            unit_search="off", input_size=(8, 12), hidden=96, n_output=20,
                                             readout="interpolate"))
         interp.fit(demo.reference, log=False)
         with pytest.raises(SpikingError, match="readout='interpolate'"):
@@ -307,7 +311,7 @@ def test_agrees_with_the_rate_model_on_real_data(name):
         qry = load_traverse(root / "example-query", progress=False)
         i = np.arange(len(ref))
         gt = np.abs(i[:, None] - np.arange(len(qry))[None, :]) <= 2
-    model = NeuralSeqSLAM(NeuralConfig())
+    model = NeuralSeqSLAM(NeuralConfig(unit_search="off"))
     model.fit(ref, log=False)
     sp = SpikingSeqSLAM.convert(model, ref)
     agree, rate_recall, spiking_recall = _agreement(model, sp, qry, gt)

@@ -66,6 +66,7 @@ from torchseq.frontend import (
 )
 from torchseq.ground_truth import GroundTruthRanges, alignment_ranges, load_ground_truth
 from torchseq.neural import NeuralConfig
+from torchseq.neural.memory import seqslam_template_bytes
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
 from torchseq.sources import FrameSelection, load_traverse_sizes
 from torchseq.versions import VERSIONS_KEY, versions
@@ -813,6 +814,8 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
             "activity": result.activity, "unit_spans": model.unit_to_reference.cpu(),
             "seconds": run_seconds, "fit_seconds": fit_seconds, "preset": preset,
             "parameters": to_jsonable(model.config), "model_bytes": int(model.model_bytes()),
+            "seqslam_template_bytes": seqslam_template_bytes(
+                int(model.unit_to_reference[-1, 1])),
             "frames_per_unit": per_unit, "self_check": self_check}
 
 
@@ -850,7 +853,8 @@ def engine_metrics(r: dict, gt, target_precision: float) -> dict:
     else:
         m = metrics.evaluate(r["matches"], gt, r["ranked"], r.get("ranked_score"))
         m["operating_point"] = metrics.operating_point(r["matches"], gt, target_precision)
-    m.update({k: r[k] for k in ("seconds", "fit_seconds", "model_bytes", "frames_per_unit",
+    m.update({k: r[k] for k in ("seconds", "fit_seconds", "model_bytes",
+                                "seqslam_template_bytes", "frames_per_unit",
                                 "self_check", "preset", "parameters") if k in r})
     return m
 

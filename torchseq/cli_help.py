@@ -31,7 +31,8 @@ NEURAL_OTHER = (
     "l1-levels", "l3-levels", "k-fraction", "ring-decay", "ring-gain", "ring-spread",
     "ring-spread-decay", "ring-stay", "ring-wrap", "n-cohorts", "rectify", "hebbian",
     "uniqueness-window", "recruit", "ring-velocity", "velocity-window", "velocity-min",
-    "velocity-max", "velocity-tolerance", "velocity-rate")
+    "velocity-max", "velocity-tolerance", "velocity-rate", "unit-search", "search-length",
+    "search-contrast", "search-ring-weight", "search-phases")
 EVENT_COMMON = ("--window-ms", "--event-count", "--frame-size", "--event-mode",
                 "--window-anchor", "--t-start", "--duration")
 EVENT_OTHER = ("--sensor-size", "--evt3-time", "--evt3-kernel", "--truncated", "--hot-pixel",
@@ -86,6 +87,7 @@ CHOICES = {  # flag -> the values it takes, shown as its metavar
     "--readout": ("centre", "interpolate"),
     "--recruit": ("uniform", "novelty"),
     "--ring-velocity": ("fixed", "adaptive"),
+    "--unit-search": ("auto", "on", "off"),
 }
 
 METAVARS = {  # flag -> its placeholder; other flags: N (integers), X (numbers), VALUE

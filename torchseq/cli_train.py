@@ -47,6 +47,7 @@ from torchseq.frontend import (
     to_jsonable,
 )
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
+from torchseq.neural.memory import seqslam_template_bytes
 from torchseq.sources import FrameSelection, is_event_file, load_traverse, load_traverse_sizes
 from torchseq.versions import VERSIONS_KEY, versions
 
@@ -257,7 +258,9 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
                                                  VERSIONS_KEY: versions()}) + "\n")
     summary = {"reference": reference, "neural_preset": preset_name(cfg.neural_preset),
                "fit_seconds": seconds, VERSIONS_KEY: versions(),
-               "model_bytes": int(model.model_bytes()), "n_units": int(model.n_units),
+               "model_bytes": int(model.model_bytes()),
+               "seqslam_template_bytes": seqslam_template_bytes(len(frames)),
+               "n_units": int(model.n_units),
                "self_check": log.self_check}
     write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
     log_training(cfg, ncfg, model, log, out)

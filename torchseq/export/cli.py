@@ -175,6 +175,9 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     t0 = time.perf_counter()
     ckpt, out = Path(checkpoint_path), Path(out_dir)
     model = _load_model(ckpt)
+    from torchseq.neural.search import refuse_export
+
+    refuse_export(model, "torchseq export", ExportError)
     rec = recorded_reference(model)
     if query is None:
         frames, own_gt, rec, source, gt_source = _own_reference(model, ckpt)

@@ -22,6 +22,7 @@ from torchseq.export.int_format import (
     IntegerModel,
 )
 from torchseq.export.int_stages import VEL_FRAC
+from torchseq.neural.search import refuse_export
 from torchseq.quantise import fixed_point, fixed_point_array, integer_grid, quantise
 
 SQRT_FRAC = 8  # fractional bits of the patch standard deviation
@@ -57,6 +58,7 @@ def integer_model(model, pool: tuple[int, int] = (1, 1)) -> IntegerModel:
     """
     if not getattr(model, "fitted", False):
         raise IntegerFormatError("the model has not learnt a route yet (fit it first)")
+    refuse_export(model, "the integer format (integer_model)", IntegerFormatError)
     cfg = model.config
     if cfg.patch_size and cfg.patch_mode != "zscore":
         raise IntegerFormatError(f"patch_mode {cfg.patch_mode!r} has no integer form "

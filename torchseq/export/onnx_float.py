@@ -30,6 +30,7 @@ from torchseq.export.errors import ExportError
 from torchseq.export.int_onnx import write_onnx
 from torchseq.layers import RingState
 from torchseq.neural.inference import NeuralInference
+from torchseq.neural.search import refuse_export
 from torchseq.neural.velocity import VelocityState
 
 OPSET = 17
@@ -111,6 +112,8 @@ class StreamingStep(NeuralInference):
 
 def build_float_onnx(model) -> onnx.ModelProto:
     """Trace :class:`StreamingStep` into an ONNX model (dynamic batch axis ``batch``)."""
+    refuse_export(model, "build_float_onnx", hint="; its float ONNX form is "
+                  "torchseq.export.onnx_search.build_search_onnx")
     step = StreamingStep(model).eval()
     h, w = step.input_size
     frames = torch.rand(2, h, w) * 255

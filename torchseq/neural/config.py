@@ -16,7 +16,7 @@ class NeuralError(ValueError):
 # fields added after the first checkpoints were written, with the behaviour those had
 FORMER_DEFAULTS = {"input_steps": 0, "l1_levels": 0, "l3_levels": 0, "readout": "centre",
                    "recruit": "uniform",
-                   "ring_velocity": "fixed"}
+                   "ring_velocity": "fixed", "unit_search": "off"}
 MAX_COUNT = 2**24  # hidden, n_output, chunk, ... (a size past this is a corrupt setting)
 MAX_ELEMENTS = 2**31  # the largest weight matrix a config may ask for (8 GiB of float32)
 MAX_FACTOR = 1e6  # ring gain and weights: larger ones overflow float32 activity into inf/NaN
@@ -115,6 +115,19 @@ class NeuralConfig:
         velocity_tolerance: largest residual (reference frames, per frame of a unit) of a
             window that is trusted; other windows pull the speed back to 1.
         velocity_rate: step of the speed estimate towards its target per frame (0, 1].
+        unit_search: ``"auto"`` (the default: a short sequence search over unit evidence
+            beside the ring, :mod:`torchseq.layers.unit_search`, where the route is longer
+            than ``n_output`` so units stand for several frames and the ring blurs; routes
+            of at most ``n_output`` frames keep the ring alone, bit for bit), ``"on"``
+            (always) or ``"off"`` (the ring alone; older checkpoints). Where it runs it
+            decides instead of ``readout``. Measured on
+            nordland-b, ``docs/results/neural-long-routes.md``. Float ONNX form:
+            ``torchseq.export.onnx_search``; no integer or NIR form yet, so ``torchseq
+            export`` refuses a model that uses it.
+        search_length: frames of a search line (``L``).
+        search_contrast: units on each side of the search's contrast window.
+        search_ring_weight: weight of the standardised ring activity in the search score.
+        search_phases: positions per unit at which lines end (``P``).
         eps: numerical floor of normalisations.
         chunk: frames per batch in ``fit`` and ``run`` (memory bound, not a result change).
         seed: seed of the random masks and L1 weights.
@@ -149,6 +162,11 @@ class NeuralConfig:
     velocity_max: float = 2.0
     velocity_tolerance: float = 3.0
     velocity_rate: float = 0.2
+    unit_search: str = "auto"
+    search_length: int = 40
+    search_contrast: int = 5
+    search_ring_weight: float = 0.1
+    search_phases: int = 4
     eps: float = 1e-6
     chunk: int = 256
     seed: int = 0
@@ -220,11 +238,21 @@ class NeuralConfig:
         _check_real("velocity_max", self.velocity_max, 1.0, MAX_VELOCITY)
         _check_real("velocity_tolerance", self.velocity_tolerance, 0.0, MAX_COUNT)
         _check_real("velocity_rate", self.velocity_rate, 0.0, 1.0, lo_open=True)
+        _check_choice("unit_search", self.unit_search, ("auto", "on", "off"))
+        _check_int("search_length", self.search_length, 1, 4096)
+        _check_int("search_contrast", self.search_contrast, 0, 4096)
+        _check_real("search_ring_weight", self.search_ring_weight, 0.0, MAX_FACTOR)
+        _check_int("search_phases", self.search_phases, 1, 64)
+        if self.unit_search == "on" and self.ring_velocity == "adaptive":
+            raise NeuralError("unit_search='on' needs ring_velocity='fixed' (the search has "
+                              "its own speeds); use unit_search='auto' or 'off'")
         _check_real("eps", self.eps, 0.0, 1.0, lo_open=True)
         _check_int("seed", self.seed, *SEED_RANGE)
         for name, n in (("hidden x n_input", self.hidden * h * w),
                         ("n_output x hidden", self.n_output * self.hidden),
-                        ("n_output x n_output", self.n_output ** 2)):
+                        ("n_output x n_output", self.n_output ** 2),
+                        ("search lines", 5 * self.search_length * self.n_output
+                         * self.search_phases)):
             if n > MAX_ELEMENTS:
                 raise NeuralError(f"{name} = {n} weights exceed {MAX_ELEMENTS} (2**31)")
         return self

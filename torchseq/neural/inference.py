@@ -55,6 +55,7 @@ from torchseq.neural.config import NeuralError
 from torchseq.neural.progress import Progress, as_progress, chunks
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralResult, NeuralStep
+from torchseq.neural.search import SearchState, UnitSearch, checked_search_state
 from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import block_order, zscore_pixel_major
 from torchseq.quantise import factor_power_of_two, factor_rows
@@ -133,6 +134,9 @@ class NeuralInference(nn.Module):
             self.w1_bf16 = (self.w1_t.to(torch.bfloat16)
                             if self._kernels["l1"] == "bfloat16_gemm" else None)
         self._encode = model.encode if self._kernels["input"] == "encode" else None
+        # the unit search beside the ring, where the model decides with it (neural/search.py)
+        self.search = (None if model.search is None
+                       else UnitSearch(model.config, model.unit_to_reference.detach()))
         # the step's constants, read once here rather than per call
         self._k, self._units = cfg.k, int(model.unit_centre.shape[0])
         self._window = cfg.uniqueness_window
@@ -303,7 +307,10 @@ class NeuralInference(nn.Module):
         Raises:
             NeuralError: bad frames, or a state of another type or size.
         """
-        state = checked_state(state, frames.shape[0], self._units, self.tracker)
+        if self.search is not None:
+            state = checked_search_state(state, frames.shape[0], self._units)
+        else:
+            state = checked_state(state, frames.shape[0], self._units, self.tracker)
         if torch.is_grad_enabled():  # no autograd (inference_mode / no_grad: already off)
             with torch.no_grad():
                 return self._step(frames, state)
@@ -315,6 +322,13 @@ class NeuralInference(nn.Module):
         """:meth:`step` after its checks, autograd off."""
         e = self.evidence(frames)
         diag = self.diagonals if self._kernels["ring"] == "banded" else None
+        if self.search is not None:  # the ring runs, the unit search decides
+            ring = RingState(torch.zeros_like(e)) if state is None else state.ring
+            shift = self.shift if diag is not None else self.shift.to(e.dtype)
+            activity, ring = ring_step(e, ring, shift, self.params, diag)
+            reference, confidence, history = self.search.step(
+                e, activity, None if state is None else state.search)
+            return NeuralStep(reference, confidence, activity), SearchState(ring, history)
         if self.tracker is not None:  # adaptive velocity (neural/velocity.py)
             activity, reference, confidence, state = adaptive_step(
                 e, self.tracker.initial(e) if state is None else state,
@@ -355,8 +369,12 @@ class NeuralInference(nn.Module):
         if self._kernels["scan"] == "velocity_loop":  # adaptive: decisions feed the ring
             activity, reference, confidence = self.stream(torch.cat(parts))
         else:
-            activity = self.scan(torch.cat(parts))  # (T, N)
-            reference, confidence = self.decide(activity)
+            evidence = torch.cat(parts)
+            activity = self.scan(evidence)  # (T, N)
+            if self.search is not None:  # the unit search decides (neural/search.py)
+                reference, confidence = self.search.scan(evidence, activity)
+            else:
+                reference, confidence = self.decide(activity)
         matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
         return NeuralResult(matches, activity.cpu())
 

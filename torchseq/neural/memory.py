@@ -30,6 +30,16 @@ def seqslam_bytes(n_reference: int, descriptor: int = 2048, itemsize: int = 4) -
     return int(n_reference) * int(descriptor) * int(itemsize)
 
 
+def seqslam_template_bytes(n_reference: int, image_size: tuple[int, int] = (32, 64)) -> int:
+    """Bytes of classic SeqSLAM's templates: one patch-normalised frame per place, 1 byte a value.
+
+    OpenSeqSLAM stores ``127 + round(z)`` in uint8 (``SeqSLAMConfig``'s default
+    ``image_size`` 32 x 64: 2,048 bytes a place). The figure recorded beside
+    ``model_bytes`` in metrics.json and train.json.
+    """
+    return int(n_reference) * int(image_size[0]) * int(image_size[1])
+
+
 def memory_comparison(model, descriptor: int = 2048) -> dict:
     """Bytes a fitted model stores beside the bytes classic SeqSLAM keeps for the same route.
 

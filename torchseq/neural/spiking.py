@@ -43,6 +43,7 @@ import torch
 from torch import nn
 
 from torchseq.neural.readout import decide
+from torchseq.neural.search import refuse_export
 from torchseq.quantise import factor_power_of_two
 
 DT = 1e-4  # seconds per time step written into the NIR graph (snnTorch's importer assumes it)
@@ -321,6 +322,7 @@ class SpikingSeqSLAM(nn.Module):
             SpikingError: an unfitted model, a readout other than ``"centre"``, a bad
                 reference, or a degenerate calibration.
         """
+        refuse_export(model, "the spiking (NIR) form", SpikingError)
         cfg = config or SpikingConfig()
         cfg.validate()
         if not getattr(model, "fitted", False):
