@@ -686,8 +686,11 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
     # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
     # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)
     matrix = result.preview if result.preview is not None else result.enhanced
+    # the raw difference matrix of the run's own descriptors: the single-frame baseline ranks
+    # it instead of computing it again (not an ensemble's: that is not one descriptor set's)
+    difference = result.difference if ref.members is None else None
     return {"matches": result.matches, "ranked": result.ranked,
-            "ranked_score": result.ranked_score, "matrix": matrix,
+            "ranked_score": result.ranked_score, "matrix": matrix, "difference": difference,
             "matrix_shape": (len(ref), len(query)), "matrix_reduced": result.enhanced is None,
             "seconds": result.seconds["total"], "parameters": to_jsonable(config)}
 
@@ -866,10 +869,20 @@ SINGLE_FRAME_RULE = ("each query's nearest reference by the run's --metric on th
                      "sequence (ds = 1)")
 
 
-def single_frame_baseline(s: Settings, ref: Traverse, query: Traverse, device):
-    """Single-frame matches on the run's descriptors (:func:`torchseq.seqslam.single_frame`)."""
-    from torchseq.seqslam.single import single_frame
+def single_frame_baseline(s: Settings, ref: Traverse, query: Traverse, device,
+                          difference: torch.Tensor | None = None):
+    """Single-frame matches on the run's descriptors (:func:`torchseq.seqslam.single_frame`).
 
+    ``difference``: the SeqSLAM engine's raw ``(R, Q)`` difference matrix of the same
+    descriptors (``run_seqslam``'s ``"difference"``), ranked as it is instead of computed
+    again; used for ``l1`` (whose kernels are exact, so the numbers are the same) on frames or
+    float32/float64 descriptors (which the engine takes as they are).
+    """
+    from torchseq.seqslam.single import single_frame, single_frame_from_difference
+
+    if difference is not None and s.seqslam.metric == "l1" and (
+            ref.descriptors is None or ref.descriptors.dtype in (torch.float32, torch.float64)):
+        return single_frame_from_difference(difference, RANKED, s.seqslam.max_chunk_elements)
     if ref.descriptors is not None:
         r, q = ref.descriptors, query.descriptors
     else:
@@ -1117,8 +1130,11 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
         return code
     results = run_engines(s, ref, query, device, notes, model)
     # the baseline needs the reference's descriptors: a map run reads none (sharded maps)
-    single = (single_frame_baseline(s, ref, query, device)
+    single = (single_frame_baseline(s, ref, query, device,
+                                    results.get("seqslam", {}).get("difference"))
               if gt is not None and s.run.map is None else None)
+    for r in results.values():
+        r.pop("difference", None)  # ranked: no longer needed
     summary = report(s, ref, query, gt, source, results, out, notes, single)
     mark_complete(out)
     for name in results:
