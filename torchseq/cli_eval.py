@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchseq import cli_help, metrics, plots
+from torchseq import cli_help, metrics
 from torchseq.atomic import write_json, write_text
 from torchseq.cli_help import organise_help
 from torchseq.cli_map import check_map_flags, map_seqslam_config, map_traverse, run_seqslam_map
@@ -900,6 +900,8 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     ``single``: the single-frame baseline (:func:`single_frame_baseline`), reported beside
     each engine with the share of queries the sequence makes worse (needs ground truth).
     """
+    from torchseq import plots  # matplotlib: imported only by a run that draws
+
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
