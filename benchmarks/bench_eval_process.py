@@ -22,6 +22,11 @@ also shown on their own. "rest" is interpreter start and exit. Wall and CPU seco
 (``time.process_time``: all threads) per phase; codes run interleaved ``--rounds`` times and
 the fastest whole process of each is shown. ``--busy N`` runs N busy-loop processes beside the
 runs (a co-tenant holding cores).
+
+``--descriptor-step`` times only the descriptor step on the route's frames (both traverses),
+in this process: one whole ``preprocess`` call on PyTorch's default intra-op threads (what the
+engine did before) against ``SeqSLAM.descriptors`` (blocks of frames on the stages' worker
+threads, ``seqslam/_parallel.py``), interleaved, fastest of ``--rounds``, with ``--busy``.
 """
 
 from __future__ import annotations
@@ -181,6 +186,38 @@ def table(best: dict) -> str:
     return "\n".join(lines)
 
 
+def descriptor_step(route: Path, rounds: int) -> str:
+    """The descriptor step alone: default threads vs the stages' rule; a markdown table."""
+    sys.path.insert(0, str(ROOT))
+    import torch
+
+    from torchseq import load_traverse
+    from torchseq.preprocess import preprocess
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+
+    frames = torch.cat([load_traverse(route / n, progress=False) for n in ("reference",
+                                                                            "query")])
+    c = SeqSLAMConfig()
+    ways = {"one call, PyTorch's default threads":
+            lambda: preprocess(frames, c.image_size, c.patch_size, mode="seqslam"),
+            "SeqSLAM.descriptors (the stages' rule)": lambda: SeqSLAM(c).descriptors(frames)}
+    best = {k: (float("inf"), 0.0) for k in ways}
+    outputs = {}
+    for _ in range(rounds):
+        for k, fn in ways.items():
+            w, cpu = time.perf_counter(), time.process_time()
+            outputs[k] = fn()
+            w, cpu = time.perf_counter() - w, time.process_time() - cpu
+            best[k] = min(best[k], (w, cpu))
+    a, b = outputs.values()
+    same = torch.equal(a, b)
+    lines = [f"descriptor step, {len(frames)} frames, torch threads "
+             f"{torch.get_num_threads()}, identical descriptors: {same}\n",
+             "| way | wall s | CPU s |", "|---|---:|---:|"]
+    lines += [f"| {k} | {w:.3f} | {c_:.3f} |" for k, (w, c_) in best.items()]
+    return "\n".join(lines)
+
+
 def main() -> None:
     if len(sys.argv) > 2 and sys.argv[1] == "--child":
         run_child(sys.argv[4:], Path(sys.argv[2]))
@@ -192,6 +229,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2, help="runs of each code, interleaved")
     parser.add_argument("--busy", type=int, default=0,
                         help="busy-loop processes held beside the runs")
+    parser.add_argument("--descriptor-step", action="store_true",
+                        help="time only the descriptor step (default threads vs the rule)")
     parser.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir())
                         / "torchseq-bench-eval-process")
     args = parser.parse_args()
@@ -201,6 +240,11 @@ def main() -> None:
     busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
             for _ in range(args.busy)]
     try:
+        if args.descriptor_step:
+            print(descriptor_step(route, args.rounds))
+            print(f"\n{args.busy} busy-loop process(es) beside, load average "
+                  f"{os.getloadavg()[0]:.1f}")
+            return
         with tempfile.TemporaryDirectory() as tmp:
             for i in range(args.rounds):
                 for label, root in roots:
