@@ -33,7 +33,7 @@ def _run(body: str, tmp_path) -> dict:
 
 
 def test_import_torchseq_loads_no_heavy_package(tmp_path):
-    got = _run("import torchseq, torchseq.cli, torchseq.cli_eval\n"
+    got = _run("import torchseq, torchseq.cli, torchseq.cli_eval, torchseq.plots\n"
                "print(json.dumps({'loaded': loaded()}))", tmp_path)
     assert got["loaded"] == []
 
@@ -58,4 +58,7 @@ print(json.dumps(seen))
     assert got["code"] == 0
     assert got["before_report"] == []
     assert "tensorboard" not in got["after_report"]  # --no-tensorboard: never imported
+    # a SeqSLAM run's figures are drawn with NumPy/OpenCV (report_images): no matplotlib
+    assert "matplotlib" not in got["after_report"]
+    assert (tmp_path / "o" / "seqslam_difference_matrix.png").stat().st_size > 1000
     assert (tmp_path / "o" / "metrics.json").exists()

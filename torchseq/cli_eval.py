@@ -900,7 +900,7 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     ``single``: the single-frame baseline (:func:`single_frame_baseline`), reported beside
     each engine with the share of queries the sequence makes worse (needs ground truth).
     """
-    from torchseq import plots  # matplotlib: imported only by a run that draws
+    from torchseq import plots
 
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
@@ -924,36 +924,51 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     write_text(out / "matches.csv", matches_csv(results, gt, s.run.matches_top_k))
     write_text(out / "config.json",
                config_text({**config_dict(s), VERSIONS_KEY: versions()}) + "\n")
-    figures = {}
-    if "seqslam" in results and results["seqslam"]["matrix"] is not None:
-        r = results["seqslam"]
-        figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
-            r["matrix"], r["matches"], gt, "SeqSLAM contrast-enhanced difference matrix"
-            + (" (banded run: reduced copy)" if r["matrix_reduced"] else ""),
-            shape=r["matrix_shape"])
-    if "neural" in results:
-        r = results["neural"]
-        truth = (None if gt is None else
-                 plots.true_units(gt, r["unit_spans"], r["activity"].shape[0]))
-        figures["neural_activity"] = plots.plot_activity_raster(
-            r["activity"], title="neural output activity over the query", truth=truth)
-    for name, r in results.items():
-        if ref.thumbnail is None or query.thumbnail is None:
-            continue  # descriptor files and maps: no frames to show
-        figures[f"{name}_matched_pairs"] = plots.plot_matched_pairs(
-            ref.thumbnail, query.thumbnail, r["matches"], gt,
-            title=f"{name}: query (top) and matched reference")
-    if curves:
-        figures["pr_curve"] = plots.plot_pr_curves(curves)
-    images = {k: plots.figure_to_array(f) for k, f in figures.items()}  # drawn once
+    images = report_figures(ref, query, gt, results, curves)
     for k, img in images.items():
         plots.save_image(img, out / f"{k}.png")
-        figures[k].clear()
     if s.run.tensorboard:
         log_tensorboard(s, out, summary, results, gt, images)
     summary["status"] = "complete"
     write_json(out / "metrics.json", summary)
     return summary
+
+
+def report_figures(ref, query, gt, results: dict, curves: dict) -> dict:
+    """The report's figures as ``(H, W, 3)`` uint8 RGB images, by file name (no ``.png``).
+
+    The difference matrix, matched pairs and PR curves are drawn straight into images
+    (:mod:`torchseq.report_images`: NumPy and OpenCV, milliseconds); the neural activity
+    raster with matplotlib (:mod:`torchseq.plots`), imported only by a run that has one.
+    """
+    from torchseq import report_images
+
+    images = {}
+    if "seqslam" in results and results["seqslam"]["matrix"] is not None:
+        r = results["seqslam"]
+        images["seqslam_difference_matrix"] = report_images.draw_difference_matrix(
+            r["matrix"], r["matches"], gt, "SeqSLAM contrast-enhanced difference matrix"
+            + (" (banded run: reduced copy)" if r["matrix_reduced"] else ""),
+            shape=r["matrix_shape"])
+    if "neural" in results:
+        from torchseq import plots
+
+        r = results["neural"]
+        truth = (None if gt is None else
+                 plots.true_units(gt, r["unit_spans"], r["activity"].shape[0]))
+        fig = plots.plot_activity_raster(
+            r["activity"], title="neural output activity over the query", truth=truth)
+        images["neural_activity"] = plots.figure_to_array(fig)  # drawn once
+        fig.clear()
+    for name, r in results.items():
+        if ref.thumbnail is None or query.thumbnail is None:
+            continue  # descriptor files and maps: no frames to show
+        images[f"{name}_matched_pairs"] = report_images.draw_matched_pairs(
+            ref.thumbnail, query.thumbnail, r["matches"], gt,
+            title=f"{name}: query (top) and matched reference")
+    if curves:
+        images["pr_curve"] = report_images.draw_pr_curves(curves)
+    return images
 
 
 INCOMPLETE = "INCOMPLETE"  # a run folder holding this file is partial: stopped or failed
