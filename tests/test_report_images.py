@@ -108,3 +108,41 @@ def test_nice_ticks():
     assert report_images.nice_ticks(-0.5, 3575.5).tolist() == [0, 500, 1000, 1500, 2000, 2500,
                                                                3000, 3500]
     assert np.allclose(report_images.nice_ticks(0, 1.02), [0, 0.2, 0.4, 0.6, 0.8, 1.0])
+
+
+def test_tensorboard_holds_the_report_images_and_scalars(tmp_path):
+    """The event file's images are the PNG files' pixels (written once, not re-encoded)."""
+    import json
+
+    import cv2
+    from conftest import shared_data
+    from tensorboard.backend.event_processing.event_file_loader import LegacyEventFileLoader
+
+    from torchseq import cli_eval
+    from torchseq.frontend import run_main
+
+    root = shared_data("corridor")
+    out = tmp_path / "o"
+    assert run_main(cli_eval.main, "eval.py", [
+        "--reference", str(root / "ref"), "--query", str(root / "query"), "--engine", "seqslam",
+        "--ground-truth", str(root / "ground_truth.csv"), "--no-progress", "--out",
+        str(out)]) == 0
+    events = sorted((out / "tensorboard").glob("events.out.tfevents.*"))[0]
+    images, scalars = {}, {}
+    for event in LegacyEventFileLoader(str(events)).Load():  # as written, not migrated
+        for v in event.summary.value:
+            if v.HasField("image"):
+                images[v.tag] = v.image
+            elif v.HasField("simple_value"):
+                scalars[v.tag] = v.simple_value
+    names = {"seqslam_difference_matrix", "seqslam_matched_pairs", "pr_curve"}
+    assert set(images) == names
+    for name in names:
+        png = cv2.imread(str(out / f"{name}.png"), cv2.IMREAD_COLOR)
+        got = cv2.imdecode(np.frombuffer(images[name].encoded_image_string, np.uint8),
+                           cv2.IMREAD_COLOR)
+        assert np.array_equal(got, png)
+        assert (images[name].height, images[name].width, images[name].colorspace) == \
+            (*png.shape[:2], 3)
+    m = json.loads((out / "metrics.json").read_text())["seqslam"]
+    assert scalars["seqslam/recall_at_1"] == pytest.approx(m["recall_at_1"])

@@ -998,7 +998,7 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
                 if isinstance(value, (int, float)) and value is not None and np.isfinite(value):
                     tb.add_scalar(f"{name}/{key}", value)
         for key, img in images.items():
-            tb.add_image(key, img, dataformats="HWC")
+            tb_png_image(tb, key, img, out / f"{key}.png")
         for name in results:  # the HParams tab: this run's settings beside its results
             tb.add_hparams(hparams(s, name), {
                 f"hparam/{name}/{k}": float(v) for k, v in summary[name].items()
@@ -1016,6 +1016,20 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
             lo, hi = conf.min(), conf.max()
             pred = (conf - lo) / (hi - lo) if hi > lo else torch.ones_like(conf)
             tb.add_pr_curve(f"{name}/pr_curve", labels, pred.float())
+
+
+def tb_png_image(tb, key: str, image: np.ndarray, png: Path) -> None:
+    """``tb.add_image(key, image, dataformats="HWC")`` with the PNG already written for it.
+
+    The same ``Summary.Image`` (height, width, RGB, PNG bytes of the same pixels) as
+    ``add_image``, which would encode the image a second time (with PIL).
+    """
+    from tensorboard.compat.proto.summary_pb2 import Summary
+
+    height, width = image.shape[:2]
+    picture = Summary.Image(height=height, width=width, colorspace=3,
+                            encoded_image_string=png.read_bytes())
+    tb._get_file_writer().add_summary(Summary(value=[Summary.Value(tag=key, image=picture)]))
 
 
 def hparams(s: Settings, engine: str) -> dict:
