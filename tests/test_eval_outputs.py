@@ -10,7 +10,7 @@ import pytest
 import torch
 from conftest import shared_data
 
-from torchseq import cli_eval, cli_train, plots
+from torchseq import cli_eval, cli_train, plots, report_images
 from torchseq.frontend import run_main
 from torchseq.matches import Matches
 
@@ -98,7 +98,7 @@ def test_ctrl_c_while_plotting_leaves_a_run_marked_incomplete(tmp_path, capsys, 
         raise KeyboardInterrupt
 
     with monkeypatch.context() as m:
-        m.setattr(plots, "plot_matched_pairs", interrupted)
+        m.setattr(report_images, "draw_matched_pairs", interrupted)
         code, _, err = run_eval(tmp_path, capsys, *args)
     assert code == 130 and "interrupted" in err
     out = tmp_path / "o"

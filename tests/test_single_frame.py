@@ -11,7 +11,8 @@ from seqslam_oracle import oracle_difference
 from torchseq import cli_eval, metrics
 from torchseq.frontend import run_main
 from torchseq.matches import Matches
-from torchseq.seqslam.single import single_frame
+from torchseq.seqslam.difference import difference_matrix
+from torchseq.seqslam.single import single_frame, single_frame_from_difference
 
 
 @pytest.mark.parametrize("metric", ["l1", "l2", "cosine"])
@@ -87,3 +88,39 @@ def test_eval_reports_single_frame_beside_the_sequence(tmp_path, capsys):
     assert vs["n_made_worse"] == worse
     line = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("seqslam:")][0]
     assert f"single frame {want:.3f}, made worse {100 * worse / 111:.1f}%" in line
+
+
+@pytest.mark.parametrize("metric", ["l1", "l2", "cosine"])
+def test_single_frame_from_difference_equals_single_frame(metric):
+    rng = np.random.default_rng(2)
+    ref = torch.tensor(rng.integers(0, 4, (30, 6)).astype(np.float32))  # ties
+    query = torch.tensor(rng.integers(0, 4, (17, 6)).astype(np.float32))
+    want = single_frame(ref, query, metric, top_k=5)
+    for chunk in (64, 2**26):  # several blocks of queries, one block
+        got = single_frame_from_difference(difference_matrix(ref, query, metric), 5, chunk)
+        assert torch.equal(got.ranked, want.ranked)
+        assert torch.equal(got.ranked_score, want.ranked_score)
+        assert torch.equal(got.matches.reference, want.matches.reference)
+    short = single_frame_from_difference(difference_matrix(ref[:3], query, metric), 5)
+    assert (short.ranked[:, 3:] == -1).all() and short.ranked_score[:, 3:].isnan().all()
+    with pytest.raises(ValueError, match="top_k"):
+        single_frame_from_difference(difference_matrix(ref, query, metric), 0)
+
+
+def test_eval_baseline_ranks_the_engines_difference_matrix(tmp_path, monkeypatch):
+    """The eval computes the difference matrix once: the baseline ranks the engine's."""
+    import torchseq.seqslam.single as single
+
+    root = shared_data("corridor")
+    args = ["--reference", str(root / "ref"), "--query", str(root / "query"), "--engine",
+            "seqslam", "--ground-truth", str(root / "ground_truth.csv"), "--no-tensorboard",
+            "--no-progress"]
+    assert run_main(cli_eval.main, "eval.py", [*args, "--out", str(tmp_path / "a")]) == 0
+
+    def fail(*a, **k):
+        raise AssertionError("the baseline computed the difference matrix again")
+
+    monkeypatch.setattr(single, "single_frame", fail)
+    assert run_main(cli_eval.main, "eval.py", [*args, "--out", str(tmp_path / "b")]) == 0
+    a, b = (json.loads((tmp_path / f / "metrics.json").read_text()) for f in "ab")
+    assert a["single_frame"] == b["single_frame"] and "recall_at_1" in a["single_frame"]

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchseq import cli_help, metrics, plots
+from torchseq import cli_help, metrics
 from torchseq.atomic import write_json, write_text
 from torchseq.cli_help import organise_help
 from torchseq.cli_map import check_map_flags, map_seqslam_config, map_traverse, run_seqslam_map
@@ -687,8 +687,11 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
     # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
     # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)
     matrix = result.preview if result.preview is not None else result.enhanced
+    # the raw difference matrix of the run's own descriptors: the single-frame baseline ranks
+    # it instead of computing it again (not an ensemble's: that is not one descriptor set's)
+    difference = result.difference if ref.members is None else None
     return {"matches": result.matches, "ranked": result.ranked,
-            "ranked_score": result.ranked_score, "matrix": matrix,
+            "ranked_score": result.ranked_score, "matrix": matrix, "difference": difference,
             "matrix_shape": (len(ref), len(query)), "matrix_reduced": result.enhanced is None,
             "seconds": result.seconds["total"], "parameters": to_jsonable(config)}
 
@@ -870,10 +873,20 @@ SINGLE_FRAME_RULE = ("each query's nearest reference by the run's --metric on th
                      "sequence (ds = 1)")
 
 
-def single_frame_baseline(s: Settings, ref: Traverse, query: Traverse, device):
-    """Single-frame matches on the run's descriptors (:func:`torchseq.seqslam.single_frame`)."""
-    from torchseq.seqslam.single import single_frame
+def single_frame_baseline(s: Settings, ref: Traverse, query: Traverse, device,
+                          difference: torch.Tensor | None = None):
+    """Single-frame matches on the run's descriptors (:func:`torchseq.seqslam.single_frame`).
 
+    ``difference``: the SeqSLAM engine's raw ``(R, Q)`` difference matrix of the same
+    descriptors (``run_seqslam``'s ``"difference"``), ranked as it is instead of computed
+    again; used for ``l1`` (whose kernels are exact, so the numbers are the same) on frames or
+    float32/float64 descriptors (which the engine takes as they are).
+    """
+    from torchseq.seqslam.single import single_frame, single_frame_from_difference
+
+    if difference is not None and s.seqslam.metric == "l1" and (
+            ref.descriptors is None or ref.descriptors.dtype in (torch.float32, torch.float64)):
+        return single_frame_from_difference(difference, RANKED, s.seqslam.max_chunk_elements)
     if ref.descriptors is not None:
         r, q = ref.descriptors, query.descriptors
     else:
@@ -891,6 +904,8 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     ``single``: the single-frame baseline (:func:`single_frame_baseline`), reported beside
     each engine with the share of queries the sequence makes worse (needs ground truth).
     """
+    from torchseq import plots
+
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
@@ -913,36 +928,51 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     write_text(out / "matches.csv", matches_csv(results, gt, s.run.matches_top_k))
     write_text(out / "config.json",
                config_text({**config_dict(s), VERSIONS_KEY: versions()}) + "\n")
-    figures = {}
-    if "seqslam" in results and results["seqslam"]["matrix"] is not None:
-        r = results["seqslam"]
-        figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
-            r["matrix"], r["matches"], gt, "SeqSLAM contrast-enhanced difference matrix"
-            + (" (banded run: reduced copy)" if r["matrix_reduced"] else ""),
-            shape=r["matrix_shape"])
-    if "neural" in results:
-        r = results["neural"]
-        truth = (None if gt is None else
-                 plots.true_units(gt, r["unit_spans"], r["activity"].shape[0]))
-        figures["neural_activity"] = plots.plot_activity_raster(
-            r["activity"], title="neural output activity over the query", truth=truth)
-    for name, r in results.items():
-        if ref.thumbnail is None or query.thumbnail is None:
-            continue  # descriptor files and maps: no frames to show
-        figures[f"{name}_matched_pairs"] = plots.plot_matched_pairs(
-            ref.thumbnail, query.thumbnail, r["matches"], gt,
-            title=f"{name}: query (top) and matched reference")
-    if curves:
-        figures["pr_curve"] = plots.plot_pr_curves(curves)
-    images = {k: plots.figure_to_array(f) for k, f in figures.items()}  # drawn once
+    images = report_figures(ref, query, gt, results, curves)
     for k, img in images.items():
         plots.save_image(img, out / f"{k}.png")
-        figures[k].clear()
     if s.run.tensorboard:
         log_tensorboard(s, out, summary, results, gt, images)
     summary["status"] = "complete"
     write_json(out / "metrics.json", summary)
     return summary
+
+
+def report_figures(ref, query, gt, results: dict, curves: dict) -> dict:
+    """The report's figures as ``(H, W, 3)`` uint8 RGB images, by file name (no ``.png``).
+
+    The difference matrix, matched pairs and PR curves are drawn straight into images
+    (:mod:`torchseq.report_images`: NumPy and OpenCV, milliseconds); the neural activity
+    raster with matplotlib (:mod:`torchseq.plots`), imported only by a run that has one.
+    """
+    from torchseq import report_images
+
+    images = {}
+    if "seqslam" in results and results["seqslam"]["matrix"] is not None:
+        r = results["seqslam"]
+        images["seqslam_difference_matrix"] = report_images.draw_difference_matrix(
+            r["matrix"], r["matches"], gt, "SeqSLAM contrast-enhanced difference matrix"
+            + (" (banded run: reduced copy)" if r["matrix_reduced"] else ""),
+            shape=r["matrix_shape"])
+    if "neural" in results:
+        from torchseq import plots
+
+        r = results["neural"]
+        truth = (None if gt is None else
+                 plots.true_units(gt, r["unit_spans"], r["activity"].shape[0]))
+        fig = plots.plot_activity_raster(
+            r["activity"], title="neural output activity over the query", truth=truth)
+        images["neural_activity"] = plots.figure_to_array(fig)  # drawn once
+        fig.clear()
+    for name, r in results.items():
+        if ref.thumbnail is None or query.thumbnail is None:
+            continue  # descriptor files and maps: no frames to show
+        images[f"{name}_matched_pairs"] = report_images.draw_matched_pairs(
+            ref.thumbnail, query.thumbnail, r["matches"], gt,
+            title=f"{name}: query (top) and matched reference")
+    if curves:
+        images["pr_curve"] = report_images.draw_pr_curves(curves)
+    return images
 
 
 INCOMPLETE = "INCOMPLETE"  # a run folder holding this file is partial: stopped or failed
@@ -972,7 +1002,7 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
                 if isinstance(value, (int, float)) and value is not None and np.isfinite(value):
                     tb.add_scalar(f"{name}/{key}", value)
         for key, img in images.items():
-            tb.add_image(key, img, dataformats="HWC")
+            tb_png_image(tb, key, img, out / f"{key}.png")
         for name in results:  # the HParams tab: this run's settings beside its results
             tb.add_hparams(hparams(s, name), {
                 f"hparam/{name}/{k}": float(v) for k, v in summary[name].items()
@@ -990,6 +1020,20 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
             lo, hi = conf.min(), conf.max()
             pred = (conf - lo) / (hi - lo) if hi > lo else torch.ones_like(conf)
             tb.add_pr_curve(f"{name}/pr_curve", labels, pred.float())
+
+
+def tb_png_image(tb, key: str, image: np.ndarray, png: Path) -> None:
+    """``tb.add_image(key, image, dataformats="HWC")`` with the PNG already written for it.
+
+    The same ``Summary.Image`` (height, width, RGB, PNG bytes of the same pixels) as
+    ``add_image``, which would encode the image a second time (with PIL).
+    """
+    from tensorboard.compat.proto.summary_pb2 import Summary
+
+    height, width = image.shape[:2]
+    picture = Summary.Image(height=height, width=width, colorspace=3,
+                            encoded_image_string=png.read_bytes())
+    tb._get_file_writer().add_summary(Summary(value=[Summary.Value(tag=key, image=picture)]))
 
 
 def hparams(s: Settings, engine: str) -> dict:
@@ -1121,8 +1165,11 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
         return code
     results = run_engines(s, ref, query, device, notes, model)
     # the baseline needs the reference's descriptors: a map run reads none (sharded maps)
-    single = (single_frame_baseline(s, ref, query, device)
+    single = (single_frame_baseline(s, ref, query, device,
+                                    results.get("seqslam", {}).get("difference"))
               if gt is not None and s.run.map is None else None)
+    for r in results.values():
+        r.pop("difference", None)  # ranked: no longer needed
     summary = report(s, ref, query, gt, source, results, out, notes, single)
     mark_complete(out)
     for name in results:

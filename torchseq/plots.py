@@ -4,17 +4,17 @@ Every ``plot_*`` function returns a matplotlib figure; :func:`save_figure` write
 as PNG and :func:`figure_to_array` turns it into an ``(H, W, 3)`` uint8 image for TensorBoard;
 :func:`save_image` writes such an image as PNG without drawing the figure again.
 Figures are made with the non-interactive Agg canvas directly (``matplotlib.figure.Figure``),
-so importing this module leaves matplotlib's backend and ``pyplot``'s figure list alone.
+so importing this module leaves matplotlib's backend and ``pyplot``'s figure list alone;
+matplotlib itself is imported by the first figure drawn, not by ``import torchseq.plots``.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from torchseq.area import area_mean
 from torchseq.atomic import atomic_path
@@ -22,9 +22,19 @@ from torchseq.ground_truth import GroundTruthRanges, admits
 from torchseq.matches import Matches
 from torchseq.metrics import PRCurve, auc
 
+if TYPE_CHECKING:  # matplotlib is imported by the first figure (_figure)
+    from matplotlib.figure import Figure
+
 
 def _figure(figsize, nrows: int = 1, ncols: int = 1, **kw):
-    """A figure on its own Agg canvas and its axes (pyplot is never involved)."""
+    """A figure on its own Agg canvas and its axes (pyplot is never involved).
+
+    matplotlib is imported here, by the first figure: importing this module for its NumPy
+    helpers (:func:`reduce_matrix`, used by :mod:`torchseq.report_images`) loads none of it.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=figsize, dpi=100)
     FigureCanvasAgg(fig)
     axes = fig.subplots(nrows, ncols, **kw)

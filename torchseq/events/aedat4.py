@@ -16,6 +16,7 @@ LZ4 uses the ``lz4`` package when installed (pure-Python fallback otherwise), Zs
 
 from __future__ import annotations
 
+import importlib.util
 import re
 import struct
 import warnings
@@ -141,12 +142,10 @@ def _lz4_package(payload: bytes, limit: int) -> bytes:
     return b"".join(out) if len(out) != 1 else out[0]
 
 
-try:  # the LZ4 kernel, chosen once here: the C package when installed, else pure Python
-    import lz4.frame  # noqa: F401
-
-    lz4_decompress = _lz4_package
-except ImportError:  # pragma: no cover - lz4 is a dependency
-    lz4_decompress = decompress_frames
+# the LZ4 kernel, chosen once here: the C package when installed, else pure Python; found
+# without importing it (a run that reads no AEDAT 4 file never loads lz4)
+lz4_decompress = (_lz4_package if importlib.util.find_spec("lz4") is not None
+                  else decompress_frames)
 
 
 def _zstd(payload: bytes, limit: int) -> bytes:

@@ -110,3 +110,37 @@ def run_blocks(fn: Callable[[object], None], blocks: Iterable, workers: int,
         with ThreadPoolExecutor(max_workers=min(workers, len(blocks))) as pool:
             for _ in pool.map(fn, blocks):  # re-raises the first failure
                 pass
+
+
+def map_rows(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, threads: int | None,
+             rows: int = 256) -> torch.Tensor:
+    """``fn`` over blocks of ``rows`` leading rows of ``x``, concatenated, by this file's rule.
+
+    For per-row work (frames to descriptors): each block runs on one intra-op thread and the
+    blocks go to :func:`resolve_threads` workers (:func:`run_blocks`), so a busy core slows
+    the step by at most its share instead of stalling every op's parallel region. On CUDA,
+    or with at most one block, ``fn(x)`` runs as it is.
+
+    Args:
+        fn: ``(n, ...) -> (n, ...)``, row ``i`` of the output depending on row ``i`` of the
+            input only.
+        x: ``(T, ...)``.
+        threads: worker threads (None: :func:`resolve_threads`' rule).
+        rows: rows per block.
+
+    Returns:
+        ``fn`` of every block, concatenated along the first axis.
+    """
+    if x.device.type == "cuda" or x.shape[0] <= rows:
+        if x.device.type == "cuda":
+            return fn(x)
+        with single_threaded_ops():
+            return fn(x)
+    starts = range(0, x.shape[0], rows)
+    out: list[torch.Tensor | None] = [None] * len(starts)
+
+    def block(i: int) -> None:
+        out[i] = fn(x[starts[i]:starts[i] + rows])
+
+    run_blocks(block, range(len(starts)), resolve_threads(threads), x.device)
+    return torch.cat(out)  # type: ignore[arg-type]

@@ -10,7 +10,7 @@ from torch import nn
 from torchseq._checks import as_frames, check_not_empty
 from torchseq.matches import Matches
 from torchseq.preprocess import preprocess, preprocess_openseqslam
-from torchseq.seqslam._parallel import resolve_threads, single_threaded_ops
+from torchseq.seqslam._parallel import map_rows, resolve_threads, single_threaded_ops
 from torchseq.seqslam.banded import match_banded, preview
 from torchseq.seqslam.candidates import CandidateSeqSLAM, resolve_candidates
 from torchseq.seqslam.config import SeqSLAMConfig
@@ -72,10 +72,14 @@ class SeqSLAM(nn.Module):
         """
         c = self.config
         frames = torch.as_tensor(frames)
-        if c.preprocessing == "openseqslam":
-            desc = preprocess_openseqslam(frames.to(self.device), c.image_size, c.patch_size)
-        else:
-            desc = preprocess(frames.to(self.device), c.image_size, c.patch_size, mode="seqslam")
+
+        def describe(block: torch.Tensor) -> torch.Tensor:
+            if c.preprocessing == "openseqslam":
+                return preprocess_openseqslam(block, c.image_size, c.patch_size)
+            return preprocess(block, c.image_size, c.patch_size, mode="seqslam")
+
+        # frame by frame work: blocks of frames on the stages' worker threads (_parallel.py)
+        desc = map_rows(describe, frames.to(self.device), c.threads)
         return desc.to(self._working_dtype(frames))
 
     def match(self, reference: torch.Tensor, query: torch.Tensor,

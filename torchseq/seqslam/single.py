@@ -49,12 +49,46 @@ def single_frame(reference: torch.Tensor, query: torch.Tensor, metric: str = "l1
     check_descriptors(reference, query)
     if top_k < 1:
         raise ValueError(f"top_k must be >= 1, got {top_k}")
-    k = min(top_k, reference.shape[0])
     rows = max(1, max_chunk_elements // reference.shape[0])
+    blocks = (difference_matrix(reference, query[q0:q0 + rows], metric, max_chunk_elements)
+              for q0 in range(0, query.shape[0], rows))
+    return _ranked(blocks, reference.shape[0], top_k)
+
+
+def single_frame_from_difference(difference: torch.Tensor, top_k: int = 21,
+                                 max_chunk_elements: int = 2**26) -> SingleFrameResult:
+    """:func:`single_frame` from a difference matrix already computed (nothing computed twice).
+
+    The SeqSLAM engine keeps its raw difference matrix (``SeqSLAMResult.difference``, the
+    same :func:`~torchseq.seqslam.difference.difference_matrix` of the same descriptors), so
+    the baseline only ranks it.
+
+    Args:
+        difference: ``(R, Q)`` distances, reference rows by query columns.
+        top_k: references ranked per query (at most ``R``).
+        max_chunk_elements: bound on each block of queries ranked at once.
+
+    Returns:
+        :class:`SingleFrameResult` on CPU, equal to :func:`single_frame` of the descriptors
+        the matrix was computed from.
+    """
+    difference = torch.as_tensor(difference)
+    if difference.ndim != 2 or 0 in difference.shape:
+        raise ValueError(f"need a non-empty (R, Q) difference matrix, got "
+                         f"{tuple(difference.shape)}")
+    if top_k < 1:
+        raise ValueError(f"top_k must be >= 1, got {top_k}")
+    rows = max(1, max_chunk_elements // difference.shape[0])
+    blocks = (difference[:, q0:q0 + rows] for q0 in range(0, difference.shape[1], rows))
+    return _ranked(blocks, difference.shape[0], top_k)
+
+
+def _ranked(blocks, n_ref: int, top_k: int) -> SingleFrameResult:
+    """Rank the references of each query from ``(R, block)`` difference blocks."""
+    k = min(top_k, n_ref)
     ranked, scores = [], []
-    for q0 in range(0, query.shape[0], rows):
-        d_t = difference_matrix(reference, query[q0:q0 + rows], metric,
-                                max_chunk_elements).T  # (block, R)
+    for block in blocks:
+        d_t = block.T  # (block, R)
         order = torch.argsort(d_t, dim=1, stable=True)[:, :k]  # ties: lower index first
         ranked.append(order)
         scores.append(d_t.gather(1, order))
