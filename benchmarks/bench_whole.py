@@ -10,7 +10,7 @@ is index alignment (``--tolerance 2``). Each run is the real ``eval.py`` in its 
 (``PYTHONPATH`` = the checkout under test), with the library functions of each phase wrapped by
 timers before ``eval.py`` starts: wall and CPU seconds (``time.process_time``: every thread of
 the process) of decoding (``load_traverse_for``), ground truth, the engine (``run_engines``),
-metrics, plots (every ``torchseq.plots`` function), TensorBoard (``log_tensorboard``) and the
+metrics, plots (every ``torchseq.cli.plots`` function), TensorBoard (``log_tensorboard``) and the
 rest (interpreter start, imports, writing files). The codes run interleaved, ``--rounds``
 times each; the table shows the fastest whole-process run of each, and every round's totals
 are listed below it.
@@ -86,9 +86,9 @@ class _Timers:
 
 def run_instrumented(argv: list[str], result: Path) -> None:
     """Inside the child: wrap each phase's functions, run ``eval.py`` as ``__main__``."""
-    import torchseq.cli_eval as cli_eval
+    import torchseq.cli.eval as cli_eval
+    import torchseq.cli.plots as plots
     import torchseq.metrics as metrics
-    import torchseq.plots as plots
 
     timers = _Timers()
     wrap = {"decode": [(cli_eval, "load_traverse_for")],

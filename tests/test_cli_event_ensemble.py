@@ -13,18 +13,19 @@ import numpy as np
 import pytest
 import torch
 
-from torchseq import cli_eval, cli_train
-from torchseq.demo import make_world, render
-from torchseq.events import load_event_frames
-from torchseq.events.ensemble import accumulate_ensemble, match_ensemble
-from torchseq.events.runs import simulate_run
-from torchseq.frontend import (
+from torchseq.cli import eval as cli_eval
+from torchseq.cli import train as cli_train
+from torchseq.cli.flags import (
     UsageError,
     config_text,
     event_frame_options,
     run_main,
     window_members,
 )
+from torchseq.demo import make_world, render
+from torchseq.events import load_event_frames
+from torchseq.events.ensemble import accumulate_ensemble, match_ensemble
+from torchseq.events.runs import simulate_run
 from torchseq.preprocess import resize
 from torchseq.seqslam import SeqSLAMConfig
 

@@ -6,9 +6,10 @@ import json
 
 import pytest
 
-from torchseq import cli_eval, cli_train
-from torchseq.cli_presets import NEURAL_PRESETS, apply_preset
-from torchseq.frontend import UsageError, config_text, run_main
+from torchseq.cli import eval as cli_eval
+from torchseq.cli import train as cli_train
+from torchseq.cli.flags import UsageError, config_text, run_main
+from torchseq.cli.presets import NEURAL_PRESETS, apply_preset
 from torchseq.neural import NeuralConfig
 
 CLASSMETHODS = {"default": NeuralConfig, "table1": NeuralConfig.table1,

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from torchseq import cli_eval
-from torchseq.frontend import run_main
+from torchseq.cli import eval as cli_eval
+from torchseq.cli.flags import run_main
 from torchseq.ground_truth import GroundTruthError, load_ground_truth
 
 

@@ -10,8 +10,10 @@ import pytest
 import torch
 from conftest import shared_data
 
-from torchseq import cli_eval, cli_train, plots
-from torchseq.frontend import run_main
+from torchseq.cli import eval as cli_eval
+from torchseq.cli import plots
+from torchseq.cli import train as cli_train
+from torchseq.cli.flags import run_main
 from torchseq.matches import Matches
 
 
@@ -174,6 +176,6 @@ def test_pr_legend_gives_auc_and_the_ring_matrix_its_axes():
     assert fig.axes[0].get_ylabel() == "to output unit"
     import inspect
 
-    from torchseq import cli_train
+    from torchseq.cli import train as cli_train
     source = inspect.getsource(cli_train)
     assert 'xlabel="from output unit (the current winner)"' in source

@@ -14,7 +14,7 @@ import torch
 
 from torchseq.demo import make_demo
 from torchseq.export import ExportError, export_checkpoint
-from torchseq.export.cli import main, summary_lines
+from torchseq.export.checkpoint import main, summary_lines
 from torchseq.export.contract import read_contract
 from torchseq.export.int_onnx import session
 from torchseq.export.onnx_float import (

@@ -25,7 +25,7 @@ def load_script(name):
 
 def run_inprocess(name, capsys, *args):
     """Run a script's main as its __main__ does; return (exit code, stderr)."""
-    from torchseq.frontend import run_main
+    from torchseq.cli.flags import run_main
 
     module = load_script(name)
     code = run_main(module.main, f"{name}.py", [*args, "--no-progress"])
@@ -256,7 +256,7 @@ def test_help_is_plain_text_with_one_default_each(capsys):
 
 
 def test_size_flags_take_n_for_n_by_n():
-    from torchseq.frontend import UsageError, parse_size
+    from torchseq.cli.flags import UsageError, parse_size
 
     assert parse_size("16") == (16, 16) and parse_size("12x16") == (12, 16)
     with pytest.raises(UsageError):
@@ -266,7 +266,7 @@ def test_size_flags_take_n_for_n_by_n():
 def test_selection_slices_the_ground_truth_file(tmp_path):
     import cv2
 
-    from torchseq import cli_eval
+    from torchseq.cli import eval as cli_eval
 
     rng = np.random.default_rng(0)
     for name in ("ref", "query"):
@@ -389,8 +389,8 @@ def readme_commands(word):
 def test_readme_event_examples_never_resize_event_frames():
     # each README event example reads its event frames at the size they are made: no silent
     # upsampling of 16x16 frames to the default 32x64 (nor squeezing of two-channel frames)
-    from torchseq.cli_eval import parse_args
-    from torchseq.frontend import parse_size
+    from torchseq.cli.eval import parse_args
+    from torchseq.cli.flags import parse_size
 
     examples = readme_commands(".aedat")
     assert len(examples) >= 2 and any("two-channel" in argv for argv in examples)
@@ -424,8 +424,8 @@ def test_event_flags_without_event_files_are_refused(tmp_path, capsys, script):
 
 
 def test_event_flags_count_for_event_files_only():
-    from torchseq.cli_eval import parse_args
-    from torchseq.frontend import UsageError, check_event_flags_apply
+    from torchseq.cli.eval import parse_args
+    from torchseq.cli.flags import UsageError, check_event_flags_apply
 
     s = parse_args(["--window-ms", "5", "--frame-size", "16"])[0]
     with pytest.raises(UsageError, match="--window-ms, --frame-size apply"):
@@ -436,7 +436,7 @@ def test_event_flags_count_for_event_files_only():
 
 
 def test_events_preset_sizes_two_channel_images_to_the_frames():
-    from torchseq.cli_eval import parse_args
+    from torchseq.cli.eval import parse_args
 
     def size(*argv):
         return tuple(parse_args(list(argv))[0].seqslam.image_size)
@@ -541,8 +541,8 @@ def test_evt3_kernel_flag_reaches_the_decoder(tmp_path, capsys, monkeypatch):
 
 
 def test_evt3_kernel_numba_without_numba_is_refused(monkeypatch):
-    from torchseq.cli_eval import parse_args
-    from torchseq.frontend import UsageError, event_frame_options
+    from torchseq.cli.eval import parse_args
+    from torchseq.cli.flags import UsageError, event_frame_options
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec",
@@ -590,7 +590,7 @@ def test_place_resolution_warning_follows_the_readout(tmp_path, capsys):
 def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, monkeypatch):
     # the export read an --export-query event file with default settings (10 ms windows at
     # the full 128x128) although the model learnt 20 ms windows pooled to 16x16
-    import torchseq.export.cli as export_cli
+    import torchseq.export.checkpoint as export_cli
 
     seen = {}
 

@@ -309,7 +309,7 @@ def summary_lines(out_dir) -> list[str]:
 
 def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
     """The export command's flags."""
-    from torchseq.frontend import Parser
+    from torchseq.cli.flags import Parser
 
     ap = Parser(prog=prog, description="Export a Neural SeqSLAM checkpoint to ONNX and "
                 "integer files and validate them (exit 0: every check passed, 1: one "
@@ -325,7 +325,7 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
                     "spiking model as a NIR graph) nor run it in snnTorch and Norse")
     ap.add_argument("--no-progress", action="store_true", help="do not show the long steps "
                     "on stderr (bars on a terminal, one line per step otherwise)")
-    from torchseq import cli_help
+    from torchseq.cli import help as cli_help
 
     cli_help.organise_help(ap, cli_help.EXPORT, cli_help.EXPORT_EXAMPLES)
     return ap
@@ -333,7 +333,7 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None, prog: str = "torchseq export") -> int:
     """Command-line entry point; returns the exit status."""
-    from torchseq.frontend import UsageError, parse_size
+    from torchseq.cli.flags import UsageError, parse_size
 
     args = build_parser(prog).parse_args(argv)
     try:

@@ -23,23 +23,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchseq import cli_help, metrics, plots
+from torchseq import metrics
 from torchseq.atomic import write_json, write_text
-from torchseq.cli_help import organise_help
-from torchseq.cli_map import check_map_flags, map_seqslam_config, map_traverse, run_seqslam_map
-from torchseq.cli_presets import apply_preset, preset_config, preset_help, preset_name
-from torchseq.cli_warnings import WarningLog, warning_list
-from torchseq.demo import make_demo
-from torchseq.descriptors import (
-    DescriptorError,
-    describe,
-    descriptor_kind,
-    load_descriptors,
-    load_hook,
-    neural_config,
-    neural_input,
-)
-from torchseq.frontend import (
+from torchseq.cli import help as cli_help
+from torchseq.cli import plots
+from torchseq.cli.flags import (
     EVENT_FIELDS,
     EVENT_HELP,
     EventFlags,
@@ -63,6 +51,20 @@ from torchseq.frontend import (
     sweep_grid,
     to_jsonable,
     warn,
+)
+from torchseq.cli.help import organise_help
+from torchseq.cli.map import check_map_flags, map_seqslam_config, map_traverse, run_seqslam_map
+from torchseq.cli.presets import apply_preset, preset_config, preset_help, preset_name
+from torchseq.cli.run_warnings import WarningLog, warning_list
+from torchseq.demo import make_demo
+from torchseq.descriptors import (
+    DescriptorError,
+    describe,
+    descriptor_kind,
+    load_descriptors,
+    load_hook,
+    neural_config,
+    neural_input,
 )
 from torchseq.ground_truth import GroundTruthRanges, alignment_ranges, load_ground_truth
 from torchseq.neural import NeuralConfig
@@ -1058,7 +1060,7 @@ def quiet(s: Settings) -> Settings:
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
-    """Entry point; returns the exit code (errors raise, see :func:`torchseq.frontend.run_main`).
+    """Entry point; returns the exit code (errors raise, see :func:`torchseq.cli.flags.run_main`).
 
     Args:
         argv: the flags (None: ``sys.argv[1:]``).

@@ -522,7 +522,7 @@ def run_main(main: Callable[[list[str] | None], int], prog: str,
     try:
         return main(argv)
     except (ValueError, OSError, RuntimeError) as err:
-        from torchseq.cli_warnings import cli_terms
+        from torchseq.cli.run_warnings import cli_terms
 
         message = str(err).splitlines()[0] if str(err) else type(err).__name__
         print(f"{prog}: error: {cli_terms(message)}", file=sys.stderr)
@@ -535,7 +535,7 @@ def run_main(main: Callable[[list[str] | None], int], prog: str,
 def warn(prog: str, message: str, sink=None) -> None:
     """Print ``prog: warning: message`` on stderr (and keep it in ``sink`` for the report).
 
-    ``sink``: a list, or a run's :class:`~torchseq.cli_warnings.WarningLog` (which prints a
+    ``sink``: a list, or a run's :class:`~torchseq.cli.run_warnings.WarningLog` (which prints a
     repeated warning once and counts it).
     """
     if hasattr(sink, "add"):

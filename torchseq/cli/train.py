@@ -18,13 +18,10 @@ from pathlib import Path
 
 import torch
 
-from torchseq import cli_help, plots
 from torchseq.atomic import write_json, write_text
-from torchseq.cli_help import organise_help
-from torchseq.cli_presets import apply_preset, preset_help, preset_name
-from torchseq.cli_warnings import WarningLog, warning_list
-from torchseq.demo import make_demo
-from torchseq.frontend import (
+from torchseq.cli import help as cli_help
+from torchseq.cli import plots
+from torchseq.cli.flags import (
     EVENT_FIELDS,
     EVENT_HELP,
     EventFlags,
@@ -46,6 +43,10 @@ from torchseq.frontend import (
     run_main,
     to_jsonable,
 )
+from torchseq.cli.help import organise_help
+from torchseq.cli.presets import apply_preset, preset_help, preset_name
+from torchseq.cli.run_warnings import WarningLog, warning_list
+from torchseq.demo import make_demo
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
 from torchseq.sources import FrameSelection, is_event_file, load_traverse, load_traverse_sizes
 from torchseq.versions import VERSIONS_KEY, versions
@@ -189,7 +190,7 @@ def export_query(cfg: TrainConfig, events):
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
-    """Entry point; returns the exit code (errors raise, see :func:`torchseq.frontend.run_main`).
+    """Entry point; returns the exit code (errors raise, see :func:`torchseq.cli.flags.run_main`).
 
     Args:
         argv: the flags (None: ``sys.argv[1:]``).
@@ -265,7 +266,7 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
           f"({1e3 * seconds / len(frames):.2f} ms/frame); model {model.model_bytes()} bytes; "
           f"wrote {out / 'model.pt'}")
     if cfg.export:
-        from torchseq.export.cli import export_checkpoint, summary_lines
+        from torchseq.export.checkpoint import export_checkpoint, summary_lines
 
         ok = export_checkpoint(out / "model.pt", out / "export",
                                query=export_query(cfg, events),

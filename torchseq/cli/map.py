@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from torchseq.frontend import (
+from torchseq.cli.flags import (
     EVENT_HELP,
     EventFlags,
     Parser,
