@@ -1,6 +1,6 @@
 """``eval.py``: a thin wrapper over ``torchseq eval`` (:mod:`torchseq.cli.eval`)."""
 
-from torchseq.cli import eval as cli_eval
+import torchseq.cli.eval as cli_eval
 from torchseq.cli.eval import *  # noqa: F401,F403 - the script's names, for tests and users
 
 

@@ -1,6 +1,6 @@
 """``train.py``: a thin wrapper over ``torchseq train`` (:mod:`torchseq.cli.train`)."""
 
-from torchseq.cli import train as cli_train
+import torchseq.cli.train as cli_train
 from torchseq.cli.train import *  # noqa: F401,F403 - the script's names, for tests and users
 
 

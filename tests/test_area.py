@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
+import torchseq.cli.plots as plots
 from torchseq.area import Partial, area_mean, finish, reduce_rows
-from torchseq.cli import plots
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
 from torchseq.seqslam import banded as banded_module
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from torchseq.cli import eval as cli_eval
-from torchseq.cli.flags import run_main
+import torchseq.cli.eval as cli_eval
+from torchseq.cli.runs import run_main
 from torchseq.events import EventFormatError, accumulate
 
 SPAN = "the recording spans 11718656..11727457 us (8.801 ms)"  # evt3_sample.raw's events

@@ -10,9 +10,10 @@ import pytest
 import torch
 from conftest import shared_data
 
+import torchseq.cli.eval as cli_eval
 from torchseq import load_traverse
-from torchseq.cli import eval as cli_eval
-from torchseq.cli.flags import UsageError, run_main
+from torchseq.cli.errors import UsageError
+from torchseq.cli.runs import run_main
 from torchseq.datasets import (
     DatasetError,
     brisbane_event,

@@ -406,7 +406,7 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     import json
 
     from tests.export_helpers import small_setup
-    from torchseq.export.checkpoint import main
+    from torchseq.cli.export import main
 
     model, demo, *_ = small_setup()
     np.save(tmp_path / "ref.npy", demo.reference.numpy())

@@ -25,7 +25,7 @@ def load_script(name):
 
 def run_inprocess(name, capsys, *args):
     """Run a script's main as its __main__ does; return (exit code, stderr)."""
-    from torchseq.cli.flags import run_main
+    from torchseq.cli.runs import run_main
 
     module = load_script(name)
     code = run_main(module.main, f"{name}.py", [*args, "--no-progress"])
@@ -256,7 +256,8 @@ def test_help_is_plain_text_with_one_default_each(capsys):
 
 
 def test_size_flags_take_n_for_n_by_n():
-    from torchseq.cli.flags import UsageError, parse_size
+    from torchseq.cli.errors import UsageError
+    from torchseq.cli.flags import parse_size
 
     assert parse_size("16") == (16, 16) and parse_size("12x16") == (12, 16)
     with pytest.raises(UsageError):
@@ -266,7 +267,8 @@ def test_size_flags_take_n_for_n_by_n():
 def test_selection_slices_the_ground_truth_file(tmp_path):
     import cv2
 
-    from torchseq.cli import eval as cli_eval
+    import torchseq.cli.eval as cli_eval
+    from torchseq.cli.inputs import load_data
 
     rng = np.random.default_rng(0)
     for name in ("ref", "query"):
@@ -281,7 +283,7 @@ def test_selection_slices_the_ground_truth_file(tmp_path):
         "--ground-truth", str(tmp_path / "gt.csv"), "--start", "3", "--frame-step", "4",
         "--engine", "seqslam", "--no-progress"])
     notes = []
-    ref, query, gt, source = cli_eval.load_data(s.run, {"32x64": (32, 64)}, notes)
+    ref, query, gt, source = load_data(s.run, {"32x64": (32, 64)}, notes)
     assert ref.info["indices"] == [3, 7, 11, 15, 19] and len(query) == 5
     full = np.zeros((20, 20), bool)
     for q in range(20):
@@ -424,8 +426,9 @@ def test_event_flags_without_event_files_are_refused(tmp_path, capsys, script):
 
 
 def test_event_flags_count_for_event_files_only():
+    from torchseq.cli.errors import UsageError
     from torchseq.cli.eval import parse_args
-    from torchseq.cli.flags import UsageError, check_event_flags_apply
+    from torchseq.cli.event_options import check_event_flags_apply
 
     s = parse_args(["--window-ms", "5", "--frame-size", "16"])[0]
     with pytest.raises(UsageError, match="--window-ms, --frame-size apply"):
@@ -541,8 +544,9 @@ def test_evt3_kernel_flag_reaches_the_decoder(tmp_path, capsys, monkeypatch):
 
 
 def test_evt3_kernel_numba_without_numba_is_refused(monkeypatch):
+    from torchseq.cli.errors import UsageError
     from torchseq.cli.eval import parse_args
-    from torchseq.cli.flags import UsageError, event_frame_options
+    from torchseq.cli.event_options import event_frame_options
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec",
@@ -590,7 +594,8 @@ def test_place_resolution_warning_follows_the_readout(tmp_path, capsys):
 def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, monkeypatch):
     # the export read an --export-query event file with default settings (10 ms windows at
     # the full 128x128) although the model learnt 20 ms windows pooled to 16x16
-    import torchseq.export.checkpoint as export_cli
+    import torchseq.cli.export as export_cli
+    import torchseq.export.checkpoint as checkpoint
 
     seen = {}
 
@@ -598,7 +603,7 @@ def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, mo
         seen["query"] = query
         return True
 
-    monkeypatch.setattr(export_cli, "export_checkpoint", spy)
+    monkeypatch.setattr(checkpoint, "export_checkpoint", spy)
     monkeypatch.setattr(export_cli, "summary_lines", lambda out: [])
     aedat = str(shared_data("events", "alex_walking_again.aedat"))
     code, err = run_inprocess("train", capsys, "--reference", aedat, "--frame-size", "16",

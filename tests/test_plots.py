@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchseq.cli import plots
+import torchseq.cli.plots as plots
 from torchseq.ground_truth import alignment_ranges
 from torchseq.matches import Matches
 

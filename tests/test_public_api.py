@@ -120,7 +120,7 @@ def test_seqslam_presets_build():
 
 def test_event_modes_of_the_library_and_the_command_line_agree():
     # every --event-mode the CLI offers is a mode load_event_frames accepts, and vice versa
-    from torchseq.cli.flags import EVENT_MODES
+    from torchseq.cli.event_options import EVENT_MODES
     from torchseq.events.traverse import TRAVERSE_MODES
 
     assert {m.replace("-", "_") for m in EVENT_MODES} == set(TRAVERSE_MODES) == {

@@ -8,9 +8,9 @@ import torch
 from conftest import shared_data
 from seqslam_oracle import oracle_difference
 
+import torchseq.cli.eval as cli_eval
 from torchseq import metrics
-from torchseq.cli import eval as cli_eval
-from torchseq.cli.flags import run_main
+from torchseq.cli.runs import run_main
 from torchseq.matches import Matches
 from torchseq.seqslam.single import single_frame
 

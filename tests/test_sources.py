@@ -337,7 +337,8 @@ def test_evt3_time_rule_reaches_the_reader():
 def test_window_anchor_reaches_the_accumulator_or_is_refused():
     import inspect
 
-    from torchseq.cli.flags import UsageError, parse_anchor
+    from torchseq.cli.errors import UsageError
+    from torchseq.cli.event_options import parse_anchor
     from torchseq.events import load_event_frames
     from torchseq.sources import EventFrameOptions
 

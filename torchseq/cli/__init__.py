@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         from torchseq.cli.map import cli as map_cli
         return map_cli(rest, prog)
     if command == "export":
-        from torchseq.export.checkpoint import main as export_main
+        from torchseq.cli.export import main as export_main
         return export_main(rest, prog)
     print(f"torchseq: error: unknown command {command!r} (choose from "
           f"{', '.join(COMMANDS)})", file=sys.stderr)

@@ -17,21 +17,18 @@ from pathlib import Path
 
 import torch
 
+from torchseq.cli.errors import UsageError
+from torchseq.cli.event_options import EVENT_HELP, EventFlags, event_frame_options
 from torchseq.cli.flags import (
-    EVENT_HELP,
-    EventFlags,
     Parser,
-    UsageError,
     add_config_flags,
     changed_fields,
     check_ranges,
     config_from_args,
     docstring_help,
-    event_frame_options,
     frame_selection,
-    run_main,
-    to_jsonable,
 )
+from torchseq.cli.runs import run_main, to_jsonable
 from torchseq.maps import MapError, ReferenceMap, build_map
 from torchseq.maps.build import DEFAULT_SHARD_SIZE
 from torchseq.maps.format import DESCRIPTOR_FIELDS

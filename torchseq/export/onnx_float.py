@@ -27,7 +27,7 @@ import numpy as np
 import onnx
 import torch
 
-from torchseq.export.checkpoint import ExportError
+from torchseq.export.errors import ExportError
 from torchseq.export.int_onnx import run_step_session, write_onnx
 from torchseq.layers import RingState
 from torchseq.neural.inference import NeuralInference
