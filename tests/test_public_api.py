@@ -80,6 +80,8 @@ PUBLIC = {
     "torchseq.cli.eval": ["EvalConfig", "Settings", "build_parser", "cli", "main",
                           "parse_args", "seqslam_preset"],
     "torchseq.cli.train": ["TrainConfig", "build_parser", "cli", "main", "parse_args"],
+    "torchseq.cli.export": ["build_parser", "main", "summary_lines"],
+    "torchseq.cli.results": ["EngineRun", "EvalOutcome", "NeuralRun", "SeqSLAMRun"],
     # the spiking model and its NIR export (docs/guide/nir.md)
     "torchseq.neural.spiking": ["DT", "SpikingConfig", "SpikingError", "SpikingSeqSLAM",
                                 "SpikingState", "SpikingStep", "ladder", "lif_step"],

@@ -17,10 +17,11 @@ from torchseq.cli.errors import UsageError
 from torchseq.cli.eval_settings import EvalConfig, Settings
 from torchseq.cli.event_options import event_frame_options
 from torchseq.cli.flags import frame_selection
-from torchseq.cli.inputs import Traverse
 from torchseq.cli.map import run_seqslam_map
 from torchseq.cli.presets import preset_name
+from torchseq.cli.results import EngineRun, NeuralRun, SeqSLAMRun
 from torchseq.cli.runs import Notes, to_jsonable, warn
+from torchseq.cli.traverse import Traverse
 from torchseq.descriptors import neural_config, neural_input
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
 
@@ -58,7 +59,7 @@ def transposed_size(size, frame_size) -> str | None:
             f"32x64 here)")
 
 
-def run_seqslam(s: Settings, ref, query, device, notes: Notes):
+def run_seqslam(s: Settings, ref, query, device, notes: Notes) -> SeqSLAMRun:
     """Classic SeqSLAM: matches, ranked candidates, the matrix to plot, seconds, parameters."""
     ds = s.seqslam.sequence_length
     if ds > len(query):
@@ -97,10 +98,10 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes):
     # matrix below that) in full-matrix coordinates; long routes keep nothing else. Without
     # one, the enhanced matrix (a sparse one is reduced as it is, never made dense)
     matrix = result.preview if result.preview is not None else result.enhanced
-    return {"matches": result.matches, "ranked": result.ranked,
-            "ranked_score": result.ranked_score, "matrix": matrix,
-            "matrix_shape": (len(ref), len(query)), "matrix_reduced": result.enhanced is None,
-            "seconds": result.seconds["total"], "parameters": to_jsonable(config)}
+    return SeqSLAMRun(matches=result.matches, ranked=result.ranked,
+                      ranked_score=result.ranked_score, matrix=matrix,
+                      matrix_shape=(len(ref), len(query)), matrix_reduced=result.enhanced is None,
+                      seconds=result.seconds["total"], parameters=to_jsonable(config))
 
 
 def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
@@ -160,7 +161,7 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
             "unless that is the same route")
 
 
-def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
+def run_neural(s: Settings, ref, query, device, notes: Notes, model=None) -> NeuralRun:
     """Neural SeqSLAM, from a checkpoint (``model``, loaded) or trained on the reference now."""
     from torchseq.neural import NeuralSeqSLAM
     from torchseq.neural.model import COARSE_UNIT_FRAMES
@@ -208,14 +209,15 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None):
     top = result.activity.topk(k, dim=1)  # activity: higher is better, as the confidence
     ranked = model.unit_centre.cpu()[top.indices]
     preset = None if cfg.checkpoint else preset_name(cfg.neural_preset)
-    return {"matches": result.matches, "ranked": ranked, "ranked_score": top.values,
-            "activity": result.activity, "unit_spans": model.unit_to_reference.cpu(),
-            "seconds": run_seconds, "fit_seconds": fit_seconds, "preset": preset,
-            "parameters": to_jsonable(model.config), "model_bytes": int(model.model_bytes()),
-            "frames_per_unit": per_unit, "self_check": self_check}
+    return NeuralRun(matches=result.matches, ranked=ranked, ranked_score=top.values,
+                     activity=result.activity, unit_spans=model.unit_to_reference.cpu(),
+                     seconds=run_seconds, fit_seconds=fit_seconds, preset=preset,
+                     parameters=to_jsonable(model.config), model_bytes=int(model.model_bytes()),
+                     frames_per_unit=per_unit, self_check=self_check)
 
 
-def run_engines(s: Settings, ref, query, device, notes: Notes, model=None) -> dict:
+def run_engines(s: Settings, ref, query, device, notes: Notes,
+                model=None) -> dict[str, EngineRun]:
     """Every engine the run asks for, by name (``model``: a loaded checkpoint)."""
     names = ["seqslam", "neural"] if s.run.engine == "both" else [s.run.engine]
     return {name: run_seqslam(s, ref, query, device, notes) if name == "seqslam" else

@@ -56,6 +56,7 @@ from torchseq.cli.inputs import load_data, load_model, needed_sizes
 from torchseq.cli.map import check_map_flags, map_seqslam_config
 from torchseq.cli.presets import apply_preset, preset_config, preset_name
 from torchseq.cli.report import engine_metrics, report, summary_line
+from torchseq.cli.results import EvalOutcome
 from torchseq.cli.run_warnings import WarningLog, warning_list
 from torchseq.cli.runs import (
     Notes,
@@ -370,7 +371,7 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
     # the baseline needs the reference's descriptors: a map run reads none (sharded maps)
     single = (single_frame_baseline(s, ref, query, device)
               if gt is not None and s.run.map is None else None)
-    summary = report(s, ref, query, gt, source, results, out, notes, single)
+    summary = report(EvalOutcome(s, ref, query, gt, source, results, out, single), notes)
     mark_complete(out)
     for name in results:
         print(summary_line(name, summary[name]))

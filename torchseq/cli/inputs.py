@@ -8,7 +8,6 @@ the ground truth over the selected frames.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ from torchseq.cli.event_options import event_frame_options
 from torchseq.cli.flags import frame_selection, resolve_device
 from torchseq.cli.map import map_traverse
 from torchseq.cli.runs import Notes, warn
+from torchseq.cli.traverse import Traverse, size_key
 from torchseq.demo import make_demo
 from torchseq.descriptors import (
     DescriptorError,
@@ -48,33 +48,6 @@ def load_model(path: str, device=None):
 
 
 THUMBNAIL = 160  # longer side of the frames kept for plots
-
-
-def size_key(size) -> str:
-    """``(32, 64)`` -> ``"32x64"``."""
-    return f"{int(size[0])}x{int(size[1])}"
-
-
-@dataclass
-class Traverse:
-    """A loaded traverse: frames at each size an engine needs, thumbnails for plots, facts."""
-
-    frames: dict
-    thumbnail: torch.Tensor | None
-    info: dict
-    descriptors: torch.Tensor | None = None  # (T, D) for a traverse of descriptors
-    members: list | None = None  # temporal-window ensemble: one frames dict per member
-
-    def __len__(self) -> int:
-        return int(self.info["n_frames"])
-
-    def at(self, size) -> torch.Tensor:
-        """``(T, h, w)`` frames at ``size``."""
-        return self.frames[size_key(size)]
-
-    def members_at(self, size) -> list[torch.Tensor]:
-        """The ensemble members' ``(T, h, w)`` frames at ``size``, in ``--window-ms`` order."""
-        return [m[size_key(size)] for m in self.members]
 
 
 def needed_sizes(settings: list[Settings], model=None, baseline: bool = True) -> dict:

@@ -28,6 +28,7 @@ from torchseq.cli.flags import (
     docstring_help,
     frame_selection,
 )
+from torchseq.cli.results import SeqSLAMRun
 from torchseq.cli.runs import run_main, to_jsonable
 from torchseq.maps import MapError, ReferenceMap, build_map
 from torchseq.maps.build import DEFAULT_SHARD_SIZE
@@ -226,7 +227,7 @@ def map_traverse(path: str, traverse_cls):
     return traverse_cls({}, None, info)
 
 
-def run_seqslam_map(s, query, device, progress: bool) -> dict:
+def run_seqslam_map(s, query, device, progress: bool) -> SeqSLAMRun:
     """SeqSLAM against a map: exact mode, candidate mode with its index, or sharded on Ray."""
     from torchseq.seqslam import SeqSLAM
     from torchseq.seqslam.candidates import CandidateSeqSLAM, resolve_candidates
@@ -250,6 +251,7 @@ def run_seqslam_map(s, query, device, progress: bool) -> dict:
     else:
         result = engine.match_descriptors(m.descriptors(), q, progress=progress)
     matrix = result.preview if result.preview is not None else result.enhanced
-    return {"matches": result.matches, "ranked": result.ranked, "matrix": matrix,
-            "matrix_shape": (m.n_places, len(query)), "matrix_reduced": result.enhanced is None,
-            "seconds": result.seconds["total"], "parameters": to_jsonable(scfg)}
+    return SeqSLAMRun(matches=result.matches, ranked=result.ranked, ranked_score=None,
+                      matrix=matrix, matrix_shape=(m.n_places, len(query)),
+                      matrix_reduced=result.enhanced is None,
+                      seconds=result.seconds["total"], parameters=to_jsonable(scfg))

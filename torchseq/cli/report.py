@@ -17,6 +17,7 @@ import torchseq.cli.plots as plots
 from torchseq import metrics
 from torchseq.atomic import write_json, write_text
 from torchseq.cli.eval_settings import Settings, config_dict
+from torchseq.cli.results import EngineRun, EvalOutcome
 from torchseq.cli.run_warnings import warning_list
 from torchseq.cli.runs import Notes, config_text, mark_incomplete, to_jsonable
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
@@ -27,13 +28,15 @@ SINGLE_FRAME_RULE = ("each query's nearest reference by the run's --metric on th
                      "sequence (ds = 1)")
 
 
-def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes,
-           single=None) -> dict:
+def report(outcome: EvalOutcome, notes: Notes) -> dict:
     """Write metrics.json, matches.csv, plots and TensorBoard logs; return the metrics.
 
-    ``single``: the single-frame baseline (:func:`single_frame_baseline`), reported beside
-    each engine with the share of queries the sequence makes worse (needs ground truth).
+    ``outcome.single``: the single-frame baseline (:func:`single_frame_baseline`), reported
+    beside each engine with the share of queries the sequence makes worse (needs ground truth).
+    The metrics are also kept as ``outcome.metrics``.
     """
+    s, ref, query, gt = outcome.settings, outcome.reference, outcome.query, outcome.ground_truth
+    source, results, out, single = outcome.inputs, outcome.engines, outcome.out, outcome.single
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
@@ -46,10 +49,10 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     for name, r in results.items():
         summary[name] = engine_metrics(r, gt, s.run.target_precision)
         if gt is not None:
-            curves[name] = metrics.precision_recall_curve(r["matches"], gt)
+            curves[name] = metrics.precision_recall_curve(r.matches, gt)
             if single is not None:
                 summary[name]["versus_single_frame"] = metrics.sequence_vs_single(
-                    r["matches"], single.matches, gt)
+                    r.matches, single.matches, gt)
     mark_incomplete(out)  # before the first file: an interrupted run never looks finished
     summary["status"] = "incomplete"  # until the plots and logs are written too
     write_json(out / "metrics.json", summary)
@@ -57,23 +60,23 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
     write_text(out / "config.json",
                config_text({**config_dict(s), VERSIONS_KEY: versions()}) + "\n")
     figures = {}
-    if "seqslam" in results and results["seqslam"]["matrix"] is not None:
+    if "seqslam" in results and results["seqslam"].matrix is not None:
         r = results["seqslam"]
         figures["seqslam_difference_matrix"] = plots.plot_difference_matrix(
-            r["matrix"], r["matches"], gt, "SeqSLAM contrast-enhanced difference matrix"
-            + (" (banded run: reduced copy)" if r["matrix_reduced"] else ""),
-            shape=r["matrix_shape"])
+            r.matrix, r.matches, gt, "SeqSLAM contrast-enhanced difference matrix"
+            + (" (banded run: reduced copy)" if r.matrix_reduced else ""),
+            shape=r.matrix_shape)
     if "neural" in results:
         r = results["neural"]
         truth = (None if gt is None else
-                 plots.true_units(gt, r["unit_spans"], r["activity"].shape[0]))
+                 plots.true_units(gt, r.unit_spans, r.activity.shape[0]))
         figures["neural_activity"] = plots.plot_activity_raster(
-            r["activity"], title="neural output activity over the query", truth=truth)
+            r.activity, title="neural output activity over the query", truth=truth)
     for name, r in results.items():
         if ref.thumbnail is None or query.thumbnail is None:
             continue  # descriptor files and maps: no frames to show
         figures[f"{name}_matched_pairs"] = plots.plot_matched_pairs(
-            ref.thumbnail, query.thumbnail, r["matches"], gt,
+            ref.thumbnail, query.thumbnail, r.matches, gt,
             title=f"{name}: query (top) and matched reference")
     if curves:
         figures["pr_curve"] = plots.plot_pr_curves(curves)
@@ -85,10 +88,12 @@ def report(s: Settings, ref, query, gt, source, results, out: Path, notes: Notes
         log_tensorboard(s, out, summary, results, gt, images)
     summary["status"] = "complete"
     write_json(out / "metrics.json", summary)
+    outcome.metrics = summary
     return summary
 
 
-def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
+def log_tensorboard(s: Settings, out: Path, summary: dict,
+                    results: dict[str, EngineRun], gt,
                     images: dict) -> None:
     """Scalars, images, PR curves and the config in ``OUT/tensorboard``."""
     from torch.utils.tensorboard import SummaryWriter
@@ -109,7 +114,7 @@ def log_tensorboard(s: Settings, out: Path, summary: dict, results: dict, gt,
         if gt is None:
             return
         for name, r in results.items():
-            m = r["matches"]
+            m = r.matches
             has = m.reference >= 0
             if not bool(has.any()):
                 continue
@@ -134,7 +139,7 @@ def hparams(s: Settings, engine: str) -> dict:
     return out
 
 
-def matches_csv(results: dict, gt=None, top_k: int = 5) -> str:
+def matches_csv(results: dict[str, EngineRun], gt=None, top_k: int = 5) -> str:
     """``engine,query,reference,score[,correct],candidates`` rows.
 
     Empty reference and score where no match; ``correct`` (1/0, only with ground truth):
@@ -146,10 +151,10 @@ def matches_csv(results: dict, gt=None, top_k: int = 5) -> str:
     w.writerow(["engine", "query", "reference", "score", *(["correct"] if gt is not None
                                                             else []), "candidates"])
     for name, r in results.items():
-        ref = r["matches"].reference.cpu().numpy()
-        score = r["matches"].score.cpu().numpy()
-        good = metrics.correct(r["matches"], gt) if gt is not None else None
-        ranked = np.asarray(r["ranked"].cpu() if torch.is_tensor(r["ranked"]) else r["ranked"])
+        ref = r.matches.reference.cpu().numpy()
+        score = r.matches.score.cpu().numpy()
+        good = metrics.correct(r.matches, gt) if gt is not None else None
+        ranked = np.asarray(r.ranked.cpu() if torch.is_tensor(r.ranked) else r.ranked)
         ranked = ranked.reshape(len(ref), -1)[:, :top_k]
         for q, (i, s) in enumerate(zip(ref, score)):
             row = [name, q, int(i) if i >= 0 else "", f"{s:.6g}" if i >= 0 else ""]
@@ -160,16 +165,15 @@ def matches_csv(results: dict, gt=None, top_k: int = 5) -> str:
     return buf.getvalue()
 
 
-def engine_metrics(r: dict, gt, target_precision: float) -> dict:
+def engine_metrics(r: EngineRun, gt, target_precision: float) -> dict:
     """metrics.json entry of one engine."""
     if gt is None:
         m = {"recall_at_1": None, "auc": None, "recall_at_100_precision": None,
-             "n_queries": len(r["matches"]), "coverage": metrics.coverage(r["matches"])}
+             "n_queries": len(r.matches), "coverage": metrics.coverage(r.matches)}
     else:
-        m = metrics.evaluate(r["matches"], gt, r["ranked"], r.get("ranked_score"))
-        m["operating_point"] = metrics.operating_point(r["matches"], gt, target_precision)
-    m.update({k: r[k] for k in ("seconds", "fit_seconds", "model_bytes", "frames_per_unit",
-                                "self_check", "preset", "parameters") if k in r})
+        m = metrics.evaluate(r.matches, gt, r.ranked, r.ranked_score)
+        m["operating_point"] = metrics.operating_point(r.matches, gt, target_precision)
+    m.update(r.reported())
     return m
 
 
