@@ -1,7 +1,7 @@
-"""``eval.py``: a thin wrapper over ``torchseq eval`` (:mod:`torchseq.cli_eval`)."""
+"""``eval.py``: a thin wrapper over ``torchseq eval`` (:mod:`torchseq.cli.eval`)."""
 
-from torchseq import cli_eval
-from torchseq.cli_eval import *  # noqa: F401,F403 - the script's names, for tests and users
+import torchseq.cli.eval as cli_eval
+from torchseq.cli.eval import *  # noqa: F401,F403 - the script's names, for tests and users
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,7 @@
-"""``train.py``: a thin wrapper over ``torchseq train`` (:mod:`torchseq.cli_train`)."""
+"""``train.py``: a thin wrapper over ``torchseq train`` (:mod:`torchseq.cli.train`)."""
 
-from torchseq import cli_train
-from torchseq.cli_train import *  # noqa: F401,F403 - the script's names, for tests and users
+import torchseq.cli.train as cli_train
+from torchseq.cli.train import *  # noqa: F401,F403 - the script's names, for tests and users
 
 
 def main(argv: list[str] | None = None) -> int:

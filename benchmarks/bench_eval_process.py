@@ -14,7 +14,7 @@ admissible stretch on each pass and index alignment (``--tolerance 2``) stays th
 Each run is the real console command (``torchseq.cli.main``) in its own process, with the
 library functions of each phase wrapped by timers before it starts. Phases are exclusive
 (a phase inside another is subtracted from the outer one): imports (``import torchseq.cli`` and
-``torchseq.cli_eval``), decode (``load_traverse_for``), descriptors (``SeqSLAM.descriptors``:
+``torchseq.cli.eval``), decode (``load_traverse_for``), descriptors (``SeqSLAM.descriptors``:
 grey, resize, patch normalisation), engine (``run_engines`` less descriptors), the single-frame
 baseline (``single_frame_baseline`` less descriptors), and the report (``report``: metrics,
 ``matches.csv``, ``metrics.json``, plots, TensorBoard), with its plots and TensorBoard parts
@@ -99,7 +99,13 @@ def run_child(argv: list[str], result: Path) -> None:
     """Inside the child: import, wrap each phase's functions, run ``torchseq eval``."""
     w, c = time.perf_counter(), time.process_time()
     import torchseq.cli
-    import torchseq.cli_eval as cli_eval
+    try:  # the front end as a package (torchseq/cli/), else a baseline's cli_eval.py
+        import torchseq.cli.eval as cli_eval
+        import torchseq.cli.inputs as inputs
+        import torchseq.cli.report as report_module
+    except ImportError:
+        import torchseq.cli_eval as cli_eval
+        inputs = report_module = cli_eval
     imports = (time.perf_counter() - w, time.process_time() - c)
     modules_before_report = set()
     from torchseq.seqslam import SeqSLAM
@@ -113,12 +119,12 @@ def run_child(argv: list[str], result: Path) -> None:
             return fn(*args, **kwargs)
         return noted
 
-    wrap = [("decode", cli_eval, "load_traverse_for"),
+    wrap = [("decode", inputs, "load_traverse_for"),
             ("descriptors", SeqSLAM, "descriptors"),
             ("engine", cli_eval, "run_engines"),
             ("single frame", cli_eval, "single_frame_baseline"),
-            ("tensorboard", cli_eval, "log_tensorboard")]
-    for name in ("plots", "report_images", "fastplots"):  # the plotting modules of each code
+            ("tensorboard", report_module, "log_tensorboard")]
+    for name in ("plots", "report_images", "cli.plots", "cli.report_images"):  # each layout
         try:
             module = __import__(f"torchseq.{name}", fromlist=["_"])
         except ImportError:

@@ -38,7 +38,7 @@ def main() -> None:
             print(f"{desc}: wall {times[-1][1]} s, cpu {times[-1][2]} s", flush=True)
 
     progress_module.ExportProgress = Timed  # export_checkpoint builds its progress from it
-    from torchseq.export.cli import export_checkpoint
+    from torchseq.export.checkpoint import export_checkpoint
 
     t0, c0 = time.perf_counter(), time.process_time()
     ok = export_checkpoint(ckpt, out, progress=True)

@@ -10,7 +10,7 @@ is index alignment (``--tolerance 2``). Each run is the real ``eval.py`` in its 
 (``PYTHONPATH`` = the checkout under test), with the library functions of each phase wrapped by
 timers before ``eval.py`` starts: wall and CPU seconds (``time.process_time``: every thread of
 the process) of decoding (``load_traverse_for``), ground truth, the engine (``run_engines``),
-metrics, plots (every ``torchseq.plots`` function), TensorBoard (``log_tensorboard``) and the
+metrics, plots (every ``torchseq.cli.plots`` function), TensorBoard (``log_tensorboard``) and the
 rest (interpreter start, imports, writing files). The codes run interleaved, ``--rounds``
 times each; the table shows the fastest whole-process run of each, and every round's totals
 are listed below it.
@@ -86,20 +86,29 @@ class _Timers:
 
 def run_instrumented(argv: list[str], result: Path) -> None:
     """Inside the child: wrap each phase's functions, run ``eval.py`` as ``__main__``."""
-    import torchseq.cli_eval as cli_eval
     import torchseq.metrics as metrics
-    import torchseq.plots as plots
+
+    try:  # the torchseq/cli/ package: each phase's functions where their callers look them up
+        import torchseq.cli.eval as cli_eval
+        import torchseq.cli.inputs as inputs
+        import torchseq.cli.plots as plots
+        import torchseq.cli.report as report
+    except ImportError:  # a checkout from before the package: one cli_eval module
+        import torchseq.cli_eval as cli_eval
+        import torchseq.plots as plots
+
+        inputs = report = cli_eval
 
     timers = _Timers()
-    wrap = {"decode": [(cli_eval, "load_traverse_for")],
-            "ground truth": [(cli_eval, n) for n in ("alignment_ground_truth", "load_ground_truth",
-                                                     "selected_ground_truth",
-                                                     "alignment_ranges") if hasattr(cli_eval, n)],
+    wrap = {"decode": [(inputs, "load_traverse_for")],
+            "ground truth": [(inputs, n) for n in ("alignment_ground_truth", "load_ground_truth",
+                                                   "selected_ground_truth",
+                                                   "alignment_ranges") if hasattr(inputs, n)],
             "engine": [(cli_eval, "run_engines")],
-            "metrics": [(cli_eval, "engine_metrics"), (metrics, "precision_recall_curve")],
+            "metrics": [(report, "engine_metrics"), (metrics, "precision_recall_curve")],
             "plots": [(plots, n) for n in dir(plots)
                       if n.startswith(("plot_", "save_", "figure_"))],
-            "tensorboard": [(cli_eval, "log_tensorboard")]}
+            "tensorboard": [(report, "log_tensorboard")]}
     for phase, targets in wrap.items():
         for module, name in targets:
             setattr(module, name, timers.wrap(phase, getattr(module, name)))

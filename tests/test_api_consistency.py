@@ -20,7 +20,7 @@ def test_import_preprocess_gives_the_module_and_the_call_still_works():
 
 
 def test_importing_plots_keeps_the_users_backend():
-    code = ("import matplotlib; import torchseq.plots as p; import matplotlib.pyplot as plt; "
+    code = ("import matplotlib; import torchseq.cli.plots as p; import matplotlib.pyplot as plt; "
             "f = p.plot_matrix([[0, 1], [1, 0]], 't'); "
             "print(matplotlib.get_backend(), len(plt.get_fignums()))")
     env = {**os.environ, "MPLBACKEND": "svg"}
@@ -31,7 +31,7 @@ def test_importing_plots_keeps_the_users_backend():
 
 
 def test_event_frames_in_matched_pairs_are_scaled():
-    from torchseq.plots import plot_matched_pairs
+    from torchseq.cli.plots import plot_matched_pairs
 
     rng = np.random.default_rng(0)
     events = rng.poisson(0.8, (6, 16, 16)).astype(np.float32)  # a few counts per pixel

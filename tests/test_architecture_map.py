@@ -14,24 +14,6 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "torchseq"
 MAP = ROOT / "docs" / "architecture.md"
 
-# The front end is moving into torchseq/cli/ (issue 21, branch issue-21cli). The map already
-# describes the new package; until the move is merged the old files are accepted unnamed and
-# the new ones named without existing. When the old files are gone this test fails: delete
-# FRONT_END_MOVE and the two lines that use it, and make the map's cli/ rows match the files.
-FRONT_END_MOVE = {  # old file -> where the map says its job now lives
-    "cli.py": "cli/__init__.py",
-    "cli_eval.py": "cli/eval.py",
-    "cli_train.py": "cli/train.py",
-    "cli_map.py": "cli/map.py",
-    "cli_presets.py": "cli/presets.py",
-    "cli_help.py": "cli/flags.py",
-    "cli_warnings.py": "cli/runs.py",
-    "frontend.py": "cli/flags.py, cli/event_options.py, cli/runs.py",
-    "plots.py": "cli/report.py",
-    "export/cli.py": "cli/export.py",
-}
-
-
 def modules() -> set[str]:
     """Every module as the map names it: ``events/stream.py``, ``events/`` for a package."""
     out = set()
@@ -64,19 +46,10 @@ def named(text: str) -> set[str]:
 def test_every_module_is_on_the_map():
     text = MAP.read_text(encoding="utf-8")
     have, names = modules(), named(text)
-    old_front_end = {f for f in FRONT_END_MOVE if f in have}
-    missing = sorted(have - names - old_front_end)
+    missing = sorted(have - names)
     assert not missing, f"docs/architecture.md does not name these modules: {missing}"
-    new_front_end = {n for n in names if n.startswith("cli/")} if old_front_end else set()
-    gone = sorted(names - have - new_front_end)
+    gone = sorted(names - have)
     assert not gone, f"docs/architecture.md names files that do not exist: {gone}"
-
-
-def test_the_front_end_move_list_is_current():
-    """FRONT_END_MOVE lists files that still exist: once the move is merged it must go."""
-    moved = [f for f in FRONT_END_MOVE if not (PACKAGE / f).exists()]
-    assert not moved, (f"front-end files moved: {moved}; delete FRONT_END_MOVE from "
-                       "tests/test_architecture_map.py and check the map's cli/ rows")
 
 
 # Imports that go up a floor on purpose, each with its reason.
@@ -84,8 +57,6 @@ UPWARD_ALLOWED = {
     ("versions.py", "torchseq"): "reads torchseq.__version__ (inside the function)",
     ("maps/build.py", "torchseq"): "records torchseq.__version__ in the map",
 }
-# export/cli.py uses the front end's flag helpers until it moves to cli/export.py.
-UPWARD_UNTIL_FRONT_END_MOVE = {"export/cli.py"}
 
 
 def floors(text: str) -> dict[str, int]:
@@ -105,14 +76,14 @@ def floors(text: str) -> dict[str, int]:
 def floor_of(module: str, table: dict[str, int]) -> int | None:
     """The floor of a dotted module name: its package's, or its own file's."""
     parts = module.split(".")[1:]
+    if parts and parts[-1] == "__main__":  # python -m torchseq[.export]: the front end's door
+        return table["cli/"]
     if not parts:
         return table.get("__init__.py", 4)  # the root package: the public face on floor 4
     if f"{parts[0]}/" in table:
         return table[f"{parts[0]}/"]
     if f"{parts[0]}.py" in table:
         return table[f"{parts[0]}.py"]
-    if f"{parts[0]}.py" in FRONT_END_MOVE or parts[0] == "__main__":
-        return table["cli/"]
     return None
 
 
@@ -133,7 +104,7 @@ def test_imports_run_down_the_floors():
             if floor_of(b, table) <= floor_of(a, table):
                 continue
             key = (_rel(a), _rel(b))
-            if key in UPWARD_ALLOWED or key[0] in UPWARD_UNTIL_FRONT_END_MOVE:
+            if key in UPWARD_ALLOWED:
                 continue
             upward.append(f"{key[0]} (floor {floor_of(a, table)}) imports {key[1]} "
                           f"(floor {floor_of(b, table)})")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchseq import plots
+import torchseq.cli.plots as plots
 from torchseq.area import Partial, area_mean, finish, reduce_rows
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
 from torchseq.seqslam import banded as banded_module

@@ -13,18 +13,16 @@ import numpy as np
 import pytest
 import torch
 
-from torchseq import cli_eval, cli_train
+import torchseq.cli.eval as cli_eval
+import torchseq.cli.train as cli_train
+from torchseq.cli.errors import UsageError
+from torchseq.cli.eval_settings import config_dict
+from torchseq.cli.event_options import event_frame_options, window_members
+from torchseq.cli.runs import config_text, run_main
 from torchseq.demo import make_world, render
 from torchseq.events import load_event_frames
 from torchseq.events.ensemble import accumulate_ensemble, match_ensemble
 from torchseq.events.runs import simulate_run
-from torchseq.frontend import (
-    UsageError,
-    config_text,
-    event_frame_options,
-    run_main,
-    window_members,
-)
 from torchseq.preprocess import resize
 from torchseq.seqslam import SeqSLAMConfig
 
@@ -150,5 +148,5 @@ def test_the_event_preset_resolves_to_the_measured_settings(tmp_path):
                                "--engine", "seqslam"])[0]
     assert off.seqslam == dataclasses.replace(want, edges=False)
     path = tmp_path / "config.json"
-    path.write_text(config_text(cli_eval.config_dict(off)))
+    path.write_text(config_text(config_dict(off)))
     assert cli_eval.parse_args(["--config", str(path)])[0].seqslam == off.seqslam

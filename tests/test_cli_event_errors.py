@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from torchseq import cli_eval
+import torchseq.cli.eval as cli_eval
+from torchseq.cli.runs import run_main
 from torchseq.events import EventFormatError, accumulate
-from torchseq.frontend import run_main
 
 SPAN = "the recording spans 11718656..11727457 us (8.801 ms)"  # evt3_sample.raw's events
 

@@ -5,13 +5,14 @@ from dataclasses import dataclass
 
 import pytest
 
-from torchseq import cli_help
-from torchseq.cli_eval import ENGINES
-from torchseq.cli_eval import build_parser as eval_parser
-from torchseq.cli_presets import NEURAL_PRESETS
-from torchseq.cli_train import build_parser as train_parser
-from torchseq.export.cli import build_parser as export_parser
-from torchseq.frontend import EVENT_MODES, EVT3_KERNEL_CHOICES, Parser, add_config_flags
+import torchseq.cli.help as cli_help
+from torchseq.cli.eval import build_parser as eval_parser
+from torchseq.cli.eval_settings import ENGINES
+from torchseq.cli.event_options import EVENT_MODES, EVT3_KERNEL_CHOICES
+from torchseq.cli.export import build_parser as export_parser
+from torchseq.cli.flags import Parser, add_config_flags
+from torchseq.cli.presets import NEURAL_PRESETS
+from torchseq.cli.train import build_parser as train_parser
 
 PARSERS = {"eval": (eval_parser, cli_help.EVAL), "train": (train_parser, cli_help.TRAIN),
            "export": (export_parser, cli_help.EXPORT)}

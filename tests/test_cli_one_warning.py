@@ -4,8 +4,8 @@ import io
 
 from conftest import shared_data
 
-from torchseq import cli_eval
-from torchseq.frontend import run_main
+import torchseq.cli.eval as cli_eval
+from torchseq.cli.runs import run_main
 
 
 def run(tmp_path, capsys, *args, out="o"):

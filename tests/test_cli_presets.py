@@ -6,9 +6,11 @@ import json
 
 import pytest
 
-from torchseq import cli_eval, cli_train
-from torchseq.cli_presets import NEURAL_PRESETS, apply_preset
-from torchseq.frontend import UsageError, config_text, run_main
+import torchseq.cli.eval as cli_eval
+import torchseq.cli.train as cli_train
+from torchseq.cli.errors import UsageError
+from torchseq.cli.presets import NEURAL_PRESETS, apply_preset
+from torchseq.cli.runs import config_text, run_main
 from torchseq.neural import NeuralConfig
 
 CLASSMETHODS = {"default": NeuralConfig, "table1": NeuralConfig.table1,

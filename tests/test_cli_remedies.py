@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from conftest import shared_data
 
-from torchseq import cli_eval
-from torchseq.frontend import run_main
+import torchseq.cli.eval as cli_eval
+from torchseq.cli.engines import transposed_size
+from torchseq.cli.runs import run_main
 from torchseq.ground_truth import GroundTruthError, load_ground_truth
 
 
@@ -98,6 +99,6 @@ def test_transposed_image_size_is_warned_once(tmp_path, capsys):
         (tmp_path / "t" / "metrics.json").read_text())["warnings"])
     code = run_main(cli_eval.main, "eval.py", [*args, "--out", str(tmp_path / "d")])
     assert code == 0 and "--image-size" not in capsys.readouterr().err
-    assert cli_eval.transposed_size((32, 32), (120, 160)) is None  # square: no orientation
-    assert cli_eval.transposed_size((24, 32), (120, 160)) is None
-    assert cli_eval.transposed_size((64, 32), (160, 120)) is None  # portrait frames
+    assert transposed_size((32, 32), (120, 160)) is None  # square: no orientation
+    assert transposed_size((24, 32), (120, 160)) is None
+    assert transposed_size((64, 32), (160, 120)) is None  # portrait frames

@@ -65,7 +65,7 @@ def test_sweep_json_counts_a_warning_of_every_point(tmp_path, capsys):
 
 
 def test_log_counts_repeats_and_leaves_developer_warnings_alone(capsys, monkeypatch):
-    from torchseq.cli_warnings import WarningLog
+    from torchseq.cli.run_warnings import WarningLog
 
     log = WarningLog("prog")
     monkeypatch.setattr(warnings, "showwarning", lambda *a, **k: passed.append(a[0]))
@@ -86,7 +86,7 @@ def test_log_counts_repeats_and_leaves_developer_warnings_alone(capsys, monkeypa
 
 
 def test_user_warning_filters_are_kept(monkeypatch):
-    from torchseq.cli_warnings import WarningLog
+    from torchseq.cli.run_warnings import WarningLog
 
     monkeypatch.setattr("sys.warnoptions", ["error"])
     with warnings.catch_warnings():

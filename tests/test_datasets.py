@@ -10,7 +10,10 @@ import pytest
 import torch
 from conftest import shared_data
 
-from torchseq import cli_eval, load_traverse
+import torchseq.cli.eval as cli_eval
+from torchseq import load_traverse
+from torchseq.cli.errors import UsageError
+from torchseq.cli.runs import run_main
 from torchseq.datasets import (
     DatasetError,
     brisbane_event,
@@ -21,7 +24,6 @@ from torchseq.datasets import (
     vpr_bench,
 )
 from torchseq.events import EventStream, write_npz
-from torchseq.frontend import UsageError, run_main
 from torchseq.ground_truth import alignment_ranges, load_ground_truth
 
 

@@ -9,7 +9,10 @@ import pytest
 import torch
 from conftest import shared_data
 
-from torchseq import cli_eval, load_traverse
+import torchseq.cli.eval as cli_eval
+from torchseq import load_traverse
+from torchseq.cli.errors import UsageError
+from torchseq.cli.runs import run_main
 from torchseq.descriptors import (
     DescriptorError,
     describe,
@@ -20,7 +23,6 @@ from torchseq.descriptors import (
     neural_input,
     save_descriptors,
 )
-from torchseq.frontend import UsageError, run_main
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
 

@@ -10,8 +10,11 @@ import pytest
 import torch
 from conftest import shared_data
 
-from torchseq import cli_eval, cli_train, plots, report_images
-from torchseq.frontend import run_main
+import torchseq.cli.eval as cli_eval
+import torchseq.cli.plots as plots
+import torchseq.cli.report_images as report_images
+import torchseq.cli.train as cli_train
+from torchseq.cli.runs import run_main
 from torchseq.matches import Matches
 
 
@@ -177,6 +180,7 @@ def test_pr_legend_gives_auc_and_the_ring_matrix_its_axes():
     assert fig.axes[0].get_ylabel() == "to output unit"
     import inspect
 
-    from torchseq import cli_train
-    source = inspect.getsource(cli_train)
+    import torchseq.cli.report as report
+
+    source = inspect.getsource(report.log_training)
     assert 'xlabel="from output unit (the current winner)"' in source

@@ -14,11 +14,11 @@ import pytest
 import torch
 from test_events_frames import loop_frames, loop_pool
 
-from torchseq import cli_eval
+import torchseq.cli.eval as cli_eval
+from torchseq.cli.runs import run_main
 from torchseq.events import EventStream, accumulate, load_event_frames, make_events, write_aedat2
 from torchseq.events.frames import MAX_SPARSE_ELEMENTS
 from torchseq.events.traverse import WindowFrames, load_event_windows
-from torchseq.frontend import run_main
 from torchseq.sources import EventFrameOptions, TraverseError, load_traverse
 
 

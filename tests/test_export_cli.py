@@ -11,8 +11,9 @@ import torch
 from conftest import coarse_units_expected
 from export_helpers import small_setup
 
+from torchseq.cli.export import main
 from torchseq.export import export_checkpoint
-from torchseq.export.cli import ExportError, main
+from torchseq.export.errors import ExportError
 from torchseq.export.int_format import read_integer_model
 
 FILES = ("model_float.onnx", "model_quant.onnx", "model_int.tsq", "model_int.onnx",
@@ -206,7 +207,7 @@ def test_device_input_does_not_follow_the_validation_query(camera_checkpoint, tm
 
 
 def test_summary_lines_report_the_nir_validation(tmp_path):
-    from torchseq.export.cli import summary_lines
+    from torchseq.cli.export import summary_lines
 
     report = {"query_source": "q", "device_frame_size": [4, 8], "device_frame_size_source": "s",
               "checks": {"nir_consumers_agree": False}, "passed": False,

@@ -124,7 +124,7 @@ def test_a_perturbed_weight_still_fails(setup, tmp_path, monkeypatch):
 
 
 def test_the_console_verdict_gives_both_figures(tmp_path):
-    from torchseq.export.cli import summary_lines
+    from torchseq.cli.export import summary_lines
 
     rep = {"query_source": "q", "float_onnx_agreement": 0.986,
            "float_onnx_agreement_outside_near_ties": 1.0, "float_onnx_near_ties": 9,

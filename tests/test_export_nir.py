@@ -403,7 +403,7 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     import json
 
     from tests.export_helpers import small_setup
-    from torchseq.export.cli import main
+    from torchseq.cli.export import main
 
     model, demo, *_ = small_setup()
     np.save(tmp_path / "ref.npy", demo.reference.numpy())
@@ -478,7 +478,7 @@ def test_the_query_does_not_influence_the_calibration(tmp_path):
     import json
 
     from tests.export_helpers import small_setup
-    from torchseq.export.cli import export_checkpoint
+    from torchseq.export.checkpoint import export_checkpoint
 
     model, demo, *_ = small_setup()
     np.save(tmp_path / "ref.npy", demo.reference.numpy())

@@ -12,9 +12,9 @@ import onnx
 import pytest
 import torch
 
+from torchseq.cli.export import main, summary_lines
 from torchseq.demo import make_demo
 from torchseq.export import ExportError, export_checkpoint
-from torchseq.export.cli import main, summary_lines
 from torchseq.export.contract import read_contract
 from torchseq.export.onnx_float import (
     StreamingStep,

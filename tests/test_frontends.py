@@ -25,7 +25,7 @@ def load_script(name):
 
 def run_inprocess(name, capsys, *args):
     """Run a script's main as its __main__ does; return (exit code, stderr)."""
-    from torchseq.frontend import run_main
+    from torchseq.cli.runs import run_main
 
     module = load_script(name)
     code = run_main(module.main, f"{name}.py", [*args, "--no-progress"])
@@ -261,7 +261,8 @@ def test_help_is_plain_text_with_one_default_each(capsys):
 
 
 def test_size_flags_take_n_for_n_by_n():
-    from torchseq.frontend import UsageError, parse_size
+    from torchseq.cli.errors import UsageError
+    from torchseq.cli.flags import parse_size
 
     assert parse_size("16") == (16, 16) and parse_size("12x16") == (12, 16)
     with pytest.raises(UsageError):
@@ -271,7 +272,8 @@ def test_size_flags_take_n_for_n_by_n():
 def test_selection_slices_the_ground_truth_file(tmp_path):
     import cv2
 
-    from torchseq import cli_eval
+    import torchseq.cli.eval as cli_eval
+    from torchseq.cli.inputs import load_data
 
     rng = np.random.default_rng(0)
     for name in ("ref", "query"):
@@ -286,7 +288,7 @@ def test_selection_slices_the_ground_truth_file(tmp_path):
         "--ground-truth", str(tmp_path / "gt.csv"), "--start", "3", "--frame-step", "4",
         "--engine", "seqslam", "--no-progress"])
     notes = []
-    ref, query, gt, source = cli_eval.load_data(s.run, {"32x64": (32, 64)}, notes)
+    ref, query, gt, source = load_data(s.run, {"32x64": (32, 64)}, notes)
     assert ref.info["indices"] == [3, 7, 11, 15, 19] and len(query) == 5
     full = np.zeros((20, 20), bool)
     for q in range(20):
@@ -394,8 +396,8 @@ def readme_commands(word):
 def test_readme_event_examples_never_resize_event_frames():
     # each README event example reads its event frames at the size they are made: no silent
     # upsampling of 16x16 frames to the default 32x64 (nor squeezing of two-channel frames)
-    from torchseq.cli_eval import parse_args
-    from torchseq.frontend import parse_size
+    from torchseq.cli.eval import parse_args
+    from torchseq.cli.flags import parse_size
 
     examples = readme_commands(".aedat")
     assert len(examples) >= 2 and any("two-channel" in argv for argv in examples)
@@ -429,8 +431,9 @@ def test_event_flags_without_event_files_are_refused(tmp_path, capsys, script):
 
 
 def test_event_flags_count_for_event_files_only():
-    from torchseq.cli_eval import parse_args
-    from torchseq.frontend import UsageError, check_event_flags_apply
+    from torchseq.cli.errors import UsageError
+    from torchseq.cli.eval import parse_args
+    from torchseq.cli.event_options import check_event_flags_apply
 
     s = parse_args(["--window-ms", "5", "--frame-size", "16"])[0]
     with pytest.raises(UsageError, match="--window-ms, --frame-size apply"):
@@ -441,7 +444,7 @@ def test_event_flags_count_for_event_files_only():
 
 
 def test_events_preset_sizes_two_channel_images_to_the_frames():
-    from torchseq.cli_eval import parse_args
+    from torchseq.cli.eval import parse_args
 
     def size(*argv):
         return tuple(parse_args(list(argv))[0].seqslam.image_size)
@@ -546,8 +549,9 @@ def test_evt3_kernel_flag_reaches_the_decoder(tmp_path, capsys, monkeypatch):
 
 
 def test_evt3_kernel_numba_without_numba_is_refused(monkeypatch):
-    from torchseq.cli_eval import parse_args
-    from torchseq.frontend import UsageError, event_frame_options
+    from torchseq.cli.errors import UsageError
+    from torchseq.cli.eval import parse_args
+    from torchseq.cli.event_options import event_frame_options
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec",
@@ -595,7 +599,8 @@ def test_place_resolution_warning_follows_the_readout(tmp_path, capsys):
 def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, monkeypatch):
     # the export read an --export-query event file with default settings (10 ms windows at
     # the full 128x128) although the model learnt 20 ms windows pooled to 16x16
-    import torchseq.export.cli as export_cli
+    import torchseq.cli.export as export_cli
+    import torchseq.export.checkpoint as checkpoint
 
     seen = {}
 
@@ -603,7 +608,7 @@ def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, mo
         seen["query"] = query
         return True
 
-    monkeypatch.setattr(export_cli, "export_checkpoint", spy)
+    monkeypatch.setattr(checkpoint, "export_checkpoint", spy)
     monkeypatch.setattr(export_cli, "summary_lines", lambda out: [])
     aedat = str(shared_data("events", "alex_walking_again.aedat"))
     code, err = run_inprocess("train", capsys, "--reference", aedat, "--frame-size", "16",

@@ -33,7 +33,7 @@ def _run(body: str, tmp_path) -> dict:
 
 
 def test_import_torchseq_loads_no_heavy_package(tmp_path):
-    got = _run("import torchseq, torchseq.cli, torchseq.cli_eval, torchseq.plots\n"
+    got = _run("import torchseq, torchseq.cli, torchseq.cli.eval, torchseq.cli.plots\n"
                "print(json.dumps({'loaded': loaded()}))", tmp_path)
     assert got["loaded"] == []
 
@@ -41,7 +41,7 @@ def test_import_torchseq_loads_no_heavy_package(tmp_path):
 def test_seqslam_eval_loads_no_heavy_package_before_its_report(tmp_path):
     body = """
 import torchseq.cli
-import torchseq.cli_eval as cli_eval
+import torchseq.cli.eval as cli_eval
 seen = {}
 real = cli_eval.report
 def report(*args, **kwargs):

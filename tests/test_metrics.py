@@ -203,7 +203,7 @@ def test_eval_metrics_with_sparse_ground_truth_equal_the_dense_ones(tmp_path, ex
     """eval.py's index-alignment ground truth is ranges; its metrics equal the dense form's."""
     import json
 
-    from torchseq import cli_eval
+    import torchseq.cli.eval as cli_eval
     from torchseq.demo import make_demo
     from torchseq.ground_truth import alignment_ground_truth
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchseq import plots
+import torchseq.cli.plots as plots
 from torchseq.ground_truth import alignment_ranges
 from torchseq.matches import Matches
 
@@ -156,8 +156,8 @@ def test_sparse_matrix_reduces_as_its_dense_form_with_blanks(shape, side):
 def test_true_units_follow_a_plain_loop_and_the_raster_draws_them():
     """issue 23 item 14: the neural raster shows the ground truth as the units standing for an
     admissible reference frame of each query (spans past the reference are clipped)."""
+    from torchseq.cli.plots import plot_activity_raster, true_units
     from torchseq.ground_truth import alignment_ground_truth
-    from torchseq.plots import plot_activity_raster, true_units
 
     rng = np.random.default_rng(0)
     gt = (rng.random((23, 17)) < 0.15).astype(np.uint8)  # (R, Q)

@@ -79,9 +79,11 @@ PUBLIC = {
     ],
     # the command lines: one console script and the eval/train front ends it dispatches to
     "torchseq.cli": ["COMMANDS", "main"],
-    "torchseq.cli_eval": ["EvalConfig", "Settings", "build_parser", "cli", "main",
+    "torchseq.cli.eval": ["EvalConfig", "Settings", "build_parser", "cli", "main",
                           "parse_args", "seqslam_preset"],
-    "torchseq.cli_train": ["TrainConfig", "build_parser", "cli", "main", "parse_args"],
+    "torchseq.cli.train": ["TrainConfig", "build_parser", "cli", "main", "parse_args"],
+    "torchseq.cli.export": ["build_parser", "main", "summary_lines"],
+    "torchseq.cli.results": ["EngineRun", "EvalOutcome", "NeuralRun", "SeqSLAMRun"],
     # the spiking model and its NIR export (docs/guide/nir.md)
     "torchseq.neural.spiking": ["DT", "SpikingConfig", "SpikingError", "SpikingSeqSLAM",
                                 "SpikingState", "SpikingStep", "ladder", "lif_step",
@@ -94,7 +96,7 @@ PUBLIC = {
                                         "memory_bytes", "layer_kernel_entries", "speck_layers",
                                         "pow2_rows"],
     "torchseq.export.nir_validate": ["calibration_frames", "export_nir"],
-    "torchseq.plots": [
+    "torchseq.cli.plots": [
         "figure_to_array", "plot_activity_raster", "plot_difference_matrix", "plot_matched_pairs",
         "plot_matrix", "plot_pr_curves", "save_figure",
     ],
@@ -126,8 +128,8 @@ def test_seqslam_presets_build():
 
 def test_event_modes_of_the_library_and_the_command_line_agree():
     # every --event-mode the CLI offers is a mode load_event_frames accepts, and vice versa
+    from torchseq.cli.event_options import EVENT_MODES
     from torchseq.events.traverse import TRAVERSE_MODES
-    from torchseq.frontend import EVENT_MODES
 
     assert {m.replace("-", "_") for m in EVENT_MODES} == set(TRAVERSE_MODES) == {
         "count", "signed", "two_channel", "binary"}

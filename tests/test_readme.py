@@ -26,10 +26,10 @@ def test_readme_fits_a_few_screens():
 
 @pytest.mark.parametrize("line", [c for c in commands() if c.startswith("torchseq ")])
 def test_every_torchseq_command_parses(line):
-    from torchseq.cli_eval import build_parser as eval_parser
-    from torchseq.cli_map import build_parser as map_parser
-    from torchseq.cli_train import build_parser as train_parser
-    from torchseq.export.cli import build_parser as export_parser
+    from torchseq.cli.eval import build_parser as eval_parser
+    from torchseq.cli.export import build_parser as export_parser
+    from torchseq.cli.map import build_parser as map_parser
+    from torchseq.cli.train import build_parser as train_parser
 
     command, *args = shlex.split(line)[1:]
     parser = {"eval": eval_parser, "train": train_parser, "export": export_parser,

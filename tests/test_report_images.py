@@ -1,4 +1,4 @@
-"""The eval report's figures drawn with NumPy/OpenCV (torchseq.report_images).
+"""The eval report's figures drawn with NumPy/OpenCV (torchseq.cli.report_images).
 
 Each figure is checked against what it must show, read back from its pixels: the matrix's
 grey levels, the ground-truth band, the matches' colours at their coordinates, the frames of
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchseq import metrics, report_images
+import torchseq.cli.report_images as report_images
+from torchseq import metrics
 from torchseq.ground_truth import alignment_ranges
 from torchseq.matches import Matches
 
@@ -118,8 +119,8 @@ def test_tensorboard_holds_the_report_images_and_scalars(tmp_path):
     from conftest import shared_data
     from tensorboard.backend.event_processing.event_file_loader import LegacyEventFileLoader
 
-    from torchseq import cli_eval
-    from torchseq.frontend import run_main
+    import torchseq.cli.eval as cli_eval
+    from torchseq.cli.runs import run_main
 
     root = shared_data("corridor")
     out = tmp_path / "o"

@@ -267,7 +267,7 @@ def test_eval_preset_flag(tmp_path, capsys):
     import sys
     from pathlib import Path
 
-    from torchseq.frontend import run_main
+    from torchseq.cli.runs import run_main
 
     path = Path(__file__).resolve().parents[1] / "eval.py"
     spec = importlib.util.spec_from_file_location("eval_preset_script", path)

@@ -8,8 +8,9 @@ import torch
 from conftest import shared_data
 from seqslam_oracle import oracle_difference
 
-from torchseq import cli_eval, metrics
-from torchseq.frontend import run_main
+import torchseq.cli.eval as cli_eval
+from torchseq import metrics
+from torchseq.cli.runs import run_main
 from torchseq.matches import Matches
 from torchseq.seqslam.difference import difference_matrix
 from torchseq.seqslam.single import single_frame, single_frame_from_difference

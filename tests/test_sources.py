@@ -337,8 +337,9 @@ def test_evt3_time_rule_reaches_the_reader():
 def test_window_anchor_reaches_the_accumulator_or_is_refused():
     import inspect
 
+    from torchseq.cli.errors import UsageError
+    from torchseq.cli.event_options import parse_anchor
     from torchseq.events import load_event_frames
-    from torchseq.frontend import UsageError, parse_anchor
     from torchseq.sources import EventFrameOptions
 
     assert parse_anchor("first") == "first" and parse_anchor("1500000") == 1_500_000

@@ -283,7 +283,7 @@ def test_nir_104_reads_our_files(files, tmp_path_factory):
 
 # ------------------------------------------------------------------ the export command
 def test_export_flags_reject_bad_bits(tmp_path, capsys):
-    from torchseq.export.cli import main
+    from torchseq.cli.export import main
 
     assert main(["missing.pt", "--out", str(tmp_path / "o"), "--nir-weight-bits", "1"]) == 2
     assert "weight_bits must be None or an int in 2..16" in capsys.readouterr().err
@@ -294,7 +294,7 @@ def test_export_command_reports_each_chip_at_8_bits(tmp_path, capsys):
     import json
 
     from tests.export_helpers import small_setup
-    from torchseq.export.cli import main
+    from torchseq.cli.export import main
 
     model, demo, *_ = small_setup()
     np.save(tmp_path / "ref.npy", demo.reference.numpy())

@@ -44,9 +44,9 @@ def test_no_commit_outside_a_checkout(tmp_path):
 
 @pytest.mark.slow
 def test_every_run_file_records_versions(tmp_path, capsys):
-    from torchseq.cli_eval import cli as eval_cli
-    from torchseq.cli_train import cli as train_cli
-    from torchseq.export.cli import main as export_main
+    from torchseq.cli.eval import cli as eval_cli
+    from torchseq.cli.export import main as export_main
+    from torchseq.cli.train import cli as train_cli
 
     expected = versions()
     quiet = ["--no-progress", "--no-tensorboard"]

@@ -6,7 +6,7 @@ arithmetic) and ``docs/guide/nir.md`` (the spiking model as a NIR graph:
 ``torchseq.export.nir_export``).
 """
 
-from torchseq.export.cli import export_checkpoint
+from torchseq.export.checkpoint import export_checkpoint
 from torchseq.export.errors import ExportError
 from torchseq.export.int_format import (
     FORMAT_VERSION,

@@ -1,7 +1,7 @@
-"""``python -m torchseq.export``: see :mod:`torchseq.export.cli`."""
+"""``python -m torchseq.export``: see :mod:`torchseq.cli.export`."""
 
 import sys
 
-from torchseq.export.cli import main
+from torchseq.cli.export import main
 
 sys.exit(main(prog="python -m torchseq.export"))

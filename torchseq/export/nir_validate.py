@@ -33,7 +33,7 @@ def calibration_frames(model, recorded: dict | None, replayed=None, load=None):
 
     Args:
         model: the fitted rate model.
-        recorded: the checkpoint's recorded reference (``export.cli.recorded_reference``).
+        recorded: the checkpoint's recorded reference (``export.checkpoint.recorded_reference``).
         replayed: the reference frames when the validation query is their replay, or None.
         load: a callable returning the recorded reference's frames (raising ``ValueError``
             when they cannot be read), or None.

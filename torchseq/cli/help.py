@@ -1,6 +1,6 @@
 """How ``torchseq eval|train|export --help`` is laid out: which group each flag sits in.
 
-The flags themselves come from dataclass fields (``frontend.add_config_flags``); this module is
+The flags themselves come from dataclass fields (``flags.add_config_flags``); this module is
 only the table that sorts them for a reader: six groups in a fixed order, the common flags of
 each shown by ``--help``, every flag by ``--help-all``. A flag the table does not name falls
 into "advanced" (``--help-all`` only), so a new field is listed without an edit here; name it

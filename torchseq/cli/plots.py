@@ -5,7 +5,7 @@ as PNG and :func:`figure_to_array` turns it into an ``(H, W, 3)`` uint8 image fo
 :func:`save_image` writes such an image as PNG without drawing the figure again.
 Figures are made with the non-interactive Agg canvas directly (``matplotlib.figure.Figure``),
 so importing this module leaves matplotlib's backend and ``pyplot``'s figure list alone;
-matplotlib itself is imported by the first figure drawn, not by ``import torchseq.plots``.
+matplotlib itself is imported by the first figure drawn, not by ``import torchseq.cli.plots``.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ def _figure(figsize, nrows: int = 1, ncols: int = 1, **kw):
     """A figure on its own Agg canvas and its axes (pyplot is never involved).
 
     matplotlib is imported here, by the first figure: importing this module for its NumPy
-    helpers (:func:`reduce_matrix`, used by :mod:`torchseq.report_images`) loads none of it.
+    helpers (:func:`reduce_matrix`, used by :mod:`torchseq.cli.report_images`) loads none of it.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

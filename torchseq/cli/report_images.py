@@ -3,12 +3,12 @@
 A SeqSLAM eval's figures are images with a few marks on them: the difference matrix (the
 area-reduced matrix, the ground-truth band, the matches as dots), matched frame pairs and the
 precision-recall curves. Drawing them here costs milliseconds and imports nothing beyond
-OpenCV, which reads the frames anyway; :mod:`torchseq.plots` (matplotlib) stays for the
+OpenCV, which reads the frames anyway; :mod:`torchseq.cli.plots` (matplotlib) stays for the
 neural activity raster and the training figures, and is imported only by runs that draw those.
 
-Each ``draw_*`` function shows what its :mod:`torchseq.plots` counterpart shows (title, axis
+Each ``draw_*`` function shows what its :mod:`torchseq.cli.plots` counterpart shows (title, axis
 labels and ticks, legend, the same data, colours and display ranges) at the same pixel size,
-and returns an ``(H, W, 3)`` uint8 RGB image for :func:`torchseq.plots.save_image` and
+and returns an ``(H, W, 3)`` uint8 RGB image for :func:`torchseq.cli.plots.save_image` and
 TensorBoard.
 """
 
@@ -30,7 +30,7 @@ BLACK = (0, 0, 0)
 BLUE, GREEN, RED = (31, 119, 180), (44, 160, 44), (214, 39, 40)
 TAB10 = [BLUE, (255, 127, 14), GREEN, RED, (148, 103, 189), (140, 86, 75)]
 FONT = cv2.FONT_HERSHEY_SIMPLEX
-PLOT_SIDE = 512  # as torchseq.plots: matrices are area-reduced to at most this a side
+PLOT_SIDE = 512  # as torchseq.cli.plots: matrices are area-reduced to at most this a side
 
 
 def _np(x) -> np.ndarray:
@@ -151,9 +151,9 @@ def _blend(colour, alpha: float, under=WHITE) -> tuple:
 def draw_difference_matrix(matrix, matches: Matches | None = None, gt=None,
                            title: str = "contrast-enhanced difference matrix",
                            shape: tuple[int, int] | None = None) -> np.ndarray:
-    """:func:`torchseq.plots.plot_difference_matrix` as a ``(500, 600, 3)`` uint8 image.
+    """:func:`torchseq.cli.plots.plot_difference_matrix` as a ``(500, 600, 3)`` uint8 image.
 
-    The matrix is area-reduced (:func:`torchseq.plots.reduce_matrix`) and shown on a grey
+    The matrix is area-reduced (:func:`torchseq.cli.plots.reduce_matrix`) and shown on a grey
     scale from its 1st to its 99th percentile, stretched over full-matrix coordinates;
     ground truth as a translucent blue band, matches as dots (green correct, red wrong).
 
@@ -165,7 +165,7 @@ def draw_difference_matrix(matrix, matches: Matches | None = None, gt=None,
         title: image title.
         shape: ``(R, Q)`` of the full matrix when ``matrix`` is a reduced copy.
     """
-    from torchseq.plots import _any_pool, reduce_matrix  # NumPy/torch only (no drawing)
+    from torchseq.cli.plots import _any_pool, reduce_matrix  # NumPy/torch only (no drawing)
 
     sparse = isinstance(matrix, torch.Tensor) and matrix.is_sparse
     m = matrix if sparse else _np(matrix)
@@ -219,7 +219,7 @@ def draw_difference_matrix(matrix, matches: Matches | None = None, gt=None,
 
 
 def draw_pr_curves(curves: dict[str, PRCurve]) -> np.ndarray:
-    """:func:`torchseq.plots.plot_pr_curves` as a ``(400, 500, 3)`` uint8 image."""
+    """:func:`torchseq.cli.plots.plot_pr_curves` as a ``(400, 500, 3)`` uint8 image."""
     img = np.full((400, 500, 3), 255, np.uint8)
     ax = _Axes(img, (58, 30, 488, 348), (0.0, 1.0), (0.0, 1.02))
     ax.frame("recall", "precision", "precision-recall", grid=True)
@@ -239,11 +239,11 @@ def draw_pr_curves(curves: dict[str, PRCurve]) -> np.ndarray:
 
 def draw_matched_pairs(reference, query, matches: Matches, gt=None, n: int = 6,
                        title: str = "matched frames") -> np.ndarray:
-    """:func:`torchseq.plots.plot_matched_pairs` as a ``(420, 200 n, 3)`` uint8 image.
+    """:func:`torchseq.cli.plots.plot_matched_pairs` as a ``(420, 200 n, 3)`` uint8 image.
 
     Query frames (top row) above the reference frames they matched, ``n`` pairs evenly
     spaced over the matched queries, each reference's label green (correct), red (wrong) or
-    black (no ground truth); grey scale as :func:`torchseq.plots._grey_range`.
+    black (no ground truth); grey scale as :func:`torchseq.cli.plots._grey_range`.
     """
     ref, qry, idx = _np(reference), _np(query), _np(matches.reference)
     outside = int(((idx >= len(ref)) | (idx < -1)).sum())
@@ -274,7 +274,7 @@ def _paste_frame(img: np.ndarray, frame, left: int, top: int, width: int, height
     Returns:
         the frame's top row in ``img`` (its label goes above it).
     """
-    from torchseq.plots import _grey_range
+    from torchseq.cli.plots import _grey_range
 
     f = np.asarray(frame, dtype=np.float64)
     if f.ndim == 3:  # RGB thumbnails

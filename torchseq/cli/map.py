@@ -17,21 +17,19 @@ from pathlib import Path
 
 import torch
 
-from torchseq.frontend import (
-    EVENT_HELP,
-    EventFlags,
+from torchseq.cli.errors import UsageError
+from torchseq.cli.event_options import EVENT_HELP, EventFlags, event_frame_options
+from torchseq.cli.flags import (
     Parser,
-    UsageError,
     add_config_flags,
     changed_fields,
     check_ranges,
     config_from_args,
     docstring_help,
-    event_frame_options,
     frame_selection,
-    run_main,
-    to_jsonable,
 )
+from torchseq.cli.results import SeqSLAMRun
+from torchseq.cli.runs import run_main, to_jsonable
 from torchseq.maps import MapError, ReferenceMap, build_map
 from torchseq.maps.build import DEFAULT_SHARD_SIZE
 from torchseq.maps.format import DESCRIPTOR_FIELDS
@@ -229,7 +227,7 @@ def map_traverse(path: str, traverse_cls):
     return traverse_cls({}, None, info)
 
 
-def run_seqslam_map(s, query, device, progress: bool) -> dict:
+def run_seqslam_map(s, query, device, progress: bool) -> SeqSLAMRun:
     """SeqSLAM against a map: exact mode, candidate mode with its index, or sharded on Ray."""
     from torchseq.seqslam import SeqSLAM
     from torchseq.seqslam.candidates import CandidateSeqSLAM, resolve_candidates
@@ -253,6 +251,7 @@ def run_seqslam_map(s, query, device, progress: bool) -> dict:
     else:
         result = engine.match_descriptors(m.descriptors(), q, progress=progress)
     matrix = result.preview if result.preview is not None else result.enhanced
-    return {"matches": result.matches, "ranked": result.ranked, "matrix": matrix,
-            "matrix_shape": (m.n_places, len(query)), "matrix_reduced": result.enhanced is None,
-            "seconds": result.seconds["total"], "parameters": to_jsonable(scfg)}
+    return SeqSLAMRun(matches=result.matches, ranked=result.ranked, ranked_score=None,
+                      matrix=matrix, matrix_shape=(m.n_places, len(query)),
+                      matrix_reduced=result.enhanced is None,
+                      seconds=result.seconds["total"], parameters=to_jsonable(scfg))

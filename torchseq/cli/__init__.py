@@ -32,16 +32,16 @@ def main(argv: list[str] | None = None) -> int:
     command, rest = argv[0], argv[1:]
     prog = f"torchseq {command}"
     if command == "eval":
-        from torchseq.cli_eval import cli
+        from torchseq.cli.eval import cli
         return cli(rest, prog)
     if command == "train":
-        from torchseq.cli_train import cli
+        from torchseq.cli.train import cli
         return cli(rest, prog)
     if command == "map":
-        from torchseq.cli_map import cli as map_cli
+        from torchseq.cli.map import cli as map_cli
         return map_cli(rest, prog)
     if command == "export":
-        from torchseq.export.cli import main as export_main
+        from torchseq.cli.export import main as export_main
         return export_main(rest, prog)
     print(f"torchseq: error: unknown command {command!r} (choose from "
           f"{', '.join(COMMANDS)})", file=sys.stderr)

@@ -12,7 +12,8 @@ import dataclasses
 from collections.abc import Collection
 from typing import Callable
 
-from torchseq.frontend import UsageError, changed_fields
+from torchseq.cli.errors import UsageError
+from torchseq.cli.flags import changed_fields
 from torchseq.neural import NeuralConfig
 
 NEURAL_PRESETS: dict[str, Callable[[], NeuralConfig]] = {

@@ -16,37 +16,34 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
-from torchseq import cli_help, plots
+import torchseq.cli.help as cli_help
 from torchseq.atomic import write_json, write_text
-from torchseq.cli_help import organise_help
-from torchseq.cli_presets import apply_preset, preset_help, preset_name
-from torchseq.cli_warnings import WarningLog, warning_list
-from torchseq.demo import make_demo
-from torchseq.frontend import (
+from torchseq.cli.errors import UsageError
+from torchseq.cli.event_options import (
     EVENT_FIELDS,
     EVENT_HELP,
     EventFlags,
-    Parser,
-    UsageError,
-    add_config_flags,
     check_event_flags_apply,
+    event_frame_options,
+)
+from torchseq.cli.flags import (
+    Parser,
+    add_config_flags,
     check_neural,
     check_ranges,
-    config_file_defaults,
     config_from_args,
-    config_text,
-    event_frame_options,
     frame_selection,
     given_flags,
     parse_size,
     resolve_device,
-    run_folder,
-    run_main,
-    to_jsonable,
 )
-from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
+from torchseq.cli.help import organise_help
+from torchseq.cli.presets import apply_preset, preset_help, preset_name
+from torchseq.cli.report import log_training
+from torchseq.cli.run_warnings import WarningLog, warning_list
+from torchseq.cli.runs import config_file_defaults, config_text, run_folder, run_main, to_jsonable
+from torchseq.demo import make_demo
+from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.neural.memory import seqslam_template_bytes
 from torchseq.sources import FrameSelection, is_event_file, load_traverse, load_traverse_sizes
 from torchseq.versions import VERSIONS_KEY, versions
@@ -137,38 +134,6 @@ def parse_args(argv: list[str] | None) -> tuple[TrainConfig, NeuralConfig]:
     return cfg, ncfg.validate()
 
 
-def log_training(cfg: TrainConfig, ncfg: NeuralConfig, model: NeuralSeqSLAM,
-                 log: NeuralFitLog, out: Path) -> None:
-    """Figures as PNG and, with TensorBoard on, scalars, images, histograms and the config."""
-    activity = log.evidence
-    figures = {
-        "reference_activity": plots.plot_activity_raster(
-            activity, log.winners, "output activity over the reference (winners marked)"),
-        "ring_shift_matrix": plots.plot_matrix(
-            model.ring.shift, "learnt ring shift matrix",
-            xlabel="from output unit (the current winner)",
-            ylabel="to output unit (the next winner)"),
-    }
-    images = {k: plots.figure_to_array(f) for k, f in figures.items()}
-    for k, f in figures.items():
-        plots.save_figure(f, out / f"{k}.png")
-    if not cfg.tensorboard:
-        return
-    from torch.utils.tensorboard import SummaryWriter
-
-    with SummaryWriter(log_dir=str(out / "tensorboard")) as tb:
-        text = config_text({"train": cfg, "model": ncfg})
-        tb.add_text("config", "```\n" + text + "\n```")
-        for k, img in images.items():
-            tb.add_image(k, img, dataformats="HWC")
-        for name, p in list(model.named_parameters()) + list(model.named_buffers()):
-            if p.is_floating_point() and p.numel() > 1:
-                tb.add_histogram(f"weights/{name}", p.detach().float().cpu())
-        tb.add_histogram("activity/reference", torch.as_tensor(activity).float())
-        tb.add_scalar("train/reference_frames", len(activity))
-        tb.add_scalar("train/model_bytes", model.model_bytes())
-
-
 def export_query(cfg: TrainConfig, events):
     """``--export-query`` for the export: an event file becomes frames made as the reference's.
 
@@ -190,7 +155,7 @@ def export_query(cfg: TrainConfig, events):
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
-    """Entry point; returns the exit code (errors raise, see :func:`torchseq.frontend.run_main`).
+    """Entry point; returns the exit code (errors raise, see :func:`torchseq.cli.flags.run_main`).
 
     Args:
         argv: the flags (None: ``sys.argv[1:]``).
@@ -268,7 +233,8 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
           f"({1e3 * seconds / len(frames):.2f} ms/frame); model {model.model_bytes()} bytes; "
           f"wrote {out / 'model.pt'}")
     if cfg.export:
-        from torchseq.export.cli import export_checkpoint, summary_lines
+        from torchseq.cli.export import summary_lines
+        from torchseq.export.checkpoint import export_checkpoint
 
         ok = export_checkpoint(out / "model.pt", out / "export",
                                query=export_query(cfg, events),
