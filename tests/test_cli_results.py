@@ -12,7 +12,8 @@ METRICS = ["recall_at_1", "auc", "recall_at_100_precision", "coverage", "correct
            "recall", "operating_point"]
 # metrics.json of `eval.py --demo-frames 60` on main before the move (the dicts' keys)
 KEYS = {"seqslam": [*METRICS, "seconds", "parameters", "versus_single_frame"],
-        "neural": [*METRICS, "seconds", "fit_seconds", "model_bytes", "frames_per_unit",
+        "neural": [*METRICS, "seconds", "fit_seconds", "model_bytes", "seqslam_template_bytes",
+                   "frames_per_unit",
                    "self_check", "preset", "parameters", "versus_single_frame"]}
 TOP = ["inputs", "warnings", "versions", "single_frame", "seqslam", "neural", "status"]
 
