@@ -624,6 +624,7 @@ def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, mo
     assert np.array_equal(np.asarray(seen["query"]), np.asarray(made))
 
 
+@pytest.mark.slow
 def test_events_preset_on_a_real_two_channel_recording_keeps_the_halves(tmp_path, capsys):
     aedat = str(shared_data("events", "alex_walking_again.aedat"))
     out = tmp_path / "o"

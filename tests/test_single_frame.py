@@ -58,6 +58,7 @@ def test_sequence_vs_single_equals_a_loop():
     assert out["n_queries"] == len(pos) and worse > 0 and better > 0
 
 
+@pytest.mark.slow
 def test_eval_reports_single_frame_beside_the_sequence(tmp_path, capsys):
     root = shared_data("corridor")
     out = tmp_path / "o"

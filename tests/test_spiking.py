@@ -297,16 +297,14 @@ def test_agrees_with_the_rate_model_on_the_demo():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["corridor", "lens-davis128"])
-def test_agrees_with_the_rate_model_on_real_data(name):
-    from torchseq.ground_truth import load_ground_truth
+def test_agrees_with_the_rate_model_on_real_data(name, request):
     from torchseq.sources import load_traverse
 
-    root = shared_data(name)
     if name == "corridor":
-        ref, qry = load_traverse(root / "ref", progress=False), \
-            load_traverse(root / "query", progress=False)
-        gt = load_ground_truth(root / "ground_truth.csv", len(ref), len(qry))
+        corridor = request.getfixturevalue("corridor")  # the session's shared copy
+        ref, qry, gt = corridor.ref, corridor.query, corridor.ground_truth
     else:
+        root = shared_data(name)
         ref = load_traverse(root / "example-reference", progress=False)
         qry = load_traverse(root / "example-query", progress=False)
         i = np.arange(len(ref))
