@@ -126,3 +126,11 @@ def test_eval_baseline_ranks_the_engines_difference_matrix(tmp_path, monkeypatch
     assert run_main(cli_eval.main, "eval.py", [*args, "--out", str(tmp_path / "b")]) == 0
     a, b = (json.loads((tmp_path / f / "metrics.json").read_text()) for f in "ab")
     assert a["single_frame"] == b["single_frame"] and "recall_at_1" in a["single_frame"]
+
+
+def test_a_sparse_difference_matrix_is_refused():
+    """A candidate run keeps only its candidates' entries: ranking them would be wrong."""
+    dense = torch.rand(6, 4)
+    with pytest.raises(ValueError, match="sparse"):
+        single_frame_from_difference(dense.to_sparse())
+    assert single_frame_from_difference(dense).matches.reference.shape == (4,)

@@ -103,7 +103,10 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes) -> SeqSLAMRun:
     matrix = result.preview if result.preview is not None else result.enhanced
     # the raw difference matrix of the run's own descriptors: the single-frame baseline ranks
     # it instead of computing it again (not an ensemble's: that is not one descriptor set's)
+    # (dense only: candidate mode keeps the candidates' entries, a sparse matrix)
     difference = result.difference if ref.members is None else None
+    if difference is not None and difference.layout != torch.strided:
+        difference = None
     return SeqSLAMRun(matches=result.matches, ranked=result.ranked,
                       ranked_score=result.ranked_score, matrix=matrix,
                       matrix_shape=(len(ref), len(query)), matrix_reduced=result.enhanced is None,

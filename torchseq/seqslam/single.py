@@ -73,6 +73,9 @@ def single_frame_from_difference(difference: torch.Tensor, top_k: int = 21,
         the matrix was computed from.
     """
     difference = torch.as_tensor(difference)
+    if difference.layout != torch.strided:  # a candidate run's: only some entries are there
+        raise ValueError("need the whole dense (R, Q) difference matrix, got a sparse one "
+                         "(candidate mode keeps only its candidates' entries)")
     if difference.ndim != 2 or 0 in difference.shape:
         raise ValueError(f"need a non-empty (R, Q) difference matrix, got "
                          f"{tuple(difference.shape)}")
