@@ -76,7 +76,9 @@ def test_int8_kernels_exist_on_x86(grid_model):
     """The default model sits on its integer grids: on x86 the int8 GEMM must be chosen."""
     kernels = grid_model.inference().kernels
     if I.int8_expected():
-        assert kernels["l1"] == "int8_gemm", "oneDNN's int8 GEMM is missing or inexact here"
+        # AVX-512: int8 at every batch; AVX2 alone: float32 below SMALL_BATCH (it is faster)
+        want = "int8_gemm" if I.int8_l1_at_batch_1() else "int8_gemm_or_float32_gemm"
+        assert kernels["l1"] == want, "oneDNN's int8 GEMM is missing or inexact here"
         assert kernels["l3"] == "int8_gemm_or_embedding_bag"
     else:
         assert kernels["l1"] == "float32_gemm"
@@ -89,18 +91,36 @@ def test_auto_cpu_step_dispatch(grid_model, route, batch):
     with recording(inf) as ran:
         with torch.inference_mode():
             inf(frames)
-    int8 = inf.kernels["l1"] == "int8_gemm"
-    l3 = ("l3:int8_gemm" if int8 and batch >= I.SMALL_BATCH else "l3:embedding_bag")
+    l1 = inf.kernels["l1"]
+    int8 = l1 == "int8_gemm" or (l1 == "int8_gemm_or_float32_gemm" and batch >= I.SMALL_BATCH)
+    l3 = ("l3:int8_gemm" if inf.kernels["l3"] != "embedding_bag" and batch >= I.SMALL_BATCH
+          else "l3:embedding_bag")
     want = ["input:numpy", "l1:int8_gemm" if int8 else None, "kwta:partition", l3,
             "cohorts:numpy", "ring:banded", "decide:numpy"]
     assert ran == [w for w in want if w]
+
+
+def test_the_or_kernel_picks_by_batch_and_decides_as_either(grid_model, route):
+    """``int8_gemm_or_float32_gemm``: float32 below SMALL_BATCH, int8 from there on."""
+    if grid_model.inference().l1_int8 is None:
+        pytest.skip("no oneDNN int8 GEMM on this machine")
+    either = grid_model.inference({"l1": "int8_gemm_or_float32_gemm"})
+    for batch, want in ((1, False), (I.SMALL_BATCH - 1, False), (I.SMALL_BATCH, True)):
+        with recording(either) as ran, torch.inference_mode():
+            either(route.query[:batch])
+        assert ("l1:int8_gemm" in ran) == want, batch
+    with torch.inference_mode():
+        for name in ("int8_gemm", "float32_gemm"):
+            one = grid_model.inference({"l1": name})
+            assert torch.equal(one.run(route.query).matches.reference,
+                               either.run(route.query).matches.reference)
 
 
 def test_auto_cpu_run_dispatch(grid_model, route):
     inf = grid_model.inference()
     with recording(inf) as ran:
         got = inf.run(route.query)
-    int8 = inf.kernels["l1"] == "int8_gemm"
+    int8 = inf.kernels["l1"].startswith("int8_gemm")  # run's chunks are past SMALL_BATCH
     assert ran[0] == "input:numpy" and ran[-2:] == ["scan:numpy", "decide:numpy"]
     assert ("l1:int8_gemm" in ran) == int8
     assert "ring:banded" not in ran  # the sequence form, not the step

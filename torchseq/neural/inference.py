@@ -15,7 +15,9 @@ Stages and kernels:
             ``1 / input_steps`` grid; ``"encode"``: the model's ``encode`` (other patch
             modes)
 ``l1``      ``"float32_gemm"``, ``"int8_gemm"`` (oneDNN; the model's integer grids make
-            it exact) or ``"bfloat16_gemm"`` (approximate, opt-in)
+            it exact), ``"int8_gemm_or_float32_gemm"`` (float32 for batches of fewer than
+            ``SMALL_BATCH`` frames, int8 from there on: the auto choice on CPUs without
+            AVX-512, :func:`int8_l1_at_batch_1`) or ``"bfloat16_gemm"`` (approximate, opt-in)
 ``kwta``    ``"topk"`` or ``"partition"`` (NumPy introselect)
 ``l3``      ``"embedding_bag"`` (sum of the winners' rows), ``"int8_gemm"``,
             ``"int8_gemm_or_embedding_bag"`` (the embedding-bag for batches of fewer than
@@ -63,7 +65,7 @@ from torchseq.quantise import factor_power_of_two, factor_rows
 STAGES = ("input", "l1", "kwta", "l3", "cohorts", "ring", "scan", "decide")
 CHOICES = {
     "input": ("torch", "numpy", "encode"),
-    "l1": ("float32_gemm", "int8_gemm", "bfloat16_gemm"),
+    "l1": ("float32_gemm", "int8_gemm", "int8_gemm_or_float32_gemm", "bfloat16_gemm"),
     "kwta": ("topk", "partition"),
     "l3": ("embedding_bag", "int8_gemm", "int8_gemm_or_embedding_bag", "dense"),
     "cohorts": ("torch", "numpy"),
@@ -72,6 +74,16 @@ CHOICES = {
     "decide": ("numpy", "torch"),
 }
 SMALL_BATCH = 16  # below: the embedding-bag L3 beats the int8 GEMM (bench_neural.py)
+
+
+def int8_l1_at_batch_1() -> bool:
+    """Whether the int8 L1 GEMM beats the float32 one at batch 1 on this CPU.
+
+    With AVX-512 (VNNI) yes; on AVX2 alone oneDNN's int8 GEMM took 1.35x the float32 one at
+    batch 1 and 0.68x at batch 256 (one thread, Zen 3; ``docs/results/neural-step.md``), so
+    there the auto choice is ``"int8_gemm_or_float32_gemm"`` (float32 below SMALL_BATCH).
+    """
+    return torch.backends.cpu.get_cpu_capability().startswith("AVX512")
 PORTABLE = {"input": "torch", "l1": "float32_gemm", "kwta": "topk", "l3": "dense",
             "cohorts": "torch", "ring": "dense", "scan": "torch", "decide": "torch"}
 
@@ -174,7 +186,8 @@ class NeuralInference(nn.Module):
         numpy = "numpy" if cpu else "torch"
         out = {
             "input": numpy if self.block_major else "encode",
-            "l1": "int8_gemm" if self.l1_int8 is not None else "float32_gemm",
+            "l1": ("float32_gemm" if self.l1_int8 is None else "int8_gemm"
+                   if int8_l1_at_batch_1() else "int8_gemm_or_float32_gemm"),
             "kwta": "partition" if cpu else "topk",
             "l3": ("int8_gemm_or_embedding_bag" if self.l3_int8 is not None
                    else "embedding_bag"),
@@ -182,7 +195,7 @@ class NeuralInference(nn.Module):
             "scan": numpy, "decide": numpy,
         }
         out.update(asked)
-        if not cfg.input_steps and out["l1"] == "int8_gemm":
+        if not cfg.input_steps and out["l1"].startswith("int8_gemm"):
             raise NeuralError("the int8 L1 kernel needs input_steps > 0")
         return self._check(out, cpu)
 
@@ -193,7 +206,7 @@ class NeuralInference(nn.Module):
             bad += [s for s in ("l1", "l3") if out[s].startswith("int8_gemm")]
             if bad:
                 raise NeuralError(f"stages {bad} have CPU-only kernels; the model is elsewhere")
-        if out["l1"] == "int8_gemm" and self.l1_int8 is None:
+        if out["l1"].startswith("int8_gemm") and self.l1_int8 is None:
             raise NeuralError("the int8 L1 kernel is unavailable: oneDNN's int8 GEMM is missing "
                               "or inexact here, or the model is off its integer grids")
         int8_l3 = out["l3"] in ("int8_gemm", "int8_gemm_or_embedding_bag")
@@ -202,7 +215,7 @@ class NeuralInference(nn.Module):
                               "or inexact here, or the L3 weights are off their int8 rows")
         if int8_l3 and out["kwta"] != "partition":
             raise NeuralError("the int8 L3 kernel takes the partition k-WTA's uint8 code")
-        if out["l1"] == "int8_gemm" and out["input"] == "encode":
+        if out["l1"].startswith("int8_gemm") and out["input"] == "encode":
             raise NeuralError("the int8 L1 kernel needs patch_mode 'zscore' with a patch")
         if (out["scan"] == "velocity_loop") != (self.tracker is not None):
             raise NeuralError(f"the 'velocity_loop' scan is the adaptive ring's and only "
@@ -237,33 +250,36 @@ class NeuralInference(nn.Module):
             grey: ``(B, h, w)`` float32 grey frames at the input size (checked already).
         """
         k, cfg = self._kernels, self.config
+        l1 = k["l1"]
+        if l1 == "int8_gemm_or_float32_gemm":  # by batch: the frames' or the grey frames'
+            batch = (grey if grey is not None else frames).shape[0]
+            l1 = "int8_gemm" if batch >= SMALL_BATCH else "float32_gemm"
         if k["input"] == "encode":
             x = self._encode(frames)
         else:
             if grey is None:
                 grey = self._grey(frames)
             z = zscore_pixel_major(grey, cfg.patch_size, k["input"])  # (p*p, B, blocks)
-            if k["l1"] == "int8_gemm" and k["input"] == "numpy":  # uint8 x * steps + 128
+            if l1 == "int8_gemm" and k["input"] == "numpy":  # uint8 x * steps + 128
                 q = np.rint(z.numpy() * np.float32(cfg.input_steps))  # half to even
                 q += 128
                 x = torch.from_numpy(q.astype(np.uint8).transpose(1, 2, 0).reshape(
                     z.shape[1], -1))
-            elif k["l1"] == "int8_gemm":
+            elif l1 == "int8_gemm":
                 xq = z.mul_(cfg.input_steps).round_().add_(128.0).to(torch.uint8)
                 x = xq.permute(1, 2, 0).reshape(z.shape[1], -1)
             else:
                 x = z.permute(1, 2, 0).reshape(z.shape[1], -1)
                 if cfg.input_steps:
                     x = torch.round(x * cfg.input_steps) / cfg.input_steps
-        h = self._l1(x)  # (B, M)
+        h = self._l1(x, l1)  # (B, M)
         e = self._l3(h)  # (B, N)
         return cohort_normalise(e, self.cohorts, cfg.eps, cfg.rectify, k["cohorts"])
 
     def _grey(self, frames: torch.Tensor) -> torch.Tensor:
         return checked_grey(frames, self.config.input_size, self.w1_t.device)
 
-    def _l1(self, x: torch.Tensor) -> torch.Tensor:
-        name = self._kernels["l1"]
+    def _l1(self, x: torch.Tensor, name: str) -> torch.Tensor:
         if name == "int8_gemm":
             return self.l1_int8(x)  # exact integer sums times a power of two
         if name == "bfloat16_gemm":  # approximate; its many exact ties go to the lowest index
