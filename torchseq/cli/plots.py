@@ -257,6 +257,22 @@ def _grey_range(frame: np.ndarray) -> dict:
     return {"vmin": 0.0, "vmax": 255.0 if top >= 64 else max(top, 1.0)}
 
 
+def pick_pairs(idx: np.ndarray, n_ref: int, n: int, title: str) -> tuple[np.ndarray, str]:
+    """``n`` queries evenly spaced over the matched ones, and the title, for a pairs figure.
+
+    A checkpoint of a longer route matches reference frames these frames do not hold: those
+    matches are left out and the title says how many.
+    """
+    outside = int(((idx >= n_ref) | (idx < -1)).sum())
+    matched = np.nonzero((idx >= 0) & (idx < n_ref))[0]
+    if outside:
+        title += (f" ({outside} of {len(idx)} matches point past the {n_ref} reference "
+                  f"frames: not shown)")
+    pick = matched[np.linspace(0, len(matched) - 1, min(n, len(matched))).round().astype(int)] \
+        if len(matched) else np.array([], int)
+    return pick, title
+
+
 def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None = None,
                        n: int = 6, title: str = "matched frames") -> Figure:
     """Query frames beside the reference frames they matched (the seed's Figure 10).
@@ -270,14 +286,7 @@ def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None
         title: figure title.
     """
     ref, qry, idx = _np(reference), _np(query), _np(matches.reference)
-    # a checkpoint of a longer route matches reference frames these frames do not hold
-    outside = int(((idx >= len(ref)) | (idx < -1)).sum())
-    matched = np.nonzero((idx >= 0) & (idx < len(ref)))[0]
-    if outside:
-        title += (f" ({outside} of {len(idx)} matches point past the {len(ref)} reference "
-                  f"frames: not shown)")
-    pick = matched[np.linspace(0, len(matched) - 1, min(n, len(matched))).round().astype(int)] \
-        if len(matched) else np.array([], int)
+    pick, title = pick_pairs(idx, len(ref), n, title)
     fig, axes = _figure((2 * max(len(pick), 1), 4.2), 2, max(len(pick), 1), squeeze=False)
     for col, q in enumerate(pick):
         r = int(idx[q])

@@ -245,14 +245,10 @@ def draw_matched_pairs(reference, query, matches: Matches, gt=None, n: int = 6,
     spaced over the matched queries, each reference's label green (correct), red (wrong) or
     black (no ground truth); grey scale as :func:`torchseq.cli.plots._grey_range`.
     """
+    from torchseq.cli.plots import pick_pairs  # NumPy only (no drawing)
+
     ref, qry, idx = _np(reference), _np(query), _np(matches.reference)
-    outside = int(((idx >= len(ref)) | (idx < -1)).sum())
-    matched = np.nonzero((idx >= 0) & (idx < len(ref)))[0]
-    if outside:
-        title += (f" ({outside} of {len(idx)} matches point past the {len(ref)} reference "
-                  f"frames: not shown)")
-    pick = matched[np.linspace(0, len(matched) - 1, min(n, len(matched))).round().astype(int)] \
-        if len(matched) else np.array([], int)
+    pick, title = pick_pairs(idx, len(ref), n, title)
     cols = max(len(pick), 1)
     img = np.full((420, 200 * cols, 3), 255, np.uint8)
     _text(img, title, img.shape[1] / 2, 22, 0.5, align="centre")
