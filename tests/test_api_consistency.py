@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import torch
 
 from torchseq.matches import Matches
@@ -19,6 +20,7 @@ def test_import_preprocess_gives_the_module_and_the_call_still_works():
     assert torch.equal(torchseq.preprocess(x, (32, 64), 8), pre.preprocess(x, (32, 64), 8))
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_importing_plots_keeps_the_users_backend():
     code = ("import matplotlib; import torchseq.cli.plots as p; import matplotlib.pyplot as plt; "
             "f = p.plot_matrix([[0, 1], [1, 0]], 't'); "

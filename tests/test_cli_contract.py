@@ -148,6 +148,7 @@ def train_cases(d):
     ]
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_hostile_arguments_are_one_line_and_exit_2(files, tmp_path):
     cases = [("eval.py", [*a, "--out", str(tmp_path / f"e{i}")], m)
              for i, (a, m) in enumerate(eval_cases(files))]
@@ -167,6 +168,7 @@ def test_hostile_arguments_are_one_line_and_exit_2(files, tmp_path):
                    for p in [f"e{i}" for i in range(len(eval_cases(files)))])
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_real_subprocess_of_the_script(tmp_path):
     proc = subprocess.run([sys.executable, str(ROOT / "eval.py"), "--tolerance", "nan",
                            "--out", str(tmp_path / "o")], capture_output=True, text=True,

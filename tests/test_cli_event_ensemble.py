@@ -68,6 +68,7 @@ def loop_member(events, w, h, step_us, length_us, n):
     return out
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_a_member_is_the_centred_window_and_the_step_member_is_the_plain_frames(runs):
     path, run = runs["ref"]
     plain = load_event_frames(path, window_ms=10, anchor="zero", sensor_size=(48, 32))

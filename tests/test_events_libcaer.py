@@ -350,6 +350,7 @@ def test_damaged_heap_is_a_clear_error_not_a_hang(tmp_path, damage, match):
 @settings(max_examples=200, deadline=None, suppress_health_check=list(HealthCheck))
 @given(edits=st.lists(st.tuples(st.integers(0, 1 << 20), st.integers(0, 255)), min_size=1,
                       max_size=4))
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_fuzz_damaged_bytes_of_the_hdf5_file(tmp_path_factory, edits):
     """Bytes of the whole file overwritten (metadata, chunks, heap): data or a clear error."""
     d = tmp_path_factory.mktemp("fb")

@@ -85,6 +85,7 @@ def camera_checkpoint(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_default_validation_uses_the_checkpoints_own_reference(camera_checkpoint, tmp_path):
     # main validated every checkpoint on the synthetic demo route (recall ~0, FAIL) and took
     # the device input size (96x128) from it
@@ -97,6 +98,7 @@ def test_default_validation_uses_the_checkpoints_own_reference(camera_checkpoint
     assert report["recall_at_1"]["pytorch"] >= 0.9  # a replay of the learnt route
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_frame_size_sets_the_device_input_not_the_query(camera_checkpoint, tmp_path):
     out = tmp_path / "out"
     code = main([str(camera_checkpoint / "cam.pt"), "--out", str(out), "--frame-size", "48x64"])
@@ -138,6 +140,7 @@ def test_checkpoint_without_a_recorded_reference_needs_a_query(checkpoint, tmp_p
         export_checkpoint(tmp_path / "bare.pt", tmp_path / "o")
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_a_failed_check_exits_1(checkpoint, tmp_path, monkeypatch, capsys):
     import torchseq.export.validate as validate
 
@@ -153,6 +156,7 @@ def test_a_failed_check_exits_1(checkpoint, tmp_path, monkeypatch, capsys):
             in capsys.readouterr().out)
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_frames_that_are_not_grey_levels_fail_the_uint8_check(checkpoint, tmp_path, capsys):
     # event frames are window means (about 0..0.3), not grey levels: rounding them to the
     # integer device's uint8 input erases them, which used to pass silently (integer vs
@@ -170,6 +174,7 @@ def test_frames_that_are_not_grey_levels_fail_the_uint8_check(checkpoint, tmp_pa
     assert "not grey levels" in out and "FAIL: uint8_input_agreement" in out
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_corrupt_checkpoint_fails_with_one_line(checkpoint, tmp_path):
     bad = tmp_path / "bad.pt"
     bad.write_bytes((checkpoint / "small.pt").read_bytes()[:1000])
@@ -191,6 +196,7 @@ def test_bad_ground_truth_is_rejected(checkpoint, tmp_path):
     assert code == 2
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_device_input_does_not_follow_the_validation_query(camera_checkpoint, tmp_path):
     # validating on 48x64 frames must not make a 48x64 device for a 120x160 camera
     query = np.load(camera_checkpoint / "ref.npy")[:30]

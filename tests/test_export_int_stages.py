@@ -247,6 +247,7 @@ mutations = st.one_of(
 
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow],
           database=None)
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 @given(edits=st.lists(mutations, min_size=1, max_size=3))
 def test_mutated_v1_files_are_refused_or_exact(v1, edits):
     _, frames = v1

@@ -121,6 +121,7 @@ def test_streaming_step_checks_its_state_arguments(setup):
 SKIPPED = "no spiking form of ring_velocity='adaptive'"
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_export_command_writes_every_form_but_nir(setup, tmp_path, capsys):
     model, routes, *_ = setup
     route = routes[1.3]
@@ -154,6 +155,7 @@ def test_export_command_writes_every_form_but_nir(setup, tmp_path, capsys):
     assert abs(vel[-1] - 1.3) < 0.05
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_export_fails_when_the_graph_disagrees(setup, tmp_path, monkeypatch):
     """A graph that decides otherwise than the model is a FAIL, not a skip."""
     import torchseq.export.validate as validate
@@ -172,6 +174,7 @@ def test_export_fails_when_the_graph_disagrees(setup, tmp_path, monkeypatch):
     assert summary_lines(tmp_path / "out")[-1] == "FAIL: float_onnx_agreement"
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_export_on_the_checkpoints_own_reference(tmp_path):
     """``train --export``'s path: no query, the demo route recorded in the checkpoint."""
     demo = make_demo(n_reference=60, seed=1)

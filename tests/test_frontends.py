@@ -229,6 +229,7 @@ def test_neural_flags_place_resolution_and_recall_at_k(tmp_path, capsys):
     assert op["precision_target"] == 0.99 and (op["precision"] is None or op["precision"] >= 0.99)
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_checkpoint_on_another_reference_is_said_plainly(tmp_path, capsys):
     ckpt_dir = tmp_path / "train"
     assert run_inprocess("train", capsys, "--demo-frames", "40", "--hidden", "256",
@@ -560,6 +561,7 @@ def test_evt3_kernel_numba_without_numba_is_refused(monkeypatch):
         event_frame_options(parse_args(["--evt3-kernel", "numba"])[0].run)
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_checkpoint_of_other_event_settings_or_selection_is_said(tmp_path, capsys):
     # same recording, same frame count and size: only the frames' making differs
     aedat = str(shared_data("events", "alex_walking_again.aedat"))

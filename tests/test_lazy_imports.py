@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # packages a plain SeqSLAM run on image frames never needs (each costs 0.1-1 s to import)
@@ -38,6 +40,7 @@ def test_import_torchseq_loads_no_heavy_package(tmp_path):
     assert got["loaded"] == []
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_seqslam_eval_loads_no_heavy_package_before_its_report(tmp_path):
     body = """
 import torchseq.cli

@@ -98,6 +98,7 @@ def test_fit_warns_once_with_the_figure_when_units_do_not_separate():
     assert "raise n_output" in said[0] and "recall@1 0.59" in said[0]
 
 
+@pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_train_and_eval_record_the_figure(tmp_path, capsys):
     from test_frontends import run_inprocess
 
