@@ -112,6 +112,23 @@ def _any_pool(gt: np.ndarray, out_size: tuple[int, int]) -> np.ndarray:
     return (torch.nn.functional.adaptive_max_pool2d(m, out_size)[0] > 0).numpy()
 
 
+def checked_matrix(matrix, gt, shape: tuple[int, int] | None):
+    """``(matrix, R, Q)`` of a difference-matrix figure, after its checks.
+
+    ``matrix`` stays a sparse tensor (candidate mode) or becomes a NumPy array; ``(R, Q)`` is
+    ``shape`` (the full matrix's, when ``matrix`` is a reduced copy) or the matrix's own.
+    """
+    sparse = isinstance(matrix, torch.Tensor) and matrix.is_sparse  # candidate mode
+    m = matrix if sparse else _np(matrix)
+    n_ref, n_query = (int(v) for v in (shape if shape is not None else m.shape))
+    if m.ndim != 2 or m.shape[0] > n_ref or m.shape[1] > n_query:
+        raise ValueError(f"matrix {m.shape} does not reduce a ({n_ref}, {n_query}) matrix")
+    if gt is not None and tuple(gt.shape) != (n_ref, n_query):
+        raise ValueError(f"ground truth {tuple(gt.shape)} does not fit the matrix's "
+                         f"({n_ref}, {n_query})")
+    return m, n_ref, n_query
+
+
 def plot_difference_matrix(matrix, matches: Matches | None = None, gt=None,
                            title: str = "contrast-enhanced difference matrix",
                            shape: tuple[int, int] | None = None) -> Figure:
@@ -134,14 +151,7 @@ def plot_difference_matrix(matrix, matches: Matches | None = None, gt=None,
         shape: ``(R, Q)`` of the full matrix when ``matrix`` is a reduced copy; None: the
             matrix is the full one.
     """
-    sparse = isinstance(matrix, torch.Tensor) and matrix.is_sparse  # candidate mode
-    m = matrix if sparse else _np(matrix)
-    n_ref, n_query = (int(v) for v in (shape if shape is not None else m.shape))
-    if m.ndim != 2 or m.shape[0] > n_ref or m.shape[1] > n_query:
-        raise ValueError(f"matrix {m.shape} does not reduce a ({n_ref}, {n_query}) matrix")
-    if gt is not None and tuple(gt.shape) != (n_ref, n_query):
-        raise ValueError(f"ground truth {tuple(gt.shape)} does not fit the matrix's "
-                         f"({n_ref}, {n_query})")
+    m, n_ref, n_query = checked_matrix(matrix, gt, shape)
     small = reduce_matrix(m)
     extent = (-0.5, n_query - 0.5, n_ref - 0.5, -0.5)  # cell centres at full-matrix indices
     fig, ax = _figure((6, 5))

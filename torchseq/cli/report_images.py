@@ -165,16 +165,13 @@ def draw_difference_matrix(matrix, matches: Matches | None = None, gt=None,
         title: image title.
         shape: ``(R, Q)`` of the full matrix when ``matrix`` is a reduced copy.
     """
-    from torchseq.cli.plots import _any_pool, reduce_matrix  # NumPy/torch only (no drawing)
+    from torchseq.cli.plots import (  # NumPy/torch only (no drawing)
+        _any_pool,
+        checked_matrix,
+        reduce_matrix,
+    )
 
-    sparse = isinstance(matrix, torch.Tensor) and matrix.is_sparse
-    m = matrix if sparse else _np(matrix)
-    n_ref, n_query = (int(v) for v in (shape if shape is not None else m.shape))
-    if m.ndim != 2 or m.shape[0] > n_ref or m.shape[1] > n_query:
-        raise ValueError(f"matrix {m.shape} does not reduce a ({n_ref}, {n_query}) matrix")
-    if gt is not None and tuple(gt.shape) != (n_ref, n_query):
-        raise ValueError(f"ground truth {tuple(gt.shape)} does not fit the matrix's "
-                         f"({n_ref}, {n_query})")
+    m, n_ref, n_query = checked_matrix(matrix, gt, shape)
     small = reduce_matrix(m, PLOT_SIDE)
     img = np.full((500, 600, 3), 255, np.uint8)
     ax = _Axes(img, (62, 30, 590, 448), (-0.5, n_query - 0.5), (n_ref - 0.5, -0.5))
