@@ -369,11 +369,11 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
         return code
     results = run_engines(s, ref, query, device, notes, model)
     # the baseline needs the reference's descriptors: a map run reads none (sharded maps)
-    seqslam_run = results.get("seqslam")
-    single = (single_frame_baseline(s, ref, query, device,
-                                    getattr(seqslam_run, "difference", None))
+    seqslam_run = results.get("seqslam")  # a SeqSLAMRun: its difference matrix, if kept
+    difference = None if seqslam_run is None else seqslam_run.difference
+    single = (single_frame_baseline(s, ref, query, device, difference)
               if gt is not None and s.run.map is None else None)
-    if seqslam_run is not None and hasattr(seqslam_run, "difference"):
+    if seqslam_run is not None:
         seqslam_run.difference = None  # ranked: no longer needed
     summary = report(EvalOutcome(s, ref, query, gt, source, results, out, single), notes)
     mark_complete(out)
