@@ -287,7 +287,8 @@ def test_corridor_recall_with_few_candidates(corridor):
     assert recall[10] >= exact - 0.02 and recall[2] >= exact - 0.02
 
 
-@pytest.mark.parametrize("over", [{}, dict(ds=5, vmin=0.5, vmax=1.5, rwindow=3)])
+@pytest.mark.parametrize("over", [{}, pytest.param(dict(ds=5, vmin=0.5, vmax=1.5, rwindow=3),
+                                                   marks=pytest.mark.slow)])
 def test_streaming_in_candidate_mode(over):
     """Trailing windows in candidate mode: K >= R is exact streaming; small K the loop rule
     with each column's minimum over the window's band rows."""
@@ -378,6 +379,7 @@ def test_shared_layout_equals_per_window(over, k, blocks, monkeypatch):
     assert_same_result(got, want)
 
 
+@pytest.mark.slow
 def test_shared_layout_on_a_long_smooth_route():
     """A 3000-frame reference whose neighbours look alike (the index's candidates agree from
     one query to the next, as on a real route): shared and per-window results identical."""
@@ -397,7 +399,8 @@ def test_layout_errors():
         cm.CandidateSeqSLAM(ref, SeqSLAMConfig(candidates=2), layout="banded")
 
 
-@pytest.mark.parametrize("over", [{}, dict(ds=5, vmin=0.5, vmax=1.5, rwindow=3)])
+@pytest.mark.parametrize("over", [{}, pytest.param(dict(ds=5, vmin=0.5, vmax=1.5, rwindow=3),
+                                                   marks=pytest.mark.slow)])
 def test_streaming_reuses_tiles_of_earlier_steps(over, monkeypatch):
     """Each step computes only the tiles its window did not have: stepping with the cache
     gives bit for bit the decisions of stepping without it (every tile recomputed, as before

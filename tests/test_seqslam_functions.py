@@ -121,7 +121,8 @@ def test_config_speed_ratio_and_rounding():
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("n,k", [(8, 3), (40, 10), (300, 10), (3000, 5)])
+@pytest.mark.parametrize("n,k", [(8, 3), (40, 10), (300, 10),
+                                 pytest.param(3000, 5, marks=pytest.mark.slow)])
 def test_rank_scores_ties_go_to_the_lower_start(n, k, device):
     # integer scores: many ties, also across the K-th place, where topk keeps any of them
     from torchseq.seqslam.search import rank_scores
