@@ -1,0 +1,60 @@
+"""experiments/spiking_split.py: its stage-by-stage split ends at the two models it splits.
+
+The split (docs/results/nir.md, "Where the disagreement comes from") recomputes the pipeline
+with each stage as the spiking or as the rate model has it; its claims hold only if the
+all-spiking variant is the spiking model and the all-exact variant the rate model, frame for
+frame. Checked here on the tiny route of tests/test_spiking.py.
+"""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.test_spiking import tiny
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def split():
+    spec = importlib.util.spec_from_file_location("spiking_split",
+                                                  ROOT / "experiments" / "spiking_split.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def route(split):
+    model, demo, sp = tiny()  # levels=6
+    xr = model.encode(demo.reference).double()
+    xq = model.encode(demo.query).double()
+    rate = model.run(demo.query).matches.reference.numpy()
+    spiking = sp.run(demo.query)
+    return model, sp, xr, xq, rate, spiking
+
+
+def test_spiking_end_is_the_spiking_model(split, route):
+    model, sp, xr, xq, _rate, spiking = route
+    refs, fired = split.simulate(model, xr, xq, sp.calibration["theta2"], "fixed:fixed:ring:K6")
+    np.testing.assert_array_equal(refs, spiking["reference"].numpy())
+    np.testing.assert_array_equal(fired, spiking["l2_spikes"].numpy())
+
+
+def test_exact_end_is_the_rate_model(split, route):
+    model, sp, xr, xq, rate, _spiking = route
+    refs, fired = split.simulate(model, xr, xq, sp.calibration["theta2"], split.RATE)
+    np.testing.assert_array_equal(refs, rate)
+    assert (fired == model.config.k).all()  # the exact k-WTA keeps k units every frame
+
+
+def test_linear_threshold_folds_into_w1(split, route):
+    # the linear rule fires where x @ w1.T > b + x @ c: fitted on the reference midpoints, it
+    # keeps about k units there (a rule folded wrongly fires none or all)
+    model, sp, xr, xq, _rate, _spiking = route
+    code = split.l2_rule("linear0.001", xr, model.l1.folded_weight().double(), model.config.k,
+                         sp.calibration["theta2"])
+    fired = code(xr).sum(1).numpy()
+    assert abs(float(np.median(fired)) - model.config.k) <= 0.1 * model.config.k
