@@ -107,10 +107,14 @@ def report_figures(ref, query, gt, results: dict[str, EngineRun], curves: dict) 
 def log_tensorboard(s: Settings, out: Path, summary: dict,
                     results: dict[str, EngineRun], gt,
                     images: dict) -> None:
-    """Scalars, images, PR curves and the config in ``OUT/tensorboard``."""
-    from torch.utils.tensorboard import SummaryWriter
+    """Scalars, images, PR curves and the config in ``OUT/tensorboard``.
 
-    with SummaryWriter(log_dir=str(out / "tensorboard")) as tb:
+    torch's ``SummaryWriter``, its records checksummed in C where google-crc32c is installed
+    (:mod:`torchseq.cli.tensorboard_log`).
+    """
+    from torchseq.cli.tensorboard_log import summary_writer
+
+    with summary_writer(out / "tensorboard") as tb:
         tb.add_text("config", "```\n" + config_text(config_dict(s)) + "\n```")
         for name in results:
             for key, value in summary[name].items():
@@ -238,9 +242,9 @@ def log_training(cfg, ncfg: NeuralConfig, model: NeuralSeqSLAM,
         plots.save_figure(f, out / f"{k}.png")
     if not cfg.tensorboard:
         return
-    from torch.utils.tensorboard import SummaryWriter
+    from torchseq.cli.tensorboard_log import summary_writer
 
-    with SummaryWriter(log_dir=str(out / "tensorboard")) as tb:
+    with summary_writer(out / "tensorboard") as tb:
         text = config_text({"train": cfg, "model": ncfg})
         tb.add_text("config", "```\n" + text + "\n```")
         for k, img in images.items():
