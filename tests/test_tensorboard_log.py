@@ -110,11 +110,20 @@ def test_records_are_framed_as_tensorflow_frames_them(tmp_path, restore_kernel):
 
 
 def _plugin(acc, name):
-    """``{tag: content}`` of a plugin's summaries in the run, {} where it has none."""
+    """``{tag: content}`` of a plugin's summaries in the run, {} where it has none.
+
+    The hparams plugin's content parsed (its maps serialise in an order that varies from one
+    process to the next).
+    """
+    from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData
+
     try:
-        return acc.PluginTagToContent(name)
+        found = acc.PluginTagToContent(name)
     except KeyError:
         return {}
+    if name == "hparams":
+        return {tag: HParamsPluginData.FromString(c) for tag, c in found.items()}
+    return found
 
 
 def tensorboard_content(folder):
