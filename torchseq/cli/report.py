@@ -1,7 +1,7 @@
 """A run's report: metrics.json, matches.csv, PNG plots and TensorBoard logs.
 
-:func:`report` writes an eval run's files, :func:`log_training` a training run's figures and
-logs. Figures come from :mod:`torchseq.cli.plots`.
+:func:`report` writes an eval run's files, :func:`write_train_json` and :func:`log_training` a
+training run's ``train.json``, figures and logs. Figures come from :mod:`torchseq.cli.plots`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torchseq.cli.report_images as report_images
 from torchseq import metrics
 from torchseq.atomic import write_json, write_text
 from torchseq.cli.eval_settings import Settings, config_dict
-from torchseq.cli.results import EngineRun, EvalOutcome
+from torchseq.cli.results import EngineRun, EvalOutcome, TrainRun
 from torchseq.cli.run_warnings import warning_list
 from torchseq.cli.runs import Notes, config_text, mark_incomplete, to_jsonable
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
@@ -223,6 +223,17 @@ def summary_line(name: str, m: dict) -> str:
                  f"of queries")
     return (f"{text}, AUC {m['auc']:.3f} over {m['n_queries']} queries "
             f"({m['seconds']:.2f} s)")
+
+
+def write_train_json(run: TrainRun, notes: Notes, out: Path) -> dict:
+    """Write ``OUT/train.json``: the run's :meth:`TrainRun.reported` entries, then its warnings.
+
+    Returns:
+        What was written.
+    """
+    summary = {**run.reported(), "warnings": warning_list(notes)}
+    write_json(out / "train.json", summary)
+    return summary
 
 
 def log_training(cfg, ncfg: NeuralConfig, model: NeuralSeqSLAM,
