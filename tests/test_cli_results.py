@@ -42,3 +42,58 @@ def test_metrics_json_keeps_its_keys_and_the_report_gets_an_outcome(tmp_path, mo
     assert isinstance(outcome.engines["neural"], NeuralRun)
     assert outcome.metrics == written  # the report keeps what it wrote
     assert outcome.engines["neural"].reported()["model_bytes"] == written["neural"]["model_bytes"]
+
+
+# train.json of `torchseq train --demo-frames 40 --hidden 256 --n-output 40` on main (1427cd5)
+# before the train command handed its report a TrainRun: keys in order, and every value but the
+# timing and the git commit
+TRAIN_JSON = {
+    "reference": {"source": "demo", "demo_frames": 40, "demo_seed": 0, "n_frames": 40,
+                  "frame_size": [96, 128]},
+    "neural_preset": "default", "fit_seconds": None, "versions": None, "model_bytes": 1662304,
+    "seqslam_template_bytes": 81920, "n_units": 40, "self_check": 0.9, "warnings": []}
+
+
+def test_train_json_is_unchanged_and_written_from_a_train_run(tmp_path, monkeypatch):
+    import copy
+
+    import torchseq.cli.train as cli_train
+    from torchseq.cli.results import TrainRun
+    from torchseq.versions import versions
+
+    seen = []
+    write = cli_train.write_train_json
+
+    def spy(run, notes, out):
+        seen.append(copy.deepcopy(run))
+        return write(run, notes, out)
+
+    monkeypatch.setattr(cli_train, "write_train_json", spy)
+    out = tmp_path / "t"
+    code = run_main(cli_train.main, "train.py", [
+        "--demo-frames", "40", "--hidden", "256", "--n-output", "40", "--no-progress",
+        "--no-tensorboard", "--out", str(out)])
+    assert code == 0
+    text = (out / "train.json").read_text()
+    written = json.loads(text)
+    assert list(written) == list(TRAIN_JSON)
+    assert written["fit_seconds"] > 0 and written["versions"] == versions()
+    assert {**written, "fit_seconds": None, "versions": None} == TRAIN_JSON
+    first, last = seen  # after the fit, and again at the end (the export's verdict with --export)
+    assert isinstance(last, TrainRun) and last == first and last.export_passed is None
+    # every value comes from the object, in the file's layout
+    assert written == json.loads(json.dumps({**last.reported(), "warnings": []}))
+    assert written["fit_seconds"] == last.fit_seconds and written["n_units"] == last.n_units
+    assert text == json.dumps(written, indent=2) + "\n"  # the layout main wrote
+
+
+def test_train_run_reports_the_export_verdict_after_its_self_check():
+    from torchseq.cli.results import TrainRun
+
+    run = TrainRun(reference={"source": "demo"}, neural_preset="default", fit_seconds=1.5,
+                   versions={"torch": "x"}, model_bytes=10, seqslam_template_bytes=20,
+                   n_units=3, self_check=None)
+    assert list(run.reported()) == [k for k in TRAIN_JSON if k != "warnings"]
+    run.export_passed = False
+    assert list(run.reported())[-2:] == ["self_check", "export_passed"]
+    assert run.reported()["export_passed"] is False

@@ -184,3 +184,22 @@ def test_pr_legend_gives_auc_and_the_ring_matrix_its_axes():
 
     source = inspect.getsource(report.log_training)
     assert 'xlabel="from output unit (the current winner)"' in source
+
+
+def test_matches_csv_rows_equal_a_plain_writer():
+    """matches.csv against rows written here one field at a time (scores as %.6g of the
+    float32 value, the reference and score empty without a match, candidates past -1 cut)."""
+    from torchseq.cli.report import matches_csv
+    from torchseq.cli.results import EngineRun
+
+    score = torch.tensor([0.123456789, 1.5e-7, 2.0, 7.25], dtype=torch.float32)
+    m = Matches(torch.tensor([3, -1, 0, 2]), score, lower_is_better=True)
+    ranked = torch.tensor([[3, 1, 2], [-1, -1, -1], [0, 2, -1], [2, 3, 0]])
+    run = EngineRun(m, ranked, None, 0.0, {})
+    gt = np.zeros((4, 4), bool)
+    gt[3, 0] = gt[0, 2] = True  # query 0 -> 3 admitted; query 2 -> 0 admitted; 3 -> 2 not
+    want = ["engine,query,reference,score,correct,candidates",
+            "e,0,3,0.123457,1,3 1", "e,1,,,0,", "e,2,0,2,1,0 2", "e,3,2,7.25,0,2 3"]
+    assert matches_csv({"e": run}, gt, top_k=2).splitlines() == want
+    assert matches_csv({"e": run}, None, top_k=3).splitlines()[1:3] == ["e,0,3,0.123457,3 1 2",
+                                                                       "e,1,,,"]

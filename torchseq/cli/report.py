@@ -1,7 +1,7 @@
 """A run's report: metrics.json, matches.csv, PNG plots and TensorBoard logs.
 
-:func:`report` writes an eval run's files, :func:`log_training` a training run's figures and
-logs. Figures come from :mod:`torchseq.cli.plots`.
+:func:`report` writes an eval run's files, :func:`write_train_json` and :func:`log_training` a
+training run's ``train.json``, figures and logs. Figures come from :mod:`torchseq.cli.plots`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torchseq.cli.report_images as report_images
 from torchseq import metrics
 from torchseq.atomic import write_json, write_text
 from torchseq.cli.eval_settings import Settings, config_dict
-from torchseq.cli.results import EngineRun, EvalOutcome
+from torchseq.cli.results import EngineRun, EvalOutcome, TrainRun
 from torchseq.cli.run_warnings import warning_list
 from torchseq.cli.runs import Notes, config_text, mark_incomplete, to_jsonable
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
@@ -107,10 +107,14 @@ def report_figures(ref, query, gt, results: dict[str, EngineRun], curves: dict) 
 def log_tensorboard(s: Settings, out: Path, summary: dict,
                     results: dict[str, EngineRun], gt,
                     images: dict) -> None:
-    """Scalars, images, PR curves and the config in ``OUT/tensorboard``."""
-    from torch.utils.tensorboard import SummaryWriter
+    """Scalars, images, PR curves and the config in ``OUT/tensorboard``.
 
-    with SummaryWriter(log_dir=str(out / "tensorboard")) as tb:
+    torch's ``SummaryWriter``, its records checksummed in C where google-crc32c is installed
+    (:mod:`torchseq.cli.tensorboard_log`).
+    """
+    from torchseq.cli.tensorboard_log import summary_writer
+
+    with summary_writer(out / "tensorboard") as tb:
         tb.add_text("config", "```\n" + config_text(config_dict(s)) + "\n```")
         for name in results:
             for key, value in summary[name].items():
@@ -181,12 +185,14 @@ def matches_csv(results: dict[str, EngineRun], gt=None, top_k: int = 5) -> str:
         score = r.matches.score.cpu().numpy()
         good = metrics.correct(r.matches, gt) if gt is not None else None
         ranked = np.asarray(r.ranked.cpu() if torch.is_tensor(r.ranked) else r.ranked)
-        ranked = ranked.reshape(len(ref), -1)[:, :top_k]
-        for q, (i, s) in enumerate(zip(ref, score)):
-            row = [name, q, int(i) if i >= 0 else "", f"{s:.6g}" if i >= 0 else ""]
+        ranked = ranked.reshape(len(ref), -1)[:, :top_k].astype(np.int64).tolist()
+        good = None if good is None else good.astype(int).tolist()
+        # Python ints and floats (the same values, formatted alike): a row costs microseconds
+        for q, (i, s) in enumerate(zip(ref.astype(np.int64).tolist(), score.tolist())):
+            row = [name, q, i if i >= 0 else "", f"{s:.6g}" if i >= 0 else ""]
             if good is not None:
-                row.append(int(good[q]))
-            row.append(" ".join(str(int(c)) for c in ranked[q] if c >= 0))
+                row.append(good[q])
+            row.append(" ".join(str(c) for c in ranked[q] if c >= 0))
             w.writerow(row)
     return buf.getvalue()
 
@@ -221,6 +227,17 @@ def summary_line(name: str, m: dict) -> str:
             f"({m['seconds']:.2f} s)")
 
 
+def write_train_json(run: TrainRun, notes: Notes, out: Path) -> dict:
+    """Write ``OUT/train.json``: the run's :meth:`TrainRun.reported` entries, then its warnings.
+
+    Returns:
+        What was written.
+    """
+    summary = {**run.reported(), "warnings": warning_list(notes)}
+    write_json(out / "train.json", summary)
+    return summary
+
+
 def log_training(cfg, ncfg: NeuralConfig, model: NeuralSeqSLAM,
                  log: NeuralFitLog, out: Path) -> None:
     """Figures as PNG and, with TensorBoard on, scalars, images, histograms and the config."""
@@ -238,9 +255,9 @@ def log_training(cfg, ncfg: NeuralConfig, model: NeuralSeqSLAM,
         plots.save_figure(f, out / f"{k}.png")
     if not cfg.tensorboard:
         return
-    from torch.utils.tensorboard import SummaryWriter
+    from torchseq.cli.tensorboard_log import summary_writer
 
-    with SummaryWriter(log_dir=str(out / "tensorboard")) as tb:
+    with summary_writer(out / "tensorboard") as tb:
         text = config_text({"train": cfg, "model": ncfg})
         tb.add_text("config", "```\n" + text + "\n```")
         for k, img in images.items():

@@ -1,9 +1,11 @@
-"""What an eval run's engines hand to its report: typed results, not dicts keyed by strings.
+"""What a run hands to its report: typed results, not dicts keyed by strings.
 
-Each engine returns an :class:`EngineRun` (:class:`SeqSLAMRun`, :class:`NeuralRun`); the
-command bundles them with its inputs as an :class:`EvalOutcome`, which
-:func:`torchseq.cli.report.report` writes out. The files keep their keys: an engine's
-:meth:`EngineRun.reported` entries follow its metrics in ``metrics.json``.
+Each eval engine returns an :class:`EngineRun` (:class:`SeqSLAMRun`, :class:`NeuralRun`); the
+eval command bundles them with its inputs as an :class:`EvalOutcome`, which
+:func:`torchseq.cli.report.report` writes out. The train command hands a :class:`TrainRun` to
+:func:`torchseq.cli.report.write_train_json`. The files keep their keys: an engine's
+:meth:`EngineRun.reported` entries follow its metrics in ``metrics.json``, and
+:meth:`TrainRun.reported` is ``train.json`` but for its warnings.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from torchseq.cli.eval_settings import Settings
 from torchseq.cli.traverse import Traverse
 from torchseq.matches import Matches
 from torchseq.seqslam import SingleFrameResult
+from torchseq.versions import VERSIONS_KEY
 
 
 @dataclass
@@ -121,3 +124,46 @@ class EvalOutcome:
     out: Path
     single: SingleFrameResult | None = None
     metrics: dict | None = None
+
+
+@dataclass
+class TrainRun:
+    """A training run as ``train.json`` records it.
+
+    Attributes:
+        reference: what the reference was (``"source"``: ``"demo"`` with the demo's size and
+            seed, or the resolved path with the event options and frame selection), then its
+            ``"n_frames"`` and ``"frame_size"``.
+        neural_preset: the ``--neural-preset`` by its name.
+        fit_seconds: learning the reference.
+        versions: :func:`torchseq.versions.versions` of the run.
+        model_bytes: the model's size.
+        seqslam_template_bytes: SeqSLAM's templates for the same route (one byte a value).
+        n_units: output units the model recruited.
+        self_check: the model's recall on its own reference (None: not measured).
+        export_passed: ``--export``'s validation verdict; None before or without an export.
+    """
+
+    reference: dict
+    neural_preset: str | None
+    fit_seconds: float
+    versions: dict
+    model_bytes: int
+    seqslam_template_bytes: int
+    n_units: int
+    self_check: float | None
+    export_passed: bool | None = None
+
+    def reported(self) -> dict:
+        """``train.json`` but for its ``"warnings"``, in the file's order.
+
+        ``"export_passed"`` only once an export ran.
+        """
+        out = {"reference": self.reference, "neural_preset": self.neural_preset,
+               "fit_seconds": self.fit_seconds, VERSIONS_KEY: self.versions,
+               "model_bytes": self.model_bytes,
+               "seqslam_template_bytes": self.seqslam_template_bytes,
+               "n_units": self.n_units, "self_check": self.self_check}
+        if self.export_passed is not None:
+            out["export_passed"] = self.export_passed
+        return out

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torchseq.cli.help as cli_help
-from torchseq.atomic import write_json, write_text
+from torchseq.atomic import write_text
 from torchseq.cli.errors import UsageError
 from torchseq.cli.event_options import (
     EVENT_FIELDS,
@@ -39,8 +39,9 @@ from torchseq.cli.flags import (
 )
 from torchseq.cli.help import organise_help
 from torchseq.cli.presets import apply_preset, preset_help, preset_name
-from torchseq.cli.report import log_training
-from torchseq.cli.run_warnings import WarningLog, warning_list
+from torchseq.cli.report import log_training, write_train_json
+from torchseq.cli.results import TrainRun
+from torchseq.cli.run_warnings import WarningLog
 from torchseq.cli.runs import config_file_defaults, config_text, run_folder, run_main, to_jsonable
 from torchseq.demo import make_demo
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
@@ -221,13 +222,12 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
                                         "reference": reference, "self_check": log.self_check})
     write_text(out / "config.json", config_text({"train": cfg, "model": ncfg,
                                                  VERSIONS_KEY: versions()}) + "\n")
-    summary = {"reference": reference, "neural_preset": preset_name(cfg.neural_preset),
-               "fit_seconds": seconds, VERSIONS_KEY: versions(),
-               "model_bytes": int(model.model_bytes()),
-               "seqslam_template_bytes": seqslam_template_bytes(len(frames)),
-               "n_units": int(model.n_units),
-               "self_check": log.self_check}
-    write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
+    run = TrainRun(reference=reference, neural_preset=preset_name(cfg.neural_preset),
+                   fit_seconds=seconds, versions=versions(),
+                   model_bytes=int(model.model_bytes()),
+                   seqslam_template_bytes=seqslam_template_bytes(len(frames)),
+                   n_units=int(model.n_units), self_check=log.self_check)
+    write_train_json(run, notes, out)
     log_training(cfg, ncfg, model, log, out)
     print(f"trained on {len(frames)} reference frames in {seconds:.2f} s "
           f"({1e3 * seconds / len(frames):.2f} ms/frame); model {model.model_bytes()} bytes; "
@@ -243,8 +243,8 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
                                progress=cfg.progress)
         for line in summary_lines(out / "export"):
             print(f"export: {line}")
-        summary["export_passed"] = bool(ok)
-    write_json(out / "train.json", {**summary, "warnings": warning_list(notes)})
+        run.export_passed = bool(ok)
+    write_train_json(run, notes, out)
     if cfg.export and not ok:
         print(f"{PROG}: export validation failed, see {out / 'export' / 'validation.json'}",
               file=sys.stderr)
