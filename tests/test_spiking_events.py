@@ -22,7 +22,7 @@ from torchseq.preprocess import resize
 
 
 @lru_cache(maxsize=None)
-def tiny_events():
+def tiny_events(scale="global"):
     """A tiny model fitted on the count frames of simulated event windows of a demo route."""
     demo = make_demo(n_reference=40, size=(48, 64), seed=3)
     ref = windows_between_frames(demo.reference)  # (39, 2, 48, 64)
@@ -31,7 +31,7 @@ def tiny_events():
         unit_search="off", input_size=(8, 12), hidden=96, n_output=20))
     with coarse_units_expected(), pytest.warns(UserWarning):  # a tiny model: coarse units
         model.fit(count_frames(ref), log=False)
-    sp = EventSpikingSeqSLAM.convert_events(model, ref, SpikingConfig(levels=6))
+    sp = EventSpikingSeqSLAM.convert_events(model, ref, SpikingConfig(levels=6), scale=scale)
     return model, ref, qry, sp
 
 
@@ -70,8 +70,9 @@ def standin_loop(counts: np.ndarray, size, patch, scales):
     return out.reshape(-1)
 
 
-def block_std_median_loop(counts: np.ndarray, size, patch):
-    """1 / median over windows of each block's sample std (loops, NumPy's median)."""
+def block_std_median_loop(counts: np.ndarray, size, patch, scale):
+    """1 / median of the blocks' sample std: per block over windows ("patch") or over all
+    blocks of all windows, flat ones left out ("global"); loops, NumPy's std."""
     h, w = size
     frames = []
     for c in counts:
@@ -83,24 +84,33 @@ def block_std_median_loop(counts: np.ndarray, size, patch):
                 c0, c1 = math.floor(j * big_w / w), math.ceil((j + 1) * big_w / w)
                 img[i, j] = c[:, r0:r1, c0:c1].sum() / ((r1 - r0) * (c1 - c0))
         frames.append(img)
-    scales = []
+    stds = []  # per block: its std in every window
     for bi in range(0, h, patch):
         for bj in range(0, w, patch):
-            stds = [np.std(f[bi:bi + patch, bj:bj + patch], ddof=1) for f in frames]
-            # torch's median of an even count is the lower middle value
-            scales.append(1.0 / np.sort(stds)[(len(stds) - 1) // 2])
-    return np.array(scales)
+            stds.append([np.std(f[bi:bi + patch, bj:bj + patch], ddof=1) for f in frames])
+
+    def lower_median(v):  # torch's median of an even count is the lower middle value
+        return np.sort(v)[(len(v) - 1) // 2]
+
+    if scale == "global":
+        live = [v for block in stds for v in block if v > 0]
+        return np.full(len(stds), 1.0 / lower_median(live))
+    return np.array([1.0 / lower_median(block) for block in stds])
 
 
 class TestStandIn:
-    def test_block_scales_are_the_reference_median_std(self):
-        model, ref, qry, sp = tiny_events()
-        want = block_std_median_loop(ref.double().numpy(), (8, 12), 4)
+    @pytest.mark.parametrize("scale", ["global", "patch"])
+    def test_block_scales_are_the_reference_median_std(self, scale):
+        model, ref, qry, sp = tiny_events(scale)
+        want = block_std_median_loop(ref.double().numpy(), (8, 12), 4, scale)
         got = np.array(sp.calibration["event_input"]["block_scales"])
+        assert sp.calibration["event_input"]["scale"] == scale
         np.testing.assert_allclose(got, want, rtol=1e-9)
+        assert (scale == "global") == (len(set(got.tolist())) == 1)
 
-    def test_folded_l1_is_w1_over_theta2_times_the_loop_standin(self):
-        model, ref, qry, sp = tiny_events()
+    @pytest.mark.parametrize("scale", ["global", "patch"])
+    def test_folded_l1_is_w1_over_theta2_times_the_loop_standin(self, scale):
+        model, ref, qry, sp = tiny_events(scale)
         scales = np.array(sp.calibration["event_input"]["block_scales"])
         w1 = model.l1.folded_weight().double().numpy() / sp.calibration["theta2"]
         for t in (0, 7, 20):
@@ -181,6 +191,8 @@ class TestBadInput:
         bad[3, 0, 0, 0] = -2
         with pytest.raises(SpikingError, match=">= 0"):
             EventSpikingSeqSLAM.convert_events(model, bad)
+        with pytest.raises(SpikingError, match="scale must be one of"):
+            EventSpikingSeqSLAM.convert_events(model, ref, scale="std")
         for cfg in (SpikingConfig(weight_bits=8), SpikingConfig(input_threshold=0.5)):
             with pytest.raises(SpikingError, match="no quantised or thresholded-input form"):
                 EventSpikingSeqSLAM.convert_events(model, ref, cfg)

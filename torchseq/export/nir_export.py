@@ -20,6 +20,9 @@ Edges: ``input -> l1 -> l2 -> l3 -> levels -> ring -> {shift, output}`` and
 joins again: Norse's importer (nirtorch's ``GraphExecutor``) runs nodes in depth-first
 order, so a second feed-forward path into ``levels`` would reach it one step late; that is
 why the cohort centring is folded into ``l3`` (dense) and not kept as a mean unit.
+A model with event input (:class:`~torchseq.neural.spiking_events.EventSpikingSeqSLAM`)
+has ``input`` ``(2 H W,)`` (one window's event counts) and a ``pool`` Linear ``(D, 2 H W)``
+before ``l1``: ``input -> pool -> l1`` (:func:`event_input_nodes`; ``sensor`` in metadata).
 The graph's ``metadata`` carries ``dt`` (the time step the time constants are written
 for), the unit layout, each unit's reference frame, the calibration and the k-WTA
 approximation with its reason. ``nir`` is an optional dependency (``torchseq[nir]``).

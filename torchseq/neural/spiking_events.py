@@ -15,18 +15,22 @@ stays one NIR graph:
 2. the linear stand-in for the patch z-score, folded into L1: ``x = S C diag(1 / n) p``
    with ``p`` the pooled counts, ``n`` each cell's pixels (so ``diag(1 / n) p`` is the
    resized count frame exactly), ``C`` the subtraction of each ``patch x patch`` block's
-   mean (linear: exact) and ``S`` one scale per block in place of the division by the block's
-   own std (not linear): ``1 /`` the median of that block's std over the **reference
-   windows** (calibration only; a block flat on every reference window takes the median
-   of the others). The graph's ``l1`` is ``W1 S C diag(1 / n) / theta2`` (exact in real
-   arithmetic; in float32 the folded weights are rounded once, and torchseq runs those same
-   weights, so the consumers agree spike for spike).
+   mean (linear: exact) and ``S`` a scale in place of the division by each block's own std
+   (not linear), calibrated on the **reference windows** only (:func:`block_scales`):
+   ``"global"`` (default) one scale, 1 / the median block std; ``"patch"`` one per block,
+   1 / the median of that block's std (measured worse on nordland-b:
+   ``docs/results/spiking-events.md``). A global scale only rescales the L1 sums, which
+   ``theta2`` absorbs: the default stand-in is the centring alone. The graph's ``l1`` is
+   ``W1 S C diag(1 / n) / theta2`` (exact in real arithmetic; in float32 the folded weights
+   are rounded once, and torchseq runs those same weights, so the consumers agree spike for
+   spike).
 
 Everything after L1 (the L2 threshold, the evidence scales, the ring ladder) is calibrated by
 :meth:`SpikingSeqSLAM.convert` itself on the stand-in's encoding of the reference windows:
 the one calibration, so a change there flows through here. What the stand-in loses: the
 z-score normalises every window by its own contrast; the fixed scale does not, so a window
-with twice the events drives L1 twice as hard (``docs/guide/nir.md``, "Event input").
+with twice the events drives L1 twice as hard (``docs/guide/nir.md``, "Camera events into
+L1").
 """
 
 from __future__ import annotations
@@ -107,25 +111,39 @@ def block_centring(size: tuple[int, int], patch: int) -> torch.Tensor:
     return torch.eye(h * w, dtype=torch.float64) - same / (patch * patch)
 
 
-def block_scales(frames: torch.Tensor, patch: int) -> torch.Tensor:
-    """Per-pixel scale ``(D,)``: 1 / the median over frames of its block's sample std.
+SCALES = ("global", "patch")
+
+
+def block_scales(frames: torch.Tensor, patch: int, scale: str = "global") -> torch.Tensor:
+    """Per-pixel scale ``(D,)`` standing in for the division by each block's own std.
+
+    ``"global"``: one scale, 1 / the median of every block's sample std over all reference
+    windows (blocks flat in a window left out). ``"patch"``: one scale per block, 1 / the
+    median of that block's std over the windows (a block flat on every window takes the
+    global median).
 
     Args:
         frames: ``(R, h, w)`` float64 resized count frames of the reference windows.
         patch: block side.
+        scale: ``"global"`` or ``"patch"``.
 
     Raises:
-        SpikingError: every block flat on every reference window.
+        SpikingError: an unknown ``scale``, or every block flat on every reference window.
     """
+    if scale not in SCALES:
+        raise SpikingError(f"scale must be one of {SCALES}, got {scale!r}")
     r, h, w = frames.shape
     blocks = frames.reshape(r, h // patch, patch, w // patch, patch).permute(0, 1, 3, 2, 4)
     std = blocks.reshape(r, h // patch, w // patch, -1).std(-1)  # (R, bh, bw), n - 1
-    med = std.median(0).values  # (bh, bw)
-    live = med[med > 0]
+    live = std[std > 0]
     if live.numel() == 0:
         raise SpikingError("the reference windows hold no events (or only flat blocks): "
                            "nothing to calibrate the input scale on")
-    med = torch.where(med > 0, med, live.median())
+    overall = live.median()
+    if scale == "global":
+        return torch.full((h * w,), 1.0 / float(overall), dtype=torch.float64)
+    med = std.median(0).values  # (bh, bw)
+    med = torch.where(med > 0, med, overall)
     per_pixel = med.repeat_interleave(patch, 0).repeat_interleave(patch, 1)  # (h, w)
     return 1.0 / per_pixel.reshape(-1)
 
@@ -170,7 +188,8 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
     @classmethod
     @torch.no_grad()
     def convert_events(cls, model, reference: torch.Tensor,
-                       config: SpikingConfig | None = None) -> EventSpikingSeqSLAM:
+                       config: SpikingConfig | None = None,
+                       scale: str = "global") -> EventSpikingSeqSLAM:
         """Convert a fitted rate model for event input, calibrating on the reference windows.
 
         Args:
@@ -180,12 +199,17 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
             reference: ``(R, 2, H, W)`` event counts of the reference windows, ``R >= 2``.
             config: :class:`SpikingConfig` (None: defaults); ``weight_bits`` and
                 ``input_threshold`` must be None (not yet with event input).
+            scale: the stand-in for the z-score's division (:func:`block_scales`):
+                ``"global"`` (default: one scale; measured better than ``"patch"`` on
+                nordland-b, docs/results/spiking-events.md) or ``"patch"``.
 
         Raises:
             SpikingError: bad counts, a sensor smaller than the model's input, a patch mode
                 or config without an event form, or :meth:`SpikingSeqSLAM.convert`'s errors.
         """
         cfg = config or SpikingConfig()
+        if scale not in SCALES:
+            raise SpikingError(f"scale must be one of {SCALES}, got {scale!r}")
         if cfg.weight_bits is not None or cfg.input_threshold is not None:
             raise SpikingError("event input has no quantised or thresholded-input form yet: "
                                "use weight_bits=None and input_threshold=None")
@@ -204,10 +228,10 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
         counts = check_counts(reference, sensor)  # (R, 2 H W)
         resized = (counts.double() @ pool.double().T) / cells  # (R, D): the count frames
         if patch:
-            scale = block_scales(resized.reshape(-1, *size), patch)
-            linear = scale[:, None] * block_centring(size, patch)
+            scales = block_scales(resized.reshape(-1, *size), patch, scale)
+            linear = scales[:, None] * block_centring(size, patch)
         else:
-            scale = None
+            scales = None
             linear = torch.eye(len(cells), dtype=torch.float64)
         linear = linear / cells[None, :]  # (D, D): pooled counts -> the stand-in of encode
 
@@ -219,10 +243,9 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
         calibration = {**sp.calibration, "event_input": {
             "sensor": list(sensor), "input_size": list(size), "patch": int(patch),
             "reference_windows": int(reference.shape[0]),
-            "scale": "1 / median over reference windows of each block's std"
-                     if patch else "none (no patch normalisation)",
-            "block_scales": None if scale is None else
-            [float(v) for v in scale.reshape(size)[::patch, ::patch].reshape(-1)]}}
+            "scale": scale if patch else "none (no patch normalisation)",
+            "block_scales": None if scales is None else
+            [float(v) for v in scales.reshape(size)[::patch, ::patch].reshape(-1)]}}
         return cls(w1, sp.w3, sp.inv_theta, sp.rung_step, sp.shift, sp.unit_centre, sp.window,
                    calibration, None, shift_dense=sp.shift_dense, pool=pool, sensor=sensor)
 
