@@ -142,6 +142,15 @@ class TestStandIn:
         med = float(run["l2_spikes"].median())
         assert abs(med - model.config.k) <= 1, (med, model.config.k)
 
+    def test_run_reports_the_windows_events_and_their_synapses(self):
+        model, ref, qry, sp = tiny_events()
+        run = sp.run(qry[:5])
+        torch.testing.assert_close(run["input_events"], qry[:5].sum((1, 2, 3)))
+        # each event reaches the pool cells of its pixel; every l1 synapse carries the pool
+        fan = (sp.pool != 0).sum(0).float()
+        want = qry[:5].reshape(5, -1) @ fan + float((sp.w1 != 0).sum())
+        torch.testing.assert_close(run["chip_ops"]["input"], want)
+
     def test_batched_windows_equal_single_streams(self):
         model, ref, qry, sp = tiny_events()
         both = torch.stack([qry[:12], qry[12:24]], 1)  # (T, 2 streams, 2, H, W)

@@ -268,6 +268,15 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
         """The graph's input: checked counts ``(T, 2, H, W)`` -> ``(T, 2 H W)`` float32."""
         return check_counts(frames, self.sensor)
 
+    @torch.no_grad()
+    def run(self, query: torch.Tensor, encoded: bool = False, raster: bool = False) -> dict:
+        """:meth:`SpikingSeqSLAM.run` over event windows ``(T, 2, H, W)`` (or ``(T, 2 H W)``).
+
+        ``"input_events"`` ``(T,)`` is each window's event count.
+        """
+        x = self.encode(query)
+        return {**super().run(x, encoded=True, raster=raster), "input_events": x.sum(1)}
+
     def _input_ops(self, x: torch.Tensor | None, batch: int) -> torch.Tensor:
         # each event reaches its pool cells; the pooled values drive every L1 synapse
         dense = self.w1.new_full((batch,), self._synapses_l1)
