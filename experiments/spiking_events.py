@@ -13,9 +13,9 @@ Data (``../shared/data``):
   Ground truth: the exact frame (``lens``) and +-2 frames (``lens+-2``).
 - ``nordland``: the first ``--places`` places of nordland-b, summer reference, winter query;
   events from torchseq's simulator (``frames_to_events``, contrast threshold 0.2, 10 places
-  a second) between consecutive places, one window per pair (``windows_between_frames``):
-  window ``t`` holds the events from place ``t`` to ``t + 1`` and is scored against the
-  reference windows by index within +-2.
+  a second, ``simulate_run``) over each traverse, one window per pair of consecutive places
+  (``EventRun.windows``): window ``t`` holds the events from place ``t`` to ``t + 1`` and is
+  scored against the reference windows by index within +-2.
 
 Per seed of the rate model (``NeuralConfig(seed=s)``, fitted on the reference windows' count
 frames: both polarities summed, i.e. the events accumulated on the host): recall@1 of the
@@ -48,13 +48,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchseq.atomic import write_json, write_text  # noqa: E402
+from torchseq.events import simulate_run  # noqa: E402
 from torchseq.metrics import recall_at_k  # noqa: E402
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
 from torchseq.neural.spiking import SpikingSeqSLAM  # noqa: E402
 from torchseq.neural.spiking_events import (  # noqa: E402
     EventSpikingSeqSLAM,
     count_frames,
-    windows_between_frames,
 )
 from torchseq.sources import load_traverse  # noqa: E402
 
@@ -75,6 +75,16 @@ def lens() -> dict:
     return {"events": (on(ref), on(qry)), "gt": {"lens": gt, "lens+-2": within(100, 100, 2)}}
 
 
+FPS = 10.0  # places a second: one window per pair of consecutive places
+WINDOW_US = int(1e6 / FPS)
+
+
+def event_run(frames: torch.Tensor) -> torch.Tensor:
+    """Simulated windows ``(T - 1, 2, H, W)`` of one traverse (window ``t``: places t, t + 1)."""
+    run = simulate_run(frames, np.arange(len(frames)), 1.0, FPS)
+    return run.windows(len(frames) - 1, WINDOW_US)
+
+
 def nordland(places: int) -> dict:
     root = DATA / "nordland-b"
     ref = load_traverse(root / "summer", progress=False)[:places].float()
@@ -83,9 +93,11 @@ def nordland(places: int) -> dict:
         from torchseq.preprocess import to_grey
 
         ref, qry = to_grey(ref), to_grey(qry)
-    ev = (windows_between_frames(ref), windows_between_frames(qry))
+    ev_ref, ev_qry = event_run(ref), event_run(qry)
+    # by index: both runs' window t is centred on place t + 0.5 (runs.ground_truth on the
+    # float window positions would drop pairs 2 apart whose difference rounds above 2)
     n = places - 1
-    return {"events": ev, "gt": {f"nordland {places}+-2": within(n, n, 2)},
+    return {"events": (ev_ref, ev_qry), "gt": {f"nordland {places}+-2": within(n, n, 2)},
             "intensity": (ref[1:], qry[1:])}
 
 

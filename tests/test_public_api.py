@@ -97,8 +97,7 @@ PUBLIC = {
                                         "pow2_rows"],
     "torchseq.export.nir_validate": ["calibration_frames", "export_nir"],
     "torchseq.neural.spiking_events": ["EventSpikingSeqSLAM", "pool_matrix", "check_counts",
-                                       "block_centring", "block_scales",
-                                       "windows_between_frames", "count_frames"],
+                                       "block_centring", "block_scales", "count_frames"],
     "torchseq.cli.plots": [
         "figure_to_array", "plot_activity_raster", "plot_difference_matrix", "plot_matched_pairs",
         "plot_matrix", "plot_pr_curves", "save_figure",

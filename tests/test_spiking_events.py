@@ -10,15 +10,42 @@ import torch
 
 from tests.conftest import coarse_units_expected, shared_data
 from torchseq.demo import make_demo
+from torchseq.events import simulate_run
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.neural.spiking import SpikingConfig, SpikingError
 from torchseq.neural.spiking_events import (
     EventSpikingSeqSLAM,
     count_frames,
     pool_matrix,
-    windows_between_frames,
 )
 from torchseq.preprocess import resize
+
+
+def windows_between_frames(frames, fps=10.0):
+    """Simulated events (one camera over the whole sequence), one window per frame interval."""
+    run = simulate_run(frames, np.arange(len(frames)), 1.0, fps)
+    return run.windows(len(frames) - 1, int(1e6 / fps))
+
+
+def test_run_windows_bin_every_event_by_its_time():
+    demo = make_demo(n_reference=12, size=(24, 32), seed=1)
+    run = simulate_run(demo.reference, np.arange(12), 1.0, 10.0)
+    got = run.windows(11, 100_000)
+    ev = run.stream.events
+    want = np.zeros((11, 2, 24, 32))
+    k = np.minimum(ev["t"] // 100_000, 10)  # a crossing on the last frame's time: last window
+    np.add.at(want, (k, ev["p"].astype(np.int64), ev["y"], ev["x"]), 1)
+    assert len(ev) > 1000 and got.sum() == len(ev)
+    np.testing.assert_array_equal(got.numpy(), want)
+    # hand-made: an event on the last frame's time (t = 200 ms of 2 windows) joins window 1
+    from torchseq.events import EventRun, EventStream, make_events
+
+    made = EventRun(EventStream(make_events(np.array([0, 150_000, 200_000]), np.array([0, 1, 2]),
+                                            np.array([0, 0, 1]), np.array([1, 0, 1])), (3, 2)),
+                    1.0, 10.0)
+    w = made.windows(2, 100_000)
+    assert w.shape == (2, 2, 2, 3) and w.sum() == 3
+    assert w[0, 1, 0, 0] == 1 and w[1, 0, 0, 1] == 1 and w[1, 1, 1, 2] == 1
 
 
 @lru_cache(maxsize=None)

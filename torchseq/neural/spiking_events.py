@@ -283,40 +283,6 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
         return dense if x is None else dense + x.reshape(batch, -1) @ self._fan_events
 
 
-def windows_between_frames(frames: torch.Tensor, fps: float = 10.0,
-                           **simulator) -> torch.Tensor:
-    """Simulated event windows of a frame sequence: one window per pair of consecutive frames.
-
-    :func:`torchseq.events.simulator.frames_to_events` over the whole sequence (one camera,
-    its log-intensity reference carried along), then :func:`torchseq.events.accumulate`
-    (``"two_channel"``, windows of one frame interval from time 0). Window ``t`` holds the
-    events between frames ``t`` and ``t + 1``; an event on the last frame's time (a crossing
-    at the end of the last interval) is counted in the last window.
-
-    Args:
-        frames: ``(T, H, W)`` intensities 0..255 (grey), ``T >= 2``.
-        fps: frame rate (sets the window length ``1 / fps``).
-        **simulator: further arguments of ``frames_to_events`` (``contrast_threshold``...).
-
-    Returns:
-        ``(T - 1, 2, H, W)`` float32 counts (channel 0 OFF, 1 ON).
-    """
-    from torchseq.events import accumulate
-    from torchseq.events.simulator import frames_to_events
-
-    t, h, w = frames.shape
-    events = frames_to_events(frames, fps=fps, **simulator)
-    out = torch.zeros(t - 1, 2, h, w)
-    if len(events.events) == 0:
-        return out
-    c = accumulate(events, window_us=int(round(1e6 / fps)), mode="two_channel", anchor="zero")
-    n = min(t - 1, c.shape[0])
-    out[:n] = c[:n]
-    if c.shape[0] > t - 1:
-        out[t - 2] += c[t - 1:].sum(0)
-    return out
-
-
 def count_frames(counts: torch.Tensor) -> torch.Tensor:
     """``(T, 2, H, W)`` counts -> ``(T, H, W)`` count frames (both polarities summed).
 
