@@ -215,6 +215,8 @@ class TestBadInput:
 
     def test_bad_conversions_raise_spiking_error(self):
         model, ref, qry, sp = tiny_events()
+        with pytest.raises(SpikingError, match=r"a 720x1280 sensor .* downsample"):
+            pool_matrix((720, 1280), (24, 32))  # a Prophesee HD sensor: 1.4 G weights
         with pytest.raises(SpikingError, match="smaller than the model's input"):
             EventSpikingSeqSLAM.convert_events(model, ref[:, :, :6, :6])
         with pytest.raises(SpikingError, match=r"\(R, 2, H, W\)"):

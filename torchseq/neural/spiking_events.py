@@ -42,6 +42,9 @@ import torch
 
 from torchseq.neural.spiking import SpikingConfig, SpikingError, SpikingSeqSLAM
 
+# the dense (D, 2 H W) pool: 2**27 float32 weights = 512 MiB (a DVS128 onto 24 x 32: 25 M)
+MAX_POOL_ELEMENTS = 2**27
+
 
 def pool_matrix(sensor: tuple[int, int],
                 size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,6 +66,11 @@ def pool_matrix(sensor: tuple[int, int],
     if h > big_h or w > big_w:
         raise SpikingError(f"the sensor {big_h}x{big_w} is smaller than the model's input "
                            f"{h}x{w}: event input pools down only")
+    if h * w * 2 * big_h * big_w > MAX_POOL_ELEMENTS:
+        raise SpikingError(f"a {big_h}x{big_w} sensor onto a {h}x{w} input needs a pool "
+                           f"matrix of {h * w * 2 * big_h * big_w:,} weights (at most "
+                           f"{MAX_POOL_ELEMENTS:,}): bin the events onto a smaller grid first "
+                           f"(torchseq.events.accumulate(..., downsample=(H', W')))")
     rows = np.zeros((h, big_h), dtype=np.float32)
     cols = np.zeros((w, big_w), dtype=np.float32)
     for out, n_out, n_in in ((rows, h, big_h), (cols, w, big_w)):
