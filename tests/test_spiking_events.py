@@ -350,3 +350,26 @@ def test_consumer_agrees_on_lens_event_windows(name, tmp_path):
     write_nir(sp, path)
     rep = compare(sp, path, sp.encode(as_events(qry)), consumers=(name,), segment=16)[name]
     assert rep["agreement"] == 1.0 and rep["spike_agreement"] == 1.0, rep["differing_frames"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["snntorch", "norse"])
+def test_consumer_agrees_on_a_dvs128_recording(name, tmp_path):
+    """Real camera events: the DVS128 recording in 100 ms windows (no second traverse, so no
+    recall: the first 34 windows are the reference, the other 35 the query)."""
+    from torchseq.events import accumulate, read_events
+    from torchseq.export.nir_consumers import available, compare
+
+    if available()[name] is not None:
+        pytest.skip(available()[name])
+    stream = read_events(shared_data("events", "alex_walking_again.aedat"))
+    windows = accumulate(stream, window_us=100_000, mode="two_channel")  # (69, 2, 128, 128)
+    ref, qry = windows[:34], windows[34:]
+    model = NeuralSeqSLAM(NeuralConfig())
+    model.fit(count_frames(ref), log=False)
+    sp = EventSpikingSeqSLAM.convert_events(model, ref)
+    path = tmp_path / "dvs128.nir"
+    graph = write_nir(sp, path)
+    np.testing.assert_array_equal(graph.metadata["sensor"], [128, 128])
+    rep = compare(sp, path, sp.encode(qry), consumers=(name,), segment=16)[name]
+    assert rep["agreement"] == 1.0 and rep["spike_agreement"] == 1.0, rep["differing_frames"]
