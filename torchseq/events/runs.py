@@ -14,7 +14,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
+from torchseq.events.frames import accumulate
 from torchseq.events.simulator import frames_to_events
 from torchseq.events.stream import EventStream
 
@@ -36,6 +38,25 @@ class EventRun:
     def window_positions(self, n_windows: int, window_us: int) -> np.ndarray:
         """``(n_windows,)`` route position at the centre of each window."""
         return (np.arange(n_windows) + 0.5) * window_us * 1e-6 * self.speed * self.units_per_s
+
+    def windows(self, n_windows: int, window_us: int) -> torch.Tensor:
+        """Event counts of the first ``n_windows`` windows from time 0, ``(n, 2, H, W)``.
+
+        :func:`~torchseq.events.accumulate` (``"two_channel"``: channel 0 OFF, 1 ON,
+        ``anchor="zero"``); events after the last window (a threshold crossing on the last
+        frame's time) are counted in the last one, so a run of ``T`` frames one window apart
+        gives ``T - 1`` windows holding every event. Float32.
+        """
+        w, h = self.stream.sensor_size
+        out = torch.zeros(n_windows, 2, h, w)
+        if len(self.stream) == 0 or n_windows < 1:
+            return out
+        c = accumulate(self.stream, window_us=window_us, mode="two_channel", anchor="zero")
+        n = min(n_windows, c.shape[0])
+        out[:n] = c[:n]
+        if c.shape[0] > n_windows:
+            out[n_windows - 1] += c[n_windows:].sum(0)
+        return out
 
 
 def simulate_run(frames: np.ndarray, positions: np.ndarray, speed: float, units_per_s: float,

@@ -20,6 +20,9 @@ Edges: ``input -> l1 -> l2 -> l3 -> levels -> ring -> {shift, output}`` and
 joins again: Norse's importer (nirtorch's ``GraphExecutor``) runs nodes in depth-first
 order, so a second feed-forward path into ``levels`` would reach it one step late; that is
 why the cohort centring is folded into ``l3`` (dense) and not kept as a mean unit.
+A model with event input (:class:`~torchseq.neural.spiking_events.EventSpikingSeqSLAM`)
+has ``input`` ``(2 H W,)`` (one window's event counts) and a ``pool`` Linear ``(D, 2 H W)``
+before ``l1``: ``input -> pool -> l1`` (:func:`event_input_nodes`; ``sensor`` in metadata).
 The graph's ``metadata`` carries ``dt`` (the time step the time constants are written
 for), the unit layout, each unit's reference frame, the calibration and the k-WTA
 approximation with its reason. ``nir`` is an optional dependency (``torchseq[nir]``).
@@ -120,7 +123,37 @@ def to_nir(spiking, dt: float = DT):
                   f"spikes: ON/OFF events, ON where the encoded pixel > {spiking.input_threshold}"
                   f", OFF where < -{spiking.input_threshold} (2 D channels: ON then OFF)"),
     }
+    if getattr(spiking, "sensor", None) is not None:  # event input: input -> pool -> l1
+        nodes, edges, meta = event_input_nodes(nir, spiking, nodes, edges, meta)
     return nir.NIRGraph(nodes=nodes, edges=edges, metadata=meta)
+
+
+def event_input_nodes(nir, spiking, nodes: dict, edges: list, meta: dict):
+    """The graph's input stage for event input (:mod:`torchseq.neural.spiking_events`).
+
+    ``input`` becomes the ``2 H W`` event counts of one window (``(2, H, W)`` channel-major,
+    channel 0 OFF, 1 ON, flattened), ``pool`` a Linear ``(D, 2 H W)`` of 0/1 sum-pooling
+    weights onto the model's input grid, and ``l1`` (already the folded
+    ``W1 S C diag(1 / n) / theta2``) reads ``pool``. Linear nodes only: snnTorch, Norse and
+    nir 1.0.4 read them. The metadata gains ``sensor`` ``[H, W]`` and the stage's words.
+
+    Returns:
+        ``(nodes, edges, meta)``, new objects.
+    """
+    h, w = spiking.sensor
+    n_in = int(spiking.pool.shape[1])
+    nodes = {"input": nir.Input(input_type={"input": np.array([n_in])}),
+             "pool": nir.Linear(weight=_f32(spiking.pool)),
+             **{k: v for k, v in nodes.items() if k != "input"}}
+    edges = [("input", "pool"), ("pool", "l1")] + [e for e in edges if e != ("input", "l1")]
+    size = spiking.calibration.get("event_input", {}).get("input_size")
+    meta = {**meta, "sensor": np.array([h, w], dtype=np.int64),
+            "input": (f"spikes: event counts of one time window from a {h}x{w} sensor, "
+                      f"{n_in} values (2, H, W) channel-major, channel 0 OFF, 1 ON; one step "
+                      f"per window; pool sums both polarities onto the {size} input grid, "
+                      f"l1 holds the patch centring and a per-block scale calibrated on the "
+                      f"reference windows (the linear stand-in of the patch z-score)")}
+    return nodes, edges, meta
 
 
 def quantisation_metadata(spiking) -> dict:
