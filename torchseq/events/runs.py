@@ -79,5 +79,14 @@ def simulate_run(frames: np.ndarray, positions: np.ndarray, speed: float, units_
 
 def ground_truth(reference_positions: np.ndarray, query_positions: np.ndarray,
                  tolerance: float) -> np.ndarray:
-    """``(R, Q)`` bool: reference window within ``tolerance`` route units of the query's."""
-    return np.abs(reference_positions[:, None] - query_positions[None, :]) <= tolerance
+    """``(R, Q)`` bool: reference window within ``tolerance`` route units of the query's.
+
+    Positions are products of floats (:meth:`EventRun.window_positions`), so two windows
+    exactly ``tolerance`` apart can differ by a rounding more: differences within a few ulps
+    of the positions' magnitude above ``tolerance`` count as within it.
+    """
+    r = np.asarray(reference_positions, dtype=np.float64)
+    q = np.asarray(query_positions, dtype=np.float64)
+    scale = max(float(np.abs(r).max(initial=0.0)), float(np.abs(q).max(initial=0.0)), 1.0)
+    slack = 16 * np.finfo(np.float64).eps * scale
+    return np.abs(r[:, None] - q[None, :]) <= tolerance + slack
