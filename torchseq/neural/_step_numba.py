@@ -9,8 +9,9 @@ arithmetic it repeats, operation for operation, so the two give the same bits:
    :func:`torchseq.preprocess.zscore_pixel_major` (its sums run over a block's pixels first
    to last), then ``rint(z * steps)`` as in ``NeuralInference.evidence``;
 2. the L1 product as an int8 GEMV with int32 sums: the integers of the ``int8_gemm`` kernel
-   (L1 weights ``n * 2**e``, ``|n| <= 64``, so the float32 product is these sums times one
-   power of two, exactly: every partial sum stays below ``2**24`` units);
+   (L1 weights ``n * 2**e``, ``|n| <= 64``, inputs on a power-of-two grid, so the float32
+   product is these sums times one power of two, exactly: ``NeuralInference`` offers this
+   kernel only where every partial sum stays below ``2**24`` units);
 3. k-WTA on those integer sums: the ``k``-th largest value ``v``; winners are the entries
    ``> v`` and the lowest-index entries ``== v`` until there are ``k`` (``kwta``'s tie rule);
 4. the L3 evidence as the sum of the winners' rows in ascending index order

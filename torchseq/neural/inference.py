@@ -40,7 +40,8 @@ Stages and kernels:
 integer grids and oneDNN reproduces the float products on a check batch (else float32 and
 the embedding-bag), the NumPy partition, the banded ring, NumPy scan and read-out, and
 ``"stages_or_numba"`` for the step where numba is installed, the model fits the compiled
-pass (integer grids, one cohort, banded ring, centre read-out, no unit search, fixed ring:
+pass (integer L1 grids with ``input_steps`` a power of two, so that the float32 product is
+exact, one cohort, banded ring, centre read-out, no unit search, fixed ring:
 ``NeuralInference._numba_fits``) and no stage kernel of the step is asked by name; on other
 devices the torch kernels. ``"portable"`` is plain torch float32 throughout (what the float
 ONNX graph is traced from). A dict overrides single stages.
@@ -260,8 +261,9 @@ class NeuralInference(nn.Module):
                                   "elsewhere")
             if not self._numba_fits():
                 raise NeuralError(f"the {out['step']!r} step kernel needs the integer L1 grids "
-                                  "(input_steps > 0, patch_mode 'zscore'), one cohort, a banded "
-                                  "ring, the centre read-out, no unit search and a fixed ring")
+                                  "(input_steps a power of two, patch_mode 'zscore'), one "
+                                  "cohort, a banded ring, the centre read-out, no unit search "
+                                  "and a fixed ring")
         return out
 
     def _numba_fits(self) -> bool:
@@ -286,7 +288,9 @@ class NeuralInference(nn.Module):
             return
         n1, step1 = l1  # columns to block-major order: the input order
         n1 = n1[:, block_order(*cfg.input_size, cfg.patch_size)].contiguous()
-        self.w1_i8 = n1.numpy()  # (M, K) int8: the compiled step's L1 (rows contiguous)
+        if (steps & (steps - 1) == 0  # 1/steps a power of two, and every float32 partial sum
+                and n1.shape[1] * 127 * int(n1.abs().max()) < 2**24):  # exact: same winners
+            self.w1_i8 = n1.numpy()  # (M, K) int8: the compiled step's L1 (rows contiguous)
         self.l1_int8 = Int8Linear.create(n1, torch.full((n1.shape[0],), step1), 1.0 / steps, 128)
         self.l3_int8 = Int8Linear.create(*l3, 1.0, 0, x_max=1)  # the binary k-WTA code
 
