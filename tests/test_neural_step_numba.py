@@ -154,3 +154,18 @@ def test_ties_at_the_maximum_go_to_the_first_unit(route):
     assert int(top.sum()) > 1  # the case this test is for
     assert torch.equal(out.reference, want.reference)
     assert int(out.reference) == int(model.unit_centre[int(top.nonzero()[0])])
+
+
+def test_without_numba_auto_runs_the_stages_quietly(route, monkeypatch, recwarn):
+    """numba absent: auto falls back to the stage kernels with no warning; asking fails."""
+    from torchseq.neural import inference as I
+
+    monkeypatch.setattr(I, "numba_available", lambda: False)
+    model = small_model(route)
+    inf = model.inference()
+    assert inf.kernels["step"] == "stages"
+    with torch.inference_mode():
+        out, _ = inf.step(route.query[:1])
+    assert out.reference.shape == (1,) and len(recwarn) == 0
+    with pytest.raises(NeuralError, match="needs numba"):
+        model.inference({"step": "numba"})

@@ -259,6 +259,9 @@ class NeuralInference(nn.Module):
             if not cpu:
                 raise NeuralError(f"the {out['step']!r} step kernel is CPU-only; the model is "
                                   "elsewhere")
+            if not numba_available():
+                raise NeuralError(f"the {out['step']!r} step kernel needs numba (the 'fast' "
+                                  "extra: pip install torchseq[fast])")
             if not self._numba_fits():
                 raise NeuralError(f"the {out['step']!r} step kernel needs the integer L1 grids "
                                   "(input_steps a power of two, patch_mode 'zscore'), one "
