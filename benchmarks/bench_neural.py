@@ -150,6 +150,23 @@ def step_stages(inf, f1, st):
     from torchseq.preprocess import zscore_pixel_major
 
     kern, cfg = inf.kernels, inf.config
+    if kern["step"] != "stages":  # batch 1: one compiled pass (_step_numba.step) is the kernel
+        from torchseq.neural import _step_numba
+
+        grey = f1.numpy()
+        prev = st.activity.numpy()
+        outs = (np.empty_like(prev), np.empty(1, np.int64), np.empty(1, np.float32))
+        name = "compiled step, z-score to decision (numba)"
+
+        def compiled():
+            return _step_numba.step(grey, prev, *inf._numba_args, *outs)
+
+        def inline_numba(clock=time.perf_counter):
+            t0 = clock()
+            compiled()
+            return [clock() - t0]
+
+        return {name: compiled}, inline_numba
     if kern["input"] != "numpy" or kern["kwta"] != "partition" or kern["ring"] != "banded":
         raise SystemExit(f"this benchmark follows the auto CPU kernels, got {kern}")
     steps = np.float32(cfg.input_steps)
@@ -203,6 +220,7 @@ def stages(repeats: int) -> list[str]:
 
     from torchseq.layers import cohort_normalise, kwta, ring_step
     from torchseq.layers import kernels as K
+    from torchseq.neural.inference import SMALL_BATCH as SMALL
     from torchseq.neural.inference import int8_expected
     from torchseq.neural.readout import decide
     from torchseq.preprocess import zscore_pixel_major
@@ -214,14 +232,26 @@ def stages(repeats: int) -> list[str]:
 
     used = {**kern, "l3": "embedding_bag",  # batch 1 < SMALL_BATCH: the embedding-bag
             "l1": "float32_gemm" if kern["l1"] == "int8_gemm_or_float32_gemm" else kern["l1"]}
+    compiled = kern["step"] != "stages"  # batch 1: the compiled pass instead of the stages
 
     def row(stage, kernel, fn, number=300, key=None):
         us = best_time(fn, repeats, number) * 1e6
-        chosen = "**yes**" if key is None or used[key] == kernel else ""
+        if compiled:  # batch 1: the compiled pass alone
+            chosen = "**yes**" if key == "step" else ""
+        else:
+            chosen = "**yes**" if key is None or used[key] == kernel else ""
         rows.append(f"| {stage} | `{kernel}` | {chosen} | {us:.1f} |")
 
     with torch.inference_mode():
         f1 = small[:1]
+        if compiled:
+            from torchseq.neural import _step_numba
+
+            _, st = inf.step(f1)
+            outs = (np.empty_like(st.activity.numpy()), np.empty(1, np.int64),
+                    np.empty(1, np.float32))
+            row("whole step, z-score to decision", "numba", lambda: _step_numba.step(
+                f1.numpy(), st.activity.numpy(), *inf._numba_args, *outs), key="step")
         grey = inf._grey(f1)
         row("frame checks, grey", "-", lambda: inf._grey(f1))
         row("patch z-score", "numpy",
@@ -272,65 +302,64 @@ def stages(repeats: int) -> list[str]:
             o1, s_fast = inf.step(small[t:t + 1], s_fast)
             o2, s_eager = model.step(small[t:t + 1], s_eager)
             same += int(torch.equal(o1.reference, o2.reference))
+    note = ("At batch 1 the step runs the compiled pass (`step` kernel "
+            f"`{kern['step']}`); the stage kernels below run from {SMALL} frames on (and in "
+            "`run`): none of them is marked as used at batch 1." if compiled else "")
     return [f"Kernels chosen (`model.inference().kernels`): "
             f"`{json.dumps(kern)}`; int8 expected on this machine: {int8_expected()}.", "",
             "| stage (batch 1) | kernel | used | us (best of the repeats) |", "|---|---|---|---|",
-            *rows, "",
+            *rows, "", *([note, ""] if note else []),
             f"The module's step (`inf.step`) against the eager step (`model.step`): {same}/{n} "
             "identical decisions on the query."]
 
 
-def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
-    """Part 3: the step against the sum of its kernels; decisions per second."""
+def glue_table(inf, f1, st, rounds: int, number: int, calls_in_step: int):
+    """The step of ``inf`` at batch 1 against the sum of its kernels: table lines, step times.
+
+    Returns ``(lines, wall)``: the Markdown lines and the wall-clock seconds of the single
+    steps timed inside the step part (for decisions per second).
+    """
     import statistics
 
     import numpy as np
-    import torch
 
-    model, small = setup()
-    inf = model.inference()
-    f1, fb = small[:1], small[:256]
     clock = time.perf_counter
-    with torch.inference_mode():
-        _, st = inf.step(f1)
-        _, sb = inf.step(fb)
-        calls, inline = step_stages(inf, f1, st)
-        names = list(calls)
-        calls = {**calls, "STEP": lambda: inf.step(f1, st)}
-        # (a) hot loops: in each round every kernel, then the step, `number` calls in a row
-        per = {name: [] for name in calls}
-        cpu = {name: [] for name in calls}
-        ratios = []
-        for _ in range(rounds):
-            for name, fn in calls.items():
+    calls, inline = step_stages(inf, f1, st)
+    names = list(calls)
+    calls = {**calls, "STEP": lambda: inf.step(f1, st)}
+    # (a) hot loops: in each round every kernel, then the step, `number` calls in a row
+    per = {name: [] for name in calls}
+    cpu = {name: [] for name in calls}
+    ratios = []
+    for _ in range(rounds):
+        for name, fn in calls.items():
+            fn()
+            t0, c0 = clock(), time.process_time()
+            for _ in range(number):
                 fn()
-                t0, c0 = clock(), time.process_time()
-                for _ in range(number):
-                    fn()
-                per[name].append((clock() - t0) / number)
-                cpu[name].append((time.process_time() - c0) / number)
-            ratios.append(per["STEP"][-1] / sum(per[n][-1] for n in names))
-        # (b) inside the step: the chained kernels, then the step, one call each, alternated;
-        # CPU time of this process (a preempted call does not count its wait)
-        cpu_clock = time.process_time
-        empty = statistics.median(-(cpu_clock() - cpu_clock()) for _ in range(1000))
-        chain, step, pair, wall = [], [], [], []
-        for i in range(calls_in_step):
-            if i % 2:
-                spent = inline(cpu_clock)
-            t0, c0 = clock(), cpu_clock()
-            inf.step(f1, st)
-            one, w = cpu_clock() - c0, clock() - t0
-            if not i % 2:
-                spent = inline(cpu_clock)
-            spent = [max(s - empty, 0.0) for s in spent]
-            chain.append(spent)
-            step.append(max(one - empty, 0.0))
-            wall.append(w)
-            pair.append(step[-1] / sum(spent))
-        # (c) why the stages cost more inside the step: the five stages after the L1 product,
-        # single calls, after the L1 product, after reading 4 MB of other data, after
-        # themselves (CPU time medians)
+            per[name].append((clock() - t0) / number)
+            cpu[name].append((time.process_time() - c0) / number)
+        ratios.append(per["STEP"][-1] / sum(per[n][-1] for n in names))
+    # (b) inside the step: the chained kernels, then the step, one call each, alternated;
+    # CPU time of this process (a preempted call does not count its wait)
+    cpu_clock = time.process_time
+    empty = statistics.median(-(cpu_clock() - cpu_clock()) for _ in range(1000))
+    chain, step, pair, wall = [], [], [], []
+    for i in range(calls_in_step):
+        if i % 2:
+            spent = inline(cpu_clock)
+        t0, c0 = clock(), cpu_clock()
+        inf.step(f1, st)
+        one, w = cpu_clock() - c0, clock() - t0
+        if not i % 2:
+            spent = inline(cpu_clock)
+        spent = [max(s - empty, 0.0) for s in spent]
+        chain.append(spent)
+        step.append(max(one - empty, 0.0))
+        wall.append(w)
+        pair.append(step[-1] / max(sum(spent), 1e-9))
+    after = {}
+    if len(names) > 5:  # (c) the stages: why they cost more inside the step (see the docs)
         post = [calls[n] for n in names[4:]]
         flush = np.ones(4 << 20, np.uint8)
 
@@ -350,9 +379,6 @@ def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
             after["reading 4 MB"].append(post_l1())
             post_l1()
             after["themselves"].append(post_l1())
-        eager = [best_time(lambda: model.step(f1, st), 1, max(1, number // 5))
-                 for _ in range(max(3, rounds // 5))]
-        many = [best_time(lambda: inf.step(fb, sb), 1, 2) for _ in range(max(3, rounds // 5))]
 
     def us(v):
         return f"{v * 1e6:.1f}"
@@ -369,7 +395,7 @@ def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
     k_cpu = sum(cpu_lo[n] for n in names)
     step_lo, step_mid = lo["STEP"], mid["STEP"]
     quart = statistics.quantiles(pair, n=4)
-    return [
+    lines = [
         "| stage (chosen kernel, batch 1) | hot loop, us, min | hot loop, us, median | "
         "hot loop, CPU us, min | inside the step, CPU us, median |", "|---|---|---|---|---|", *rows,
         f"| **sum of the stages' kernels** | **{us(k_lo)}** | **{us(k_mid)}** | "
@@ -385,17 +411,58 @@ def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
         "output, this process's CPU time read between stages, less one reading) alternated "
         f"with single calls of the step; median of the per-pair ratios **{med(pair):.2f}x** "
         f"(quartiles {quart[0]:.2f}x-{quart[2]:.2f}x"
-        f"); fastest step {us(min(step))} against fastest chain {us(min(sums))} CPU us.", "",
-        "The five stages after the L1 product (k-WTA to decision), single calls, CPU us "
-        "(median): " + ", ".join(f"after {k} {us(med(v))}" for k, v in after.items())
-        + ".", "",
-        "| decisions per second (one thread) | best | median |", "|---|---|---|",
-        f"| 1 stream, `inf.step` (batch 1) | {1 / min(wall):,.0f} | {1 / med(wall):,.0f} |",
+        f"); fastest step {us(min(step))} against fastest chain {us(min(sums))} CPU us."]
+    if after:
+        lines += ["", "The five stages after the L1 product (k-WTA to decision), single calls, "
+                  "CPU us (median): " + ", ".join(f"after {k} {us(med(v))}"
+                                                  for k, v in after.items()) + "."]
+    return lines, wall
+
+
+def glue(rounds: int, number: int, calls_in_step: int) -> list[str]:
+    """Part 3: the step against the sum of its kernels; decisions per second.
+
+    Twice: the module ``model.inference()`` returns (auto kernels: at batch 1 the compiled
+    step where numba is installed) and the same with ``kernels={"step": "stages"}`` (the
+    stage kernels one after another: the path without numba).
+    """
+    import statistics
+
+    import torch
+
+    model, small = setup()
+    inf = model.inference()
+    f1, fb = small[:1], small[:256]
+    with torch.inference_mode():
+        _, st = inf.step(f1)
+        _, sb = inf.step(fb)
+        lines, wall = glue_table(inf, f1, st, rounds, number, calls_in_step)
+        lines = [f"**The auto module** (`model.inference()`, `step` kernel "
+                 f"`{inf.kernels['step']}`):", "", *lines]
+        staged = wall_staged = None
+        if inf.kernels["step"] != "stages":
+            staged = model.inference({"step": "stages"})
+            more, wall_staged = glue_table(staged, f1, st, rounds, number, calls_in_step)
+            lines += ["", "**The stage kernels** (`model.inference({\"step\": \"stages\"})`: "
+                      "the step without numba, and every step from 16 frames on):", "", *more]
+        eager = [best_time(lambda: model.step(f1, st), 1, max(1, number // 5))
+                 for _ in range(max(3, rounds // 5))]
+        many = [best_time(lambda: inf.step(fb, sb), 1, 2) for _ in range(max(3, rounds // 5))]
+    med = statistics.median
+    lines += [
+        "", "| decisions per second (one thread) | best | median |", "|---|---|---|",
+        f"| 1 stream, `inf.step` (batch 1, `{inf.kernels['step']}`) | {1 / min(wall):,.0f} | "
+        f"{1 / med(wall):,.0f} |"]
+    if wall_staged:
+        lines.append(f"| 1 stream, `inf.step` (batch 1, the stage kernels) | "
+                     f"{1 / min(wall_staged):,.0f} | {1 / med(wall_staged):,.0f} |")
+    lines += [
         f"| 256 streams, `inf.step` (batch 256) | {256 / min(many):,.0f} | "
         f"{256 / med(many):,.0f} |",
         f"| 1 stream, `model.step` (the eager layers, the definition) | {1 / min(eager):,.0f} | "
         f"{1 / med(eager):,.0f} |",
     ]
+    return lines
 
 
 def main(argv=None) -> str:

@@ -65,3 +65,25 @@ print(json.dumps(seen))
     assert "matplotlib" not in got["after_report"]
     assert (tmp_path / "o" / "seqslam_difference_matrix.png").stat().st_size > 1000
     assert (tmp_path / "o" / "metrics.json").exists()
+
+
+def test_neural_inference_imports_numba_only_on_its_first_online_step(tmp_path):
+    """The compiled step's numba import (and compilation) lands on the first ``step`` only:
+    building the inference module and running a whole traverse never import numba."""
+    body = """
+from torchseq.demo import make_demo
+from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+demo = make_demo(n_reference=40, size=(48, 64), seed=3)
+model = NeuralSeqSLAM(NeuralConfig(hidden=512, n_output=40))
+model.fit(demo.reference, log=False)
+inf = model.inference()
+inf.run(demo.query)
+seen = {'kernel': inf.kernels['step'], 'before_step': loaded()}
+inf.step(demo.query[:1])
+seen['after_step'] = loaded()
+print(json.dumps(seen))
+"""
+    got = _run(body, tmp_path)
+    assert got["kernel"] == "stages_or_numba"
+    assert "numba" not in got["before_step"]
+    assert "numba" in got["after_step"]

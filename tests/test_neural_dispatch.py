@@ -16,6 +16,7 @@ from torchseq.demo import make_demo
 from torchseq.layers import kernels as K
 from torchseq.layers import ring as R
 from torchseq.neural import NeuralConfig, NeuralError, NeuralSeqSLAM, readout
+from torchseq.neural import _step_numba as S
 from torchseq.neural import inference as I
 
 
@@ -65,6 +66,7 @@ def recording(module):
         wrap(R, "_scan_blocks", scan_label),
         wrap(readout, "_decide_numpy", "decide:numpy"),
         wrap(I, "zscore_pixel_major", lambda f, p, kernel="torch": f"input:{kernel}"),
+        wrap(S, "step", "step:numba"),  # read by a module on its first compiled step
     ]
     with contextlib.ExitStack() as stack:
         for p in patches:
@@ -84,6 +86,12 @@ def test_int8_kernels_exist_on_x86(grid_model):
         assert kernels["l1"] == "float32_gemm"
 
 
+def test_compiled_step_is_the_auto_choice(grid_model):
+    """numba is in the test and fast extras: without it (or off the model's grids) this fails."""
+    assert I.numba_available(), "numba is missing: the compiled online step cannot run"
+    assert grid_model.inference().kernels["step"] == "stages_or_numba"
+
+
 @pytest.mark.parametrize("batch", [1, 3, 16, 40])
 def test_auto_cpu_step_dispatch(grid_model, route, batch):
     inf = grid_model.inference()
@@ -91,6 +99,9 @@ def test_auto_cpu_step_dispatch(grid_model, route, batch):
     with recording(inf) as ran:
         with torch.inference_mode():
             inf(frames)
+    if batch < I.SMALL_BATCH:  # one compiled pass, no stage kernel
+        assert ran == ["step:numba"]
+        return
     l1 = inf.kernels["l1"]
     int8 = l1 == "int8_gemm" or (l1 == "int8_gemm_or_float32_gemm" and batch >= I.SMALL_BATCH)
     l3 = ("l3:int8_gemm" if inf.kernels["l3"] != "embedding_bag" and batch >= I.SMALL_BATCH
@@ -104,7 +115,7 @@ def test_the_or_kernel_picks_by_batch_and_decides_as_either(grid_model, route):
     """``int8_gemm_or_float32_gemm``: float32 below SMALL_BATCH, int8 from there on."""
     if grid_model.inference().l1_int8 is None:
         pytest.skip("no oneDNN int8 GEMM on this machine")
-    either = grid_model.inference({"l1": "int8_gemm_or_float32_gemm"})
+    either = grid_model.inference({"l1": "int8_gemm_or_float32_gemm"})  # asked: the stages
     for batch, want in ((1, False), (I.SMALL_BATCH - 1, False), (I.SMALL_BATCH, True)):
         with recording(either) as ran, torch.inference_mode():
             either(route.query[:batch])
@@ -143,8 +154,12 @@ def test_float_model_falls_back_to_float_kernels(route):
     model.fit(route.reference, log=False)
     inf = model.inference()
     assert inf.kernels["l1"] == "float32_gemm" and inf.kernels["l3"] == "embedding_bag"
+    assert inf.kernels["step"] == "stages"  # the compiled step needs the integer grids
     with recording(inf) as ran:
         inf(route.query[:20])
+        inf(route.query[:1])
+    assert ran[6:] == ran[:6]  # batch 1 too: the stages
+    del ran[6:]
     assert ran == ["input:numpy", "kwta:partition", "l3:embedding_bag", "cohorts:numpy",
                    "ring:banded", "decide:numpy"]
 
@@ -195,7 +210,7 @@ def test_device_dispatch(route, device):
         return
     assert inf.kernels == {"input": "torch", "l1": "float32_gemm", "kwta": "topk",
                            "l3": "embedding_bag", "cohorts": "torch", "ring": "banded",
-                           "scan": "torch", "decide": "torch"}
+                           "scan": "torch", "decide": "torch", "step": "stages"}
     with recording(inf) as ran:
         out, _ = inf(route.query[:3])
     assert ran == ["input:torch", "kwta:topk", "l3:embedding_bag", "ring:banded"]

@@ -28,17 +28,28 @@ Stages and kernels:
             :meth:`NeuralInference.scan`; ``"velocity_loop"``, the adaptive ring's only one
             (``ring_velocity="adaptive"``: :meth:`NeuralInference.stream`, frame by frame)
 ``decide``  ``"numpy"`` or ``"torch"``
+``step``    ``"stages"`` (the stage kernels above, one after another), ``"numba"`` (the
+            whole online step of each frame, z-score to decision, as one compiled pass:
+            ``torchseq/neural/_step_numba.py``, the same bits as the stage kernels) or
+            ``"stages_or_numba"`` (the compiled pass for batches of fewer than
+            ``SMALL_BATCH`` frames with float32 states, the stages from there on). Only
+            :meth:`NeuralInference.step` reads it (``run`` batches the stages)
 =========== ============================================================================
 
 ``kernels="auto"`` picks, on the CPU: NumPy input, int8 GEMMs when the model sits on its
 integer grids and oneDNN reproduces the float products on a check batch (else float32 and
-the embedding-bag), the NumPy partition, the banded ring, NumPy scan and read-out; on other
+the embedding-bag), the NumPy partition, the banded ring, NumPy scan and read-out, and
+``"stages_or_numba"`` for the step where numba is installed, the model fits the compiled
+pass (integer L1 grids with ``input_steps`` a power of two, so that the float32 product is
+exact, one cohort, banded ring, centre read-out, no unit search, fixed ring:
+``NeuralInference._numba_fits``) and no stage kernel of the step is asked by name; on other
 devices the torch kernels. ``"portable"`` is plain torch float32 throughout (what the float
 ONNX graph is traced from). A dict overrides single stages.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import platform
 
@@ -62,7 +73,7 @@ from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import block_order, zscore_pixel_major
 from torchseq.quantise import factor_power_of_two, factor_rows
 
-STAGES = ("input", "l1", "kwta", "l3", "cohorts", "ring", "scan", "decide")
+STAGES = ("input", "l1", "kwta", "l3", "cohorts", "ring", "scan", "decide", "step")
 CHOICES = {
     "input": ("torch", "numpy", "encode"),
     "l1": ("float32_gemm", "int8_gemm", "int8_gemm_or_float32_gemm", "bfloat16_gemm"),
@@ -72,6 +83,7 @@ CHOICES = {
     "ring": ("banded", "dense"),
     "scan": ("numpy", "torch", "velocity_loop"),
     "decide": ("numpy", "torch"),
+    "step": ("stages", "numba", "stages_or_numba"),
 }
 SMALL_BATCH = 16  # below: the embedding-bag L3 beats the int8 GEMM (bench_neural.py)
 
@@ -85,7 +97,13 @@ def int8_l1_at_batch_1() -> bool:
     """
     return torch.backends.cpu.get_cpu_capability().startswith("AVX512")
 PORTABLE = {"input": "torch", "l1": "float32_gemm", "kwta": "topk", "l3": "dense",
-            "cohorts": "torch", "ring": "dense", "scan": "torch", "decide": "torch"}
+            "cohorts": "torch", "ring": "dense", "scan": "torch", "decide": "torch",
+            "step": "stages"}
+
+
+def numba_available() -> bool:
+    """Whether numba is installed (found, not imported: it is imported on the first step)."""
+    return importlib.util.find_spec("numba") is not None
 
 
 def int8_expected() -> bool:
@@ -139,19 +157,30 @@ class NeuralInference(nn.Module):
             self.tracker = (VelocityTracker.from_model(model)
                             if cfg.ring_velocity == "adaptive" else None)
             self.params = model.ring.params
-            self.l1_int8 = self.l3_int8 = None
+            self.search = (None if model.search is None
+                           else UnitSearch(model.config, model.unit_to_reference.detach()))
+            self._weights = (w1, w3)
+            self.l1_int8 = self.l3_int8 = self.w1_i8 = None
+            self._int8_built = False
             self._kernels = self._resolve(kernels, cpu, w1, w3)
             self.register_buffer("ring_power", ring_power(
                 shift, self.decay, diag if self._kernels["ring"] == "banded" else None))
             self.w1_bf16 = (self.w1_t.to(torch.bfloat16)
                             if self._kernels["l1"] == "bfloat16_gemm" else None)
+            del self._weights
+            if self._kernels["step"] == "stages":
+                self.w1_i8 = None
         self._encode = model.encode if self._kernels["input"] == "encode" else None
-        # the unit search beside the ring, where the model decides with it (neural/search.py)
-        self.search = (None if model.search is None
-                       else UnitSearch(model.config, model.unit_to_reference.detach()))
         # the step's constants, read once here rather than per call
         self._k, self._units = cfg.k, int(model.unit_centre.shape[0])
         self._window = cfg.uniqueness_window
+        self._size, self._compiled, self._numba_args = torch.Size(cfg.input_size), None, None
+        if self._kernels["step"] != "stages":  # the compiled step's operands (views, constants)
+            self._numba_args = (
+                self.w1_i8, self.w3_t.numpy(), self.diagonals.numpy(), self.unit_centre.numpy(),
+                np.array([cfg.input_steps, cfg.eps, self.decay, self.gain], np.float32),
+                np.array([cfg.patch_size, cfg.k, min(cfg.uniqueness_window, self._units),
+                          cfg.rectify], np.int64))
 
     # ------------------------------------------------------------------ kernel choice
     @property
@@ -181,7 +210,7 @@ class NeuralInference(nn.Module):
         if base == "portable":
             out = {**PORTABLE, **({"input": "encode"} if not self.block_major else {}), **asked}
             return self._check(out, cpu)
-        if cpu:
+        if cpu and not self._int8_built:
             self._build_int8(w1, w3)
         numpy = "numpy" if cpu else "torch"
         out = {
@@ -193,6 +222,9 @@ class NeuralInference(nn.Module):
                    else "embedding_bag"),
             "cohorts": numpy, "ring": "banded" if self.diagonals is not None else "dense",
             "scan": numpy, "decide": numpy,
+            # a stage kernel asked by name runs: then the step is the stages unless asked too
+            "step": ("stages_or_numba" if cpu and numba_available() and self._numba_fits()
+                     and not set(asked) & set(STAGES[:6] + ("decide",)) else "stages"),
         }
         out.update(asked)
         if not cfg.input_steps and out["l1"].startswith("int8_gemm"):
@@ -223,10 +255,31 @@ class NeuralInference(nn.Module):
                               f"{out['scan']!r}")
         if out["ring"] == "banded" and self.diagonals is None:
             raise NeuralError("the banded ring needs a banded shift matrix (no ring_wrap)")
+        if out["step"] != "stages":
+            if not cpu:
+                raise NeuralError(f"the {out['step']!r} step kernel is CPU-only; the model is "
+                                  "elsewhere")
+            if not numba_available():
+                raise NeuralError(f"the {out['step']!r} step kernel needs numba (the 'fast' "
+                                  "extra: pip install torchseq[fast])")
+            if not self._numba_fits():
+                raise NeuralError(f"the {out['step']!r} step kernel needs the integer L1 grids "
+                                  "(input_steps a power of two, patch_mode 'zscore'), one "
+                                  "cohort, a banded ring, the centre read-out, no unit search "
+                                  "and a fixed ring")
         return out
+
+    def _numba_fits(self) -> bool:
+        """Whether the compiled step (``_step_numba``) computes this model's step."""
+        if not self._int8_built:  # the L1 integer grids (CPU only)
+            self._build_int8(*self._weights)
+        return (self.w1_i8 is not None and self.cohorts.shape[1] == 1
+                and self.diagonals is not None and self.spans is None and self.search is None
+                and self.tracker is None)
 
     def _build_int8(self, w1: torch.Tensor, w3: torch.Tensor) -> None:
         """OneDNN int8 copies of both products when the weights sit on their grids."""
+        self._int8_built = True
         cfg = self.config
         steps, n = cfg.input_steps, cfg.patch_size ** 2
         if (w1.device.type != "cpu" or not steps or not self.block_major
@@ -238,6 +291,9 @@ class NeuralInference(nn.Module):
             return
         n1, step1 = l1  # columns to block-major order: the input order
         n1 = n1[:, block_order(*cfg.input_size, cfg.patch_size)].contiguous()
+        if (steps & (steps - 1) == 0  # 1/steps a power of two, and every float32 partial sum
+                and n1.shape[1] * 127 * int(n1.abs().max()) < 2**24):  # exact: same winners
+            self.w1_i8 = n1.numpy()  # (M, K) int8: the compiled step's L1 (rows contiguous)
         self.l1_int8 = Int8Linear.create(n1, torch.full((n1.shape[0],), step1), 1.0 / steps, 128)
         self.l3_int8 = Int8Linear.create(*l3, 1.0, 0, x_max=1)  # the binary k-WTA code
 
@@ -336,6 +392,13 @@ class NeuralInference(nn.Module):
 
     def _step(self, frames: torch.Tensor, state) -> tuple[NeuralStep, RingState]:
         """:meth:`step` after its checks, autograd off."""
+        name = self._kernels["step"]
+        if name != "stages" and (name == "numba" or frames.shape[0] < SMALL_BATCH):
+            if state is None or state.activity.dtype == torch.float32:
+                return self._step_numba(frames, state)
+            if name == "numba":
+                raise NeuralError(f"the 'numba' step kernel takes float32 states, got "
+                                  f"{state.activity.dtype}")
         e = self.evidence(frames)
         diag = self.diagonals if self._kernels["ring"] == "banded" else None
         if self.search is not None:  # the ring runs, the unit search decides
@@ -357,6 +420,32 @@ class NeuralInference(nn.Module):
         reference, confidence = decide(activity, self.unit_centre, self._window,
                                        self._kernels["decide"], self.spans)
         return NeuralStep(reference, confidence, activity), state
+
+    def _step_numba(self, frames: torch.Tensor,
+                    state: RingState | None) -> tuple[NeuralStep, RingState]:
+        """The ``"numba"`` step kernel: every stream's step as one compiled pass."""
+        compiled = self._compiled
+        if compiled is None:  # numba: imported (and compiled, or loaded from its cache) now
+            from torchseq.neural import _step_numba
+
+            compiled = self._compiled = _step_numba
+        if (frames.dim() == 3 and frames.shape[0] and frames.dtype == torch.float32
+                and frames.device.type == "cpu" and frames.shape[1:] == self._size):
+            grey = frames.detach().numpy()  # the online case; the kernel checks finiteness
+        else:
+            grey = self._grey(frames).numpy()  # checks, grey, resize
+        grey = np.ascontiguousarray(grey)
+        b, n = grey.shape[0], self._units
+        prev = (np.zeros((b, n), np.float32) if state is None
+                else np.ascontiguousarray(state.activity.detach().numpy()))
+        act = np.empty((b, n), np.float32)
+        ref = np.empty(b, np.int64)
+        conf = np.empty(b, np.float32)
+        if not compiled.step(grey, prev, *self._numba_args, act, ref, conf):
+            raise NeuralError("frames hold NaN or infinite values")
+        activity = torch.from_numpy(act)
+        return (NeuralStep(torch.from_numpy(ref), torch.from_numpy(conf), activity),
+                RingState(activity))
 
     @torch.inference_mode()
     def run(self, query: torch.Tensor,
