@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -146,26 +145,12 @@ def run_child(argv: list[str], result: Path) -> None:
 
 
 def run_once(root: Path, route: Path, out: Path) -> dict:
-    """One whole eval process on ``route`` with the code at ``root``; seconds."""
-    with tempfile.TemporaryDirectory() as tmp:
-        result = Path(tmp) / "phases.json"
-        argv = ["--engine", "seqslam", "--reference", str(route / "reference"),
-                "--query", str(route / "query"), "--tolerance", "2", "--out", str(out),
-                "--overwrite"]
-        env = dict(os.environ, PYTHONPATH=str(root))
-        before = resource.getrusage(resource.RUSAGE_CHILDREN)
-        t = time.perf_counter()
-        proc = subprocess.run([sys.executable, __file__, "--child", str(result), "--", *argv],
-                              cwd=root, env=env, capture_output=True, text=True)
-        wall = time.perf_counter() - t
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        if proc.returncode:
-            raise SystemExit(f"{root}: eval failed:\n{proc.stderr[-3000:]}")
-        phases = json.loads(result.read_text())
-    metrics = json.loads((out / "metrics.json").read_text())["seqslam"]
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return {"wall": wall, "cpu": cpu, "phases": phases, "recall_at_1": metrics["recall_at_1"],
-            "auc": metrics["auc"]}
+    """One whole eval process (this file's child) on ``route`` with the code at ``root``."""
+    from bench_whole import run_once as whole_process
+
+    r = whole_process(root, route, out, script=__file__, extra=())
+    r.pop("engine_seconds")
+    return r
 
 
 def table(best: dict) -> str:

@@ -122,22 +122,27 @@ def run_instrumented(argv: list[str], result: Path) -> None:
     sys.exit(code)
 
 
-def run_once(root: Path, route: Path, out: Path) -> dict:
-    """One whole ``eval.py`` process on ``route`` with the code at ``root``; seconds."""
+def run_once(root: Path, route: Path, out: Path, script: str = __file__,
+             extra: tuple[str, ...] = ("--no-progress",)) -> dict:
+    """One whole eval process on ``route`` with the code at ``root``; seconds.
+
+    ``script --child RESULT -- ARGV`` is the child (this file's by default; another
+    benchmark passes its own), ``extra`` more eval flags.
+    """
     with tempfile.TemporaryDirectory() as tmp:
         result = Path(tmp) / "phases.json"
         argv = ["--engine", "seqslam", "--reference", str(route / "reference"),
                 "--query", str(route / "query"), "--tolerance", "2", "--out", str(out),
-                "--overwrite", "--no-progress"]
+                "--overwrite", *extra]
         env = dict(os.environ, PYTHONPATH=str(root))
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t = time.perf_counter()
-        proc = subprocess.run([sys.executable, __file__, "--child", str(result), "--", *argv],
+        proc = subprocess.run([sys.executable, script, "--child", str(result), "--", *argv],
                               cwd=root, env=env, capture_output=True, text=True)
         wall = time.perf_counter() - t
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         if proc.returncode:
-            raise SystemExit(f"{root}: eval.py failed:\n{proc.stderr[-3000:]}")
+            raise SystemExit(f"{root}: eval failed:\n{proc.stderr[-3000:]}")
         phases = json.loads(result.read_text())
     metrics = json.loads((out / "metrics.json").read_text())["seqslam"]
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)

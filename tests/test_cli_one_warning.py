@@ -2,6 +2,7 @@
 
 import io
 
+import pytest
 from conftest import shared_data
 
 import torchseq.cli.eval as cli_eval
@@ -14,6 +15,7 @@ def run(tmp_path, capsys, *args, out="o"):
     return code, capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_coarse_units_are_warned_once(tmp_path, capsys):
     code, err = run(tmp_path, capsys, "--engine", "neural", "--demo-frames", "60",
                     "--neural-hidden", "256", "--neural-n-output", "20", "--no-progress")
@@ -22,6 +24,7 @@ def test_coarse_units_are_warned_once(tmp_path, capsys):
     assert len(lines) == 1 and "one unit stands for about 3.0 frames" in lines[0], err
 
 
+@pytest.mark.slow
 def test_small_event_frames_of_both_traverses_are_one_warning(tmp_path, capsys):
     aedat = str(shared_data("events", "alex_walking_again.aedat"))
     code, err = run(tmp_path, capsys, "--engine", "neural", "--reference", aedat, "--query",

@@ -36,7 +36,8 @@ def run_eval(tmp_path, name, *args):
     return rows, json.loads((out / "metrics.json").read_text())
 
 
-@pytest.mark.parametrize("preset", [None, pytest.param("openseqslam", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", [None, "openseqslam"])
 def test_own_descriptors_reproduce_the_pixel_run_exactly(tmp_path, preset, corridor):
     """SeqSLAM's patch-normalised descriptors as (T, D) files: same matches, same scores."""
     root = corridor.root

@@ -26,7 +26,7 @@ def doc_snippet() -> dict:
 @pytest.mark.parametrize("config", [
     NeuralConfig(unit_search="off", hidden=512, n_output=40),
     # the adaptive ring's graph has three more state inputs the host must feed back
-    NeuralConfig.adaptive_velocity(hidden=512, n_output=40),
+    pytest.param(NeuralConfig.adaptive_velocity(hidden=512, n_output=40), marks=pytest.mark.slow),
 ], ids=["fixed", "adaptive-velocity"])
 def test_documented_host_code_gives_the_librarys_decisions(tmp_path, config):
     # colour camera frames at a size that is no multiple of the input (area windows overlap)

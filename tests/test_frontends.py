@@ -585,6 +585,7 @@ def test_checkpoint_of_other_event_settings_or_selection_is_said(tmp_path, capsy
     assert code == 0 and "its frame selection differs (start 0 -> 50)" in err, err
 
 
+@pytest.mark.slow
 def test_place_resolution_warning_follows_the_readout(tmp_path, capsys):
     # the interpolating readout reads places within a unit: 3 frames per unit are fine there
     common = ["--engine", "neural", "--demo-frames", "60", "--neural-hidden", "128",
@@ -598,6 +599,7 @@ def test_place_resolution_warning_follows_the_readout(tmp_path, capsys):
         "interpolating readout; raise --neural-n-output" in err, err
 
 
+@pytest.mark.slow
 def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, monkeypatch):
     # the export read an --export-query event file with default settings (10 ms windows at
     # the full 128x128) although the model learnt 20 ms windows pooled to 16x16

@@ -234,6 +234,7 @@ def test_checkpoint_round_trips_the_adaptive_settings(route, tmp_path):
 
 
 # ---------------------------------------------------------------- what it buys
+@pytest.mark.slow
 def test_demo_severe_recall_with_the_adaptive_ring():
     """demo-severe (strong lighting change at 0.8x speed): the fixed ring 0.84, adaptive 1.0."""
     d = make_demo(gain=0.45, gamma=2.4, gradient=0.45, noise=20.0)
