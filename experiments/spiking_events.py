@@ -48,6 +48,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "experiments"))
+
+from spiking_agreement import seeds_arg  # noqa: E402
 
 from torchseq.atomic import write_json, write_text  # noqa: E402
 from torchseq.events import simulate_run  # noqa: E402
@@ -166,13 +169,6 @@ def consumers(ev, ev_qry) -> dict:
         rep = compare(ev, path, ev.encode(ev_qry), segment=16)
     return {k: {f: v.get(f) for f in ("agreement", "spike_agreement", "skipped", "failed")
                 if f in v} for k, v in rep.items() if k != "torchseq"}
-
-
-def seeds_arg(text: str) -> list[int]:
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(s) for s in text.split(",")]
 
 
 def main(argv=None) -> dict:

@@ -44,6 +44,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "experiments"))
 
 from neural_quality import datasets  # noqa: E402
+from spiking_agreement import seeds_arg  # noqa: E402
 
 from torchseq.atomic import write_json  # noqa: E402
 from torchseq.layers.functional import kwta  # noqa: E402
@@ -78,13 +79,6 @@ VARIANTS = {
     "linear30:frame:evidence:exact": "only L2 approximate (linear threshold, ridge 30 R)",
     RATE: "the rate model (every stage exact)",
 }
-
-
-def seeds_arg(text: str) -> list[int]:
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(s) for s in text.split(",")]
 
 
 def l2_rule(kind: str, xr: torch.Tensor, w1: torch.Tensor, k: int, theta2: float):
