@@ -36,8 +36,23 @@ parts (IF units, Linear/Affine weights, recurrent edges), simulated in float64. 
   evidence on the reference), and the ring is a non-spiking integrator per unit (NIR ``I``/
   ``LI`` with the shift as its recurrent Linear) holding ``a = decay S a + count e_max / T``
   as graded membrane; the decision reads the membranes (argmax, as the rate model's).
-- ``norm``: only ``frame`` (the rate model's division by each frame's cohort std, which no
-  NIR node computes) or ``fixed`` (calibrated ``sigma_c``), to measure the cost alone.
+- ``norm``: ``frame`` (the rate model's division by each frame's cohort std, which no NIR
+  node computes), ``fixed`` (calibrated ``sigma_c``), ``mad`` (each frame's cohort mean
+  absolute deviation times ``ratio_c``, the reference's median std/MAD: float, to see
+  whether a linear spread can stand in for the std) and ``div<T>``: the division by timing.
+  Two IF units per output unit (reset by subtraction) carry ``+c_j`` and ``-c_j`` (the
+  cohort-centred evidence, ``rate * c`` per step, ``rate`` keeping them at <= 1 spike per
+  step on the reference), so together they spike at a rate ``rate * |c_j|``; one window IF
+  unit per cohort integrates their spikes (weight ``1 / n_c``) and, once past ``theta_w``
+  (set so the reference's median window is ``T`` steps), inhibits them: the window is
+  ``W = ceil(theta_w / (rate * MAD))`` steps and the ``+`` unit's count
+  ``floor(rate * max(c_j, 0) * W)`` is ``max(c_j, 0) / MAD`` up to the factor
+  ``theta_w``: rectified, divided by the frame's spread, rate-coded. Simulated in closed
+  form (the window from the analog MAD, not from the integer spike counts). The ring then
+  integrates ``count * gain / theta_w`` (``ring=exact``: the input is already >= 0, so the
+  unquantised ring is a linear integrator; ``rate<T>``: the ring's IF count, as above).
+  ``divsd<T>``: the same window from the frame's cohort std itself (as if a circuit
+  squaring and taking the root by timing were exact; not built, not simulated).
 
 Prints a markdown table per route (agreement per seed, min and mean; the L2 winners per frame
 and the frames with ties at the k-th place for the inhibition forms) and writes
@@ -64,6 +79,7 @@ from spiking_split import RATE, SPIKING, l2_rule, seeds_arg  # noqa: E402
 from spiking_split import simulate as split_simulate  # noqa: E402
 
 from torchseq.atomic import write_json  # noqa: E402
+from torchseq.export.hardware_budget import memory_bytes  # noqa: E402
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
 from torchseq.neural.readout import decide  # noqa: E402
 from torchseq.neural.spiking import SpikingSeqSLAM  # noqa: E402
@@ -80,9 +96,17 @@ VARIANTS = [
     "kwta:frame:evidence:li16", "kwta:frame:evidence:li64", "kwta:frame:evidence:li256",
     # normalisation alone approximate (calibrated), for its cost beside the others
     "kwta:fixed:evidence:exact",
+    "kwta:mad:evidence:exact", "kwta:div64:evidence:exact", "kwta:div256:evidence:exact",
+    "kwta:div1024:evidence:exact",
     # combinations
     "inh256:frame:evidence:li64", "inh1024:frame:evidence:li256",
     "inh256:fixed:evidence:li64", "inh1024:fixed:evidence:li256",
+    "inh256:div256:evidence:exact", "inh1024:div1024:evidence:exact",
+    "inh256:div256:evidence:rate1024", "inh256:div256:evidence:rate4096",
+    "inh1024:div1024:evidence:rate4096",
+    # the division by the std itself by timing (a square-and-root circuit assumed exact)
+    "kwta:divsd256:evidence:exact", "inh256:divsd256:evidence:rate4096",
+    "inh1024:divsd1024:evidence:rate4096",
 ]
 
 
@@ -133,7 +157,7 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
     l2, norm, rect, ring = variant.split(":")
     if not (l2.startswith("inh") or ring.startswith(("rate", "li"))) and ring != "exact":
         refs, fired = split_simulate(model, xr, xq, theta2, variant)
-        return {"reference": refs, "fired": fired, "ties": None}
+        return {"reference": refs, "fired": fired, "ties": None, "window": None}
     if ring.startswith("li") and rect != "evidence":
         raise ValueError("li<T> integrates rectified evidence: use rect=evidence")
     w1 = model.l1.folded_weight().detach().double()
@@ -158,16 +182,39 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
         mu = ((e @ g) / n_c) @ g.T
         return e - mu, ((((e - mu) ** 2) @ g) / n_c).sqrt()
 
+    windows = []  # the division's window lengths (steps), reference then query
+
+    def mad(c):  # each cohort's mean absolute deviation (T, C)
+        return (c.abs() @ g) / n_c
+
     def evidence(z2, sigma):
         c, sd = centred_sd(z2)
-        e = gain * c / (sd @ g.T + eps) if norm == "frame" else gain * c / (sigma @ g.T)
+        if norm.startswith("div"):  # division by timing (rectified, counts over a window)
+            spread = ratio * mad(c) if not norm.startswith("divsd") else sd
+            w = torch.ceil(theta_w / (rate * spread).clamp_min(1e-300)).clamp(max=2**31)
+            windows.append(w)
+            count = torch.floor(rate * c.clamp_min(0.0) * (w @ g.T))
+            return count * gain / (theta_w @ g.T)
+        if norm == "frame":
+            e = gain * c / (sd @ g.T + eps)
+        elif norm == "mad":
+            e = gain * c / ((ratio * mad(c)) @ g.T + eps)
+        else:
+            e = gain * c / (sigma @ g.T)
         return e.clamp_min(0.0) if rect == "evidence" else e
 
     cache = {} if cache is None else cache
     if l2 not in cache:
         cache[l2] = code(xr), code(xq)
     zr, zq = cache[l2]
-    sigma = torch.quantile(centred_sd(zr)[1], 0.5, dim=0).clamp_min(eps)
+    cr, sdr = centred_sd(zr)
+    sigma = torch.quantile(sdr, 0.5, dim=0).clamp_min(eps)
+    # mad/div calibration on the reference: sd ~ ratio * mad; the rate scale keeps every
+    # evidence unit at <= 1 spike per step; theta_w makes the median window T steps
+    ratio = torch.quantile(sdr / mad(cr).clamp_min(1e-300), 0.5, dim=0)
+    rate = 1.0 / float(cr.abs().max())
+    steps_div = int(norm.lstrip("divsd") or 1) if norm.startswith("div") else 1
+    theta_w = steps_div * rate * torch.quantile(ratio * mad(cr), 0.5, dim=0)
     er = evidence(zr, sigma)
     steps_ring = int(ring[4:] if ring.startswith("rate") else ring[2:]) if ring != "exact" else 0
     if ring.startswith("rate"):  # the top of the rate code: the unquantised ring's largest
@@ -204,7 +251,37 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
         highest_loss = torch.where(zq > 0, torch.full_like(h, -np.inf), h).max(1).values
         if not bool((lowest_win >= highest_loss).all()):
             raise SystemExit(f"{variant}: the inhibition k-WTA kept a unit below a loser")
-    return {"reference": ref.numpy(), "fired": fired.numpy(), "ties": ties}
+    window = None
+    if norm.startswith("div"):  # the query's windows: the steps the division phase takes
+        wq = windows[-1]
+        window = [int(wq.min()), float(wq.median()), int(wq.max())]
+    return {"reference": ref.numpy(), "fired": fired.numpy(), "ties": ties, "window": window}
+
+
+def design_budget(model) -> dict:
+    """Arithmetic budget of the ``inh:div:evidence:rate`` design for a fitted model.
+
+    Not an exported graph: counts by hand, with :func:`memory_bytes` of
+    ``torchseq.export.hardware_budget`` (8-bit synapses, 16-bit states). Populations: ``M``
+    L2 IF units, 1 inhibitory counter, ``2 N`` evidence IF units (``+c``, ``-c``), one window
+    unit per cohort, ``N`` ring IF units. Synapses: input -> L2 (``nnz(w1)``), L2 <-> counter
+    (``2 M``), L2 -> evidence (``2 N M``, the dense centred ``l3`` and its negative),
+    evidence -> window (``2 N``), window -> evidence (``2 N``), evidence+ -> ring (``N``),
+    ring -> ring (``nnz(S)``, through a Delay of one frame).
+    """
+    w1 = model.l1.folded_weight().detach()
+    m, d = w1.shape
+    n = model.unit_centre.shape[0]
+    c = model.cohorts.shape[1]
+    nnz_s = int((model.ring.shift.detach() != 0).sum())
+    pops = {"l2": m, "counter": 1, "evidence": 2 * n, "window": c, "ring": n}
+    pairs = {"input->l2": int((w1 != 0).sum()), "l2->counter": m, "counter->l2": m,
+             "l2->evidence": 2 * n * m, "evidence->window": 2 * n, "window->evidence": 2 * n,
+             "evidence->ring": n, "ring->ring (delay: one frame)": nnz_s}
+    b = {"neurons": sum(pops.values()), "effective_synapses": sum(pairs.values())}
+    return {"input": d, "populations": pops, "synapses_by_pair": pairs, **b,
+            "memory_bytes_8bit": memory_bytes(b, 8),
+            "max_fan_in": m + 1, "max_fan_out": max(m, 2 * n + 1)}
 
 
 def main(argv=None) -> dict:
@@ -213,15 +290,26 @@ def main(argv=None) -> dict:
     ap.add_argument("--data", default="corridor,lens")
     ap.add_argument("--variants", default="all", help="'all' or comma-separated l2:norm:rect:ring")
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results"))
+    ap.add_argument("--budget", action="store_true",
+                    help="only print design_budget of each route's first seed")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     seeds = seeds_arg(args.seeds)
+    if args.budget:
+        out = {}
+        for name, (ref, _qry, _gt) in datasets(tuple(args.data.split(","))).items():
+            if not name.endswith("+-2"):
+                model = NeuralSeqSLAM(NeuralConfig(seed=seeds[0]))
+                model.fit(ref, log=False)
+                out[name] = design_budget(model)
+                print(name, out[name])
+        return out
     variants = VARIANTS if args.variants == "all" else args.variants.split(",")
     results = {}
     for name, (ref, qry, _gt) in datasets(tuple(args.data.split(","))).items():
         if name.endswith("+-2"):
             continue
-        rows = {v: {"agreement": [], "fired": [], "ties": []} for v in variants}
+        rows = {v: {"agreement": [], "fired": [], "ties": [], "window": []} for v in variants}
         for seed in seeds:
             t0 = time.perf_counter()
             model = NeuralSeqSLAM(NeuralConfig(seed=seed))
@@ -240,23 +328,28 @@ def main(argv=None) -> dict:
                 f = r["fired"]
                 rows[v]["fired"].append([int(f.min()), int(f.max())])
                 rows[v]["ties"].append(r["ties"])
+                rows[v]["window"].append(r["window"])
             print(f"{name} seed {seed} done ({time.perf_counter() - t0:.1f} s)", flush=True)
         results[name] = rows
         write_json(Path(args.out) / "spiking_multistep.json", {"seeds": seeds,
                                                                 "results": results})
     print("| data | variant | " + " | ".join(f"seed {s}" for s in seeds)
           + " | worst | mean | L2 winners per frame (min..max) | frames with > k / < k winners "
-          "(sum over seeds, of 8 x Q) |")
-    print("|" + "---|" * (len(seeds) + 6))
+          "(sum over seeds) | division window, steps (min / median / max over seeds) |")
+    print("|" + "---|" * (len(seeds) + 7))
     for name, rows in results.items():
         for v, r in rows.items():
             a, f = r["agreement"], np.array(r["fired"])
             t = r["ties"]
             ties = "" if t[0] is None else (f"{sum(x['frames_over_k'] for x in t)} / "
                                             f"{sum(x['frames_under_k'] for x in t)}")
+            w = r["window"]
+            win = "" if w[0] is None else (f"{min(x[0] for x in w)} / "
+                                           f"{np.median([x[1] for x in w]):.0f} / "
+                                           f"{max(x[2] for x in w)}")
             print(f"| {name} | `{v}` | " + " | ".join(f"{x:.3f}" for x in a)
                   + f" | {min(a):.3f} | {np.mean(a):.3f} | {f[:, 0].min()}..{f[:, 1].max()} | "
-                  + f"{ties} |")
+                  + f"{ties} | {win} |")
     return results
 
 
