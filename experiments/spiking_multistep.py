@@ -149,7 +149,7 @@ def ring_bounds(h: torch.Tensor, k: int, widen: float = 0.25) -> tuple[float, fl
 
 
 def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = None) -> dict:
-    """Decisions ``(Q,)``, L2 winners per frame and tie counts of one variant over the query.
+    """Decisions ``(Q,)``, L2 winners, ties, division windows and evidence ``(Q, N)`` of a variant.
 
     ``cache`` (one per model): the L2 codes of reference and query by ``l2`` form, reused
     by the variants that share it.
@@ -157,7 +157,8 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
     l2, norm, rect, ring = variant.split(":")
     if not (l2.startswith("inh") or ring.startswith(("rate", "li"))) and ring != "exact":
         refs, fired = split_simulate(model, xr, xq, theta2, variant)
-        return {"reference": refs, "fired": fired, "ties": None, "window": None}
+        return {"reference": refs, "fired": fired, "ties": None, "window": None,
+                "evidence": None}
     if ring.startswith("li") and rect != "evidence":
         raise ValueError("li<T> integrates rectified evidence: use rect=evidence")
     w1 = model.l1.folded_weight().detach().double()
@@ -255,7 +256,8 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
     if norm.startswith("div"):  # the query's windows: the steps the division phase takes
         wq = windows[-1]
         window = [int(wq.min()), float(wq.median()), int(wq.max())]
-    return {"reference": ref.numpy(), "fired": fired.numpy(), "ties": ties, "window": window}
+    return {"reference": ref.numpy(), "fired": fired.numpy(), "ties": ties, "window": window,
+            "evidence": eq.numpy()}
 
 
 def design_budget(model) -> dict:

@@ -11,6 +11,7 @@ than k winners) rather than hiding them.
 import importlib.util
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -63,3 +64,36 @@ def test_coarse_schedule_reports_ties(ms):
     win_min = torch.where(got > 0, h, torch.full_like(h, float("inf"))).min(1).values
     lose_max = torch.where(got > 0, torch.full_like(h, -float("inf")), h).max(1).values
     assert (win_min > lose_max).all()
+
+
+@pytest.fixture(scope="module")
+def route():
+    from tests.test_spiking import tiny
+
+    model, demo, sp = tiny()
+    xr = model.encode(demo.reference).double()
+    xq = model.encode(demo.query).double()
+    rate = model.run(demo.query).matches.reference.numpy()
+    return model, sp, xr, xq, rate
+
+
+def test_own_pipeline_all_exact_is_the_rate_model(ms, route):
+    # the study's stage switches hold only if its all-exact path is the rate model
+    model, sp, xr, xq, rate = route
+    r = ms.simulate(model, xr, xq, sp.calibration["theta2"], ms.RATE)
+    assert (r["reference"] == rate).all()
+    assert (r["fired"] == model.config.k).all()
+
+
+def test_division_by_timing_tends_to_the_mad_division(ms, route):
+    # a long window: the counts are max(c, 0) / MAD to about 1e-6, the evidence is the float
+    # MAD division's and so are the decisions (a window that ignores the frame's MAD, or
+    # counts that are not rectified, part from them)
+    model, sp, xr, xq, _rate = route
+    th = sp.calibration["theta2"]
+    mad = ms.simulate(model, xr, xq, th, "kwta:mad:evidence:exact")
+    div = ms.simulate(model, xr, xq, th, "kwta:div1000000:evidence:exact")
+    top = float(np.abs(mad["evidence"]).max())
+    np.testing.assert_allclose(div["evidence"], mad["evidence"], rtol=0, atol=1e-4 * top)
+    assert (mad["reference"] == div["reference"]).all()
+    assert div["window"][2] >= 1000000 // 2
