@@ -1,0 +1,359 @@
+"""Several time steps per frame: a design study of a multi-step spiking Neural SeqSLAM.
+
+One command (from the repository root, one thread, a few minutes on a quiet host):
+
+    PYTHONPATH=. .venv/bin/python experiments/spiking_multistep.py [--seeds 0-7]
+        [--data corridor,lens] [--variants all] [--out experiments/results]
+
+An experiment, not a library feature: nothing here is exported to NIR. It extends
+``experiments/spiking_split.py`` (whose loading, seeding, L2 rules and one-step variants it
+imports) with stage forms that need ``T`` time steps per frame, all built from NIR-expressible
+parts (IF units, Linear/Affine weights, recurrent edges), simulated in float64. A variant is
+``l2:norm:rect:ring`` as in the split, with these new forms:
+
+- ``l2``: ``inh<T>`` / ``inhc<T>``: exact k-WTA by inhibition (:func:`inhibition_kwta`).
+  The ``M`` L2 units are non-leaky IF units (threshold 1, reset to 0) that each inhibit
+  themselves once they fire (a recurrent ``-big`` diagonal: each fires at most once per
+  frame; the L3 stage integrates the winners' one spike each over the frame); one inhibitory
+  counter IF unit receives every L2 spike with weight 1, threshold ``k - 1/2``, and once it
+  fires inhibits the whole layer (recurrent edge, so from the next step on). Everything that
+  fired up to and including the step where the count reaches ``k`` wins: ties at the ``k``-th
+  place (several units crossing in that step) make more than ``k`` winners; a frame whose
+  ``k``-th sum lies below the schedule's floor keeps fewer. Schedules: ``inh`` = *ramp*:
+  the frame enters once, at step 1 (``(h - hi) / (hi - lo) + 1``, an Affine with a one-off
+  offset from a start channel), and a bias ``1 / T`` per step ramps every membrane, so unit
+  ``i`` fires at the first ``t`` with ``h_i > hi - t (hi - lo) / T``: ``T`` equal steps
+  between ``hi`` and ``lo``, the range of the reference's ``k``-th L1 sums widened by 25%
+  each side. ``inhc`` = *constant current*: the frame's current ``(h - lo) / (hi - lo)`` is
+  held every step, unit ``i`` fires at the first ``t`` with ``t (h_i - lo) / (hi - lo) > 1``
+  (higher current first; thresholds ``lo + (hi - lo) / t``, dense near ``lo`` only).
+- ``ring``: ``rate<T>``: ring unit ``j`` is one IF unit (reset by subtraction) fed its
+  input ``u_j / a_max`` every step for ``T`` steps: its count ``clamp(floor(T u_j / a_max),
+  0, T)`` is the value (``count * a_max / T``) carried through the shift to the next frame
+  (a uniform ladder of ``T`` rungs in time instead of ``K`` neurons); the decision is the
+  unit with the most spikes. ``li<T>`` (with ``rect=evidence``): the rectified evidence is
+  rate-coded the same way by one IF unit per output unit (``e_max``: the largest rectified
+  evidence on the reference), and the ring is a non-spiking integrator per unit (NIR ``I``/
+  ``LI`` with the shift as its recurrent Linear) holding ``a = decay S a + count e_max / T``
+  as graded membrane; the decision reads the membranes (argmax, as the rate model's).
+- ``norm``: ``frame`` (the rate model's division by each frame's cohort std, which no NIR
+  node computes), ``fixed`` (calibrated ``sigma_c``), ``mad`` (each frame's cohort mean
+  absolute deviation times ``ratio_c``, the reference's median std/MAD: float, to see
+  whether a linear spread can stand in for the std) and ``div<T>``: the division by timing.
+  Two IF units per output unit (reset by subtraction) carry ``+c_j`` and ``-c_j`` (the
+  cohort-centred evidence, ``rate * c`` per step, ``rate`` keeping them at <= 1 spike per
+  step on the reference), so together they spike at a rate ``rate * |c_j|``; one window IF
+  unit per cohort integrates their spikes (weight ``1 / n_c``) and, once past ``theta_w``
+  (set so the reference's median window is ``T`` steps), inhibits them: the window is
+  ``W = ceil(theta_w / (rate * MAD))`` steps and the ``+`` unit's count
+  ``floor(rate * max(c_j, 0) * W)`` is ``max(c_j, 0) / MAD`` up to the factor
+  ``theta_w``: rectified, divided by the frame's spread, rate-coded. Simulated in closed
+  form (the window from the analog MAD, not from the integer spike counts). The ring then
+  integrates ``count * gain / theta_w`` (``ring=exact``: the input is already >= 0, so the
+  unquantised ring is a linear integrator; ``rate<T>``: the ring's IF count, as above).
+  ``divsd<T>``: the same window from the frame's cohort std itself (as if a circuit
+  squaring and taking the root by timing were exact; not built, not simulated).
+
+Prints a markdown table per route (agreement per seed, min and mean; the L2 winners per frame
+and the frames with ties at the k-th place for the inhibition forms) and writes
+``spiking_multistep.json`` under ``--out``. The all-exact variant run through this script's
+own pipeline must equal ``NeuralSeqSLAM.run`` frame for frame (it stops otherwise).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "experiments"))
+
+from neural_quality import datasets  # noqa: E402
+from spiking_split import RATE, SPIKING, l2_rule, seeds_arg  # noqa: E402
+from spiking_split import simulate as split_simulate  # noqa: E402
+
+from torchseq.atomic import write_json  # noqa: E402
+from torchseq.export.hardware_budget import memory_bytes  # noqa: E402
+from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
+from torchseq.neural.readout import decide  # noqa: E402
+from torchseq.neural.spiking import SpikingSeqSLAM  # noqa: E402
+
+VARIANTS = [
+    SPIKING,  # the one-step spiking model (split's pipeline)
+    RATE,  # the rate model through this script's own pipeline
+    # L2 alone approximate: the inhibition k-WTA at T steps
+    "inh64:frame:evidence:exact", "inh256:frame:evidence:exact",
+    "inh1024:frame:evidence:exact", "inhc1024:frame:evidence:exact",
+    # ring alone approximate: values coded over T steps
+    "kwta:frame:evidence:rate256", "kwta:frame:evidence:rate1024",
+    "kwta:frame:evidence:rate4096",
+    "kwta:frame:evidence:li16", "kwta:frame:evidence:li64", "kwta:frame:evidence:li256",
+    # normalisation alone approximate (calibrated), for its cost beside the others
+    "kwta:fixed:evidence:exact",
+    "kwta:mad:evidence:exact", "kwta:div64:evidence:exact", "kwta:div256:evidence:exact",
+    "kwta:div1024:evidence:exact",
+    # combinations
+    "inh256:frame:evidence:li64", "inh1024:frame:evidence:li256",
+    "inh256:fixed:evidence:li64", "inh1024:fixed:evidence:li256",
+    "inh256:div256:evidence:exact", "inh1024:div1024:evidence:exact",
+    "inh256:div256:evidence:rate1024", "inh256:div256:evidence:rate4096",
+    "inh1024:div1024:evidence:rate4096",
+    # the division by the std itself by timing (a square-and-root circuit assumed exact)
+    "kwta:divsd256:evidence:exact", "inh256:divsd256:evidence:rate4096",
+    "inh1024:divsd1024:evidence:rate4096",
+]
+
+
+def inhibition_kwta(h: torch.Tensor, k: int, steps: int, lo: float, hi: float,
+                    schedule: str = "ramp") -> torch.Tensor:
+    """Winners ``(F, M)`` 0/1 of the inhibition k-WTA, stepped unit by unit for ``steps`` steps.
+
+    ``h`` ``(F, M)``: the frames' L1 sums. Non-leaky IF L2 units (threshold 1, reset to 0,
+    a self-inhibition once fired), one counter IF unit (weight 1 from every L2 unit,
+    threshold ``k - 1/2``) whose spike inhibits the layer from the next step on.
+    """
+    f, m = h.shape
+    v = torch.zeros_like(h)
+    fired = torch.zeros_like(h)
+    counter = torch.zeros(f, 1, dtype=h.dtype)
+    stop = torch.zeros(f, 1, dtype=h.dtype)  # the counter's spike, delivered next step
+    big = 1e9
+    span = hi - lo
+    for t in range(1, steps + 1):
+        if schedule == "ramp":  # the frame at step 1, a ramp 1/T every step
+            cur = ((h - hi) / span + 1.0 if t == 1 else 0.0) + 1.0 / steps
+        elif schedule == "const":  # the frame's current every step
+            cur = (h - lo) / span
+        else:
+            raise ValueError(f"unknown schedule {schedule!r}")
+        v = v + cur - big * stop - big * fired  # layer inhibition, self-inhibition
+        z = (v > 1.0).to(h.dtype)
+        v = v * (1.0 - z)
+        fired = fired + z
+        counter = counter + z.sum(1, keepdim=True)
+        stop = torch.maximum(stop, (counter > k - 0.5).to(h.dtype))
+    return fired
+
+
+def ring_bounds(h: torch.Tensor, k: int, widen: float = 0.25) -> tuple[float, float]:
+    """The schedule's range: the reference frames' ``k``-th L1 sums, widened each side."""
+    kth = h.topk(k, dim=1).values[:, -1]
+    lo, hi = float(kth.min()), float(kth.max())
+    return lo - widen * (hi - lo), hi + widen * (hi - lo)
+
+
+def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = None) -> dict:
+    """Decisions ``(Q,)``, L2 winners, ties, division windows and evidence ``(Q, N)`` of a variant.
+
+    ``cache`` (one per model): the L2 codes of reference and query by ``l2`` form, reused
+    by the variants that share it.
+    """
+    l2, norm, rect, ring = variant.split(":")
+    if not (l2.startswith("inh") or ring.startswith(("rate", "li"))) and ring != "exact":
+        refs, fired = split_simulate(model, xr, xq, theta2, variant)
+        return {"reference": refs, "fired": fired, "ties": None, "window": None,
+                "evidence": None}
+    if ring.startswith("li") and rect != "evidence":
+        raise ValueError("li<T> integrates rectified evidence: use rect=evidence")
+    w1 = model.l1.folded_weight().detach().double()
+    w3 = model.l3.folded_weight().detach().double()
+    g = model.cohorts.detach().double()
+    decay, gain = (float(v) for v in model.ring.params)
+    s = model.ring.shift.detach().double()
+    eps, k = model.config.eps, model.config.k
+    n_c = g.sum(0).clamp_min(1.0)
+    if l2.startswith("inh"):
+        schedule = "const" if l2.startswith("inhc") else "ramp"
+        steps = int(l2[4:] if schedule == "const" else l2[3:])
+        lo, hi = ring_bounds(xr @ w1.T, k)
+
+        def code(x):
+            return inhibition_kwta(x @ w1.T, k, steps, lo, hi, schedule)
+    else:
+        code = l2_rule(l2, xr, w1, k, theta2)
+
+    def centred_sd(z2):
+        e = z2 @ w3.T
+        mu = ((e @ g) / n_c) @ g.T
+        return e - mu, ((((e - mu) ** 2) @ g) / n_c).sqrt()
+
+    windows = []  # the division's window lengths (steps), reference then query
+
+    def mad(c):  # each cohort's mean absolute deviation (T, C)
+        return (c.abs() @ g) / n_c
+
+    def evidence(z2, sigma):
+        c, sd = centred_sd(z2)
+        if norm.startswith("div"):  # division by timing (rectified, counts over a window)
+            spread = ratio * mad(c) if not norm.startswith("divsd") else sd
+            w = torch.ceil(theta_w / (rate * spread).clamp_min(1e-300)).clamp(max=2**31)
+            windows.append(w)
+            count = torch.floor(rate * c.clamp_min(0.0) * (w @ g.T))
+            return count * gain / (theta_w @ g.T)
+        if norm == "frame":
+            e = gain * c / (sd @ g.T + eps)
+        elif norm == "mad":
+            e = gain * c / ((ratio * mad(c)) @ g.T + eps)
+        else:
+            e = gain * c / (sigma @ g.T)
+        return e.clamp_min(0.0) if rect == "evidence" else e
+
+    cache = {} if cache is None else cache
+    if l2 not in cache:
+        cache[l2] = code(xr), code(xq)
+    zr, zq = cache[l2]
+    cr, sdr = centred_sd(zr)
+    sigma = torch.quantile(sdr, 0.5, dim=0).clamp_min(eps)
+    # mad/div calibration on the reference: sd ~ ratio * mad; the rate scale keeps every
+    # evidence unit at <= 1 spike per step; theta_w makes the median window T steps
+    ratio = torch.quantile(sdr / mad(cr).clamp_min(1e-300), 0.5, dim=0)
+    rate = 1.0 / float(cr.abs().max())
+    steps_div = int(norm.lstrip("divsd") or 1) if norm.startswith("div") else 1
+    theta_w = steps_div * rate * torch.quantile(ratio * mad(cr), 0.5, dim=0)
+    er = evidence(zr, sigma)
+    steps_ring = int(ring[4:] if ring.startswith("rate") else ring[2:]) if ring != "exact" else 0
+    if ring.startswith("rate"):  # the top of the rate code: the unquantised ring's largest
+        a, top = torch.zeros(er.shape[1], dtype=torch.float64), 0.0
+        for t in range(er.shape[0]):
+            a = (er[t] + decay * (s @ a)).clamp_min(0.0)
+            top = max(top, float(a.max()))
+    elif ring.startswith("li"):
+        top = float(er.max())
+    eq = evidence(zq, sigma)
+    q, out = torch.zeros(eq.shape[1], dtype=torch.float64), []
+    for t in range(eq.shape[0]):
+        if ring == "exact":
+            q = (eq[t] + decay * (s @ q)).clamp_min(0.0)
+            out.append(q)
+        elif ring.startswith("rate"):
+            u = eq[t] + decay * (s @ q)
+            count = torch.floor(steps_ring * u / top).clamp(0, steps_ring)
+            q = count * (top / steps_ring)
+            out.append(count)
+        else:  # li: rate-coded rectified evidence into a graded integrator
+            count = torch.floor(steps_ring * eq[t] / top).clamp(0, steps_ring)
+            q = count * (top / steps_ring) + decay * (s @ q)
+            out.append(q)
+    ref = decide(torch.stack(out), model.unit_centre, model.config.uniqueness_window)[0]
+    fired = zq.sum(1)
+    h = xq @ w1.T
+    ties = None
+    if l2.startswith("inh"):  # winners beyond k (ties at the k-th place) / short of k
+        ties = {"frames_over_k": int((fired > k).sum()), "frames_under_k": int((fired < k).sum()),
+                "max_over": int((fired - k).clamp_min(0).max())}
+        # the winners are the top of the L1 sums (no non-winner above a winner)
+        lowest_win = torch.where(zq > 0, h, torch.full_like(h, np.inf)).min(1).values
+        highest_loss = torch.where(zq > 0, torch.full_like(h, -np.inf), h).max(1).values
+        if not bool((lowest_win >= highest_loss).all()):
+            raise SystemExit(f"{variant}: the inhibition k-WTA kept a unit below a loser")
+    window = None
+    if norm.startswith("div"):  # the query's windows: the steps the division phase takes
+        wq = windows[-1]
+        window = [int(wq.min()), float(wq.median()), int(wq.max())]
+    return {"reference": ref.numpy(), "fired": fired.numpy(), "ties": ties, "window": window,
+            "evidence": eq.numpy()}
+
+
+def design_budget(model) -> dict:
+    """Arithmetic budget of the ``inh:div:evidence:rate`` design for a fitted model.
+
+    Not an exported graph: counts by hand, with :func:`memory_bytes` of
+    ``torchseq.export.hardware_budget`` (8-bit synapses, 16-bit states). Populations: ``M``
+    L2 IF units, 1 inhibitory counter, ``2 N`` evidence IF units (``+c``, ``-c``), one window
+    unit per cohort, ``N`` ring IF units. Synapses: input -> L2 (``nnz(w1)``), L2 <-> counter
+    (``2 M``), L2 -> evidence (``2 N M``, the dense centred ``l3`` and its negative),
+    evidence -> window (``2 N``), window -> evidence (``2 N``), evidence+ -> ring (``N``),
+    ring -> ring (``nnz(S)``, through a Delay of one frame).
+    """
+    w1 = model.l1.folded_weight().detach()
+    m, d = w1.shape
+    n = model.unit_centre.shape[0]
+    c = model.cohorts.shape[1]
+    nnz_s = int((model.ring.shift.detach() != 0).sum())
+    pops = {"l2": m, "counter": 1, "evidence": 2 * n, "window": c, "ring": n}
+    pairs = {"input->l2": int((w1 != 0).sum()), "l2->counter": m, "counter->l2": m,
+             "l2->evidence": 2 * n * m, "evidence->window": 2 * n, "window->evidence": 2 * n,
+             "evidence->ring": n, "ring->ring (delay: one frame)": nnz_s}
+    b = {"neurons": sum(pops.values()), "effective_synapses": sum(pairs.values())}
+    return {"input": d, "populations": pops, "synapses_by_pair": pairs, **b,
+            "memory_bytes_8bit": memory_bytes(b, 8),
+            "max_fan_in": m + 1, "max_fan_out": max(m, 2 * n + 1)}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default="0-7")
+    ap.add_argument("--data", default="corridor,lens")
+    ap.add_argument("--variants", default="all", help="'all' or comma-separated l2:norm:rect:ring")
+    ap.add_argument("--out", default=str(ROOT / "experiments" / "results"))
+    ap.add_argument("--budget", action="store_true",
+                    help="only print design_budget of each route's first seed")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    seeds = seeds_arg(args.seeds)
+    if args.budget:
+        out = {}
+        for name, (ref, _qry, _gt) in datasets(tuple(args.data.split(","))).items():
+            if not name.endswith("+-2"):
+                model = NeuralSeqSLAM(NeuralConfig(seed=seeds[0]))
+                model.fit(ref, log=False)
+                out[name] = design_budget(model)
+                print(name, out[name])
+        return out
+    variants = VARIANTS if args.variants == "all" else args.variants.split(",")
+    results = {}
+    for name, (ref, qry, _gt) in datasets(tuple(args.data.split(","))).items():
+        if name.endswith("+-2"):
+            continue
+        rows = {v: {"agreement": [], "fired": [], "ties": [], "window": []} for v in variants}
+        for seed in seeds:
+            t0 = time.perf_counter()
+            model = NeuralSeqSLAM(NeuralConfig(seed=seed))
+            model.fit(ref, log=False)
+            rate = model.run(qry).matches.reference.numpy()
+            sp = SpikingSeqSLAM.convert(model, ref)
+            xr, xq = model.encode(ref).double(), model.encode(qry).double()
+            cache = {}
+            for v in variants:
+                r = simulate(model, xr, xq, sp.calibration["theta2"], v, cache)
+                if v == RATE and not np.array_equal(r["reference"], rate):
+                    raise SystemExit(f"{name} seed {seed}: the all-exact variant is not the "
+                                     f"rate model on {int(np.sum(r['reference'] != rate))} "
+                                     "frames")
+                rows[v]["agreement"].append(float(np.mean(r["reference"] == rate)))
+                f = r["fired"]
+                rows[v]["fired"].append([int(f.min()), int(f.max())])
+                rows[v]["ties"].append(r["ties"])
+                rows[v]["window"].append(r["window"])
+            print(f"{name} seed {seed} done ({time.perf_counter() - t0:.1f} s)", flush=True)
+        results[name] = rows
+        write_json(Path(args.out) / "spiking_multistep.json", {"seeds": seeds,
+                                                                "results": results})
+    print("| data | variant | " + " | ".join(f"seed {s}" for s in seeds)
+          + " | worst | mean | L2 winners per frame (min..max) | frames with > k / < k winners "
+          "(sum over seeds) | division window, steps (min / median / max over seeds) |")
+    print("|" + "---|" * (len(seeds) + 7))
+    for name, rows in results.items():
+        for v, r in rows.items():
+            a, f = r["agreement"], np.array(r["fired"])
+            t = r["ties"]
+            ties = "" if t[0] is None else (f"{sum(x['frames_over_k'] for x in t)} / "
+                                            f"{sum(x['frames_under_k'] for x in t)}")
+            w = r["window"]
+            win = "" if w[0] is None else (f"{min(x[0] for x in w)} / "
+                                           f"{np.median([x[1] for x in w]):.0f} / "
+                                           f"{max(x[2] for x in w)}")
+            print(f"| {name} | `{v}` | " + " | ".join(f"{x:.3f}" for x in a)
+                  + f" | {min(a):.3f} | {np.mean(a):.3f} | {f[:, 0].min()}..{f[:, 1].max()} | "
+                  + f"{ties} | {win} |")
+    return results
+
+
+if __name__ == "__main__":
+    main()
