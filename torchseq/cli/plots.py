@@ -129,6 +129,24 @@ def checked_matrix(matrix, gt, shape: tuple[int, int] | None):
     return m, n_ref, n_query
 
 
+def matched_points(matches: Matches, gt, n_ref: int,
+                   n_query: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The matches a difference-matrix figure draws: ``(query, reference, correct)``.
+
+    Queries whose match lies inside the ``(R, Q)`` matrix, their references and whether the
+    ground truth admits each (all False without ground truth).
+
+    Raises:
+        ValueError: the matches do not have ``Q`` queries.
+    """
+    ref = _np(matches.reference).astype(np.int64)
+    if len(ref) != n_query:
+        raise ValueError(f"{len(ref)} matches for a matrix of {n_query} queries")
+    q = np.nonzero((ref >= 0) & (ref < n_ref))[0]
+    ok = admits(gt, ref[q], q) if gt is not None else np.zeros(len(q), bool)
+    return q, ref[q], ok
+
+
 def plot_difference_matrix(matrix, matches: Matches | None = None, gt=None,
                            title: str = "contrast-enhanced difference matrix",
                            shape: tuple[int, int] | None = None) -> Figure:
@@ -172,13 +190,9 @@ def plot_difference_matrix(matrix, matches: Matches | None = None, gt=None,
         rows, cols = np.nonzero(gt)
         ax.scatter(cols, rows, s=1, c="tab:blue", alpha=0.15, marker="s", label="ground truth")
     if matches is not None:
-        ref = _np(matches.reference).astype(np.int64)
-        if len(ref) != n_query:
-            raise ValueError(f"{len(ref)} matches for a matrix of {n_query} queries")
-        q = np.nonzero((ref >= 0) & (ref < n_ref))[0]
-        ok = admits(gt, ref[q], q) if gt is not None else np.zeros(len(q), bool)
-        ax.scatter(q[ok], ref[q][ok], s=4, c="tab:green", label="correct match")
-        ax.scatter(q[~ok], ref[q][~ok], s=4, c="tab:red", label="wrong match")
+        q, r, ok = matched_points(matches, gt, n_ref, n_query)
+        ax.scatter(q[ok], r[ok], s=4, c="tab:green", label="correct match")
+        ax.scatter(q[~ok], r[~ok], s=4, c="tab:red", label="wrong match")
     ax.set_xlim(extent[0], extent[1])
     ax.set_ylim(extent[2], extent[3])
     ax.set_xlabel("query frame")

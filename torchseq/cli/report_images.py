@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import torch
 
+from torchseq.cli.plots import PLOT_SIDE  # matrices are area-reduced as the plots reduce them
 from torchseq.ground_truth import GroundTruthRanges, admits
 from torchseq.matches import Matches
 from torchseq.metrics import PRCurve, auc
@@ -30,7 +31,6 @@ BLACK = (0, 0, 0)
 BLUE, GREEN, RED = (31, 119, 180), (44, 160, 44), (214, 39, 40)
 TAB10 = [BLUE, (255, 127, 14), GREEN, RED, (148, 103, 189), (140, 86, 75)]
 FONT = cv2.FONT_HERSHEY_SIMPLEX
-PLOT_SIDE = 512  # as torchseq.cli.plots: matrices are area-reduced to at most this a side
 
 
 def _np(x) -> np.ndarray:
@@ -168,6 +168,7 @@ def draw_difference_matrix(matrix, matches: Matches | None = None, gt=None,
     from torchseq.cli.plots import (  # NumPy/torch only (no drawing)
         _any_pool,
         checked_matrix,
+        matched_points,
         reduce_matrix,
     )
 
@@ -201,13 +202,9 @@ def draw_difference_matrix(matrix, matches: Matches | None = None, gt=None,
     if gt is not None:
         entries.append(("ground truth", BLUE, "band"))
     if matches is not None:
-        ref = _np(matches.reference).astype(np.int64)
-        if len(ref) != n_query:
-            raise ValueError(f"{len(ref)} matches for a matrix of {n_query} queries")
-        q = np.nonzero((ref >= 0) & (ref < n_ref))[0]
-        ok = admits(gt, ref[q], q) if gt is not None else np.zeros(len(q), bool)
+        q, r, ok = matched_points(matches, gt, n_ref, n_query)
         for good, colour in ((True, GREEN), (False, RED)):
-            u, v = ax.px(q[ok == good], ref[q][ok == good])
+            u, v = ax.px(q[ok == good], r[ok == good])
             _dots(img, np.rint(u).astype(np.int64), np.rint(v).astype(np.int64), colour)
         entries += [("correct match", GREEN, "dot"), ("wrong match", RED, "dot")]
     ax.frame("query frame", "reference frame", title)
