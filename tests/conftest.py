@@ -29,6 +29,17 @@ def shared_data(*parts: str) -> Path:
     return path
 
 
+def load_script(relative: str):
+    """A script of the repository (``"experiments/x.py"``) imported as a module by its path."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / relative
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 COARSE_UNITS = r"a route of \d+ frames on \d+ output units"  # NeuralSeqSLAM.fit's warning
 
 

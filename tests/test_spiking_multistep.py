@@ -8,23 +8,15 @@ than one step of the schedule (no ties), and that a coarse schedule reports its 
 than k winners) rather than hiding them.
 """
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def ms():
-    spec = importlib.util.spec_from_file_location("spiking_multistep",
-                                                  ROOT / "experiments" / "spiking_multistep.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("experiments/spiking_multistep.py")
 
 
 def spaced_sums(frames=12, units=40, seed=0):

@@ -6,24 +6,16 @@ all-spiking variant is the spiking model and the all-exact variant the rate mode
 frame. Checked here on the tiny route of tests/test_spiking.py.
 """
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import load_script
 
 from tests.test_spiking import tiny
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def split():
-    spec = importlib.util.spec_from_file_location("spiking_split",
-                                                  ROOT / "experiments" / "spiking_split.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("experiments/spiking_split.py")
 
 
 @pytest.fixture(scope="module")
