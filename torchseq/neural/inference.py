@@ -159,7 +159,6 @@ class NeuralInference(nn.Module):
             self.params = model.ring.params
             self.search = (None if model.search is None
                            else UnitSearch(model.config, model.unit_to_reference.detach()))
-            self._weights = (w1, w3)
             self.l1_int8 = self.l3_int8 = self.w1_i8 = None
             self._int8_built = False
             self._kernels = self._resolve(kernels, cpu, w1, w3)
@@ -167,7 +166,6 @@ class NeuralInference(nn.Module):
                 shift, self.decay, diag if self._kernels["ring"] == "banded" else None))
             self.w1_bf16 = (self.w1_t.to(torch.bfloat16)
                             if self._kernels["l1"] == "bfloat16_gemm" else None)
-            del self._weights
             if self._kernels["step"] == "stages":
                 self.w1_i8 = None
         self._encode = model.encode if self._kernels["input"] == "encode" else None
@@ -209,7 +207,7 @@ class NeuralInference(nn.Module):
             asked.setdefault("scan", "velocity_loop")
         if base == "portable":
             out = {**PORTABLE, **({"input": "encode"} if not self.block_major else {}), **asked}
-            return self._check(out, cpu)
+            return self._check(out, cpu, w1, w3)
         if cpu and not self._int8_built:
             self._build_int8(w1, w3)
         numpy = "numpy" if cpu else "torch"
@@ -223,15 +221,15 @@ class NeuralInference(nn.Module):
             "cohorts": numpy, "ring": "banded" if self.diagonals is not None else "dense",
             "scan": numpy, "decide": numpy,
             # a stage kernel asked by name runs: then the step is the stages unless asked too
-            "step": ("stages_or_numba" if cpu and numba_available() and self._numba_fits()
+            "step": ("stages_or_numba" if cpu and numba_available() and self._numba_fits(w1, w3)
                      and not set(asked) & set(STAGES[:6] + ("decide",)) else "stages"),
         }
         out.update(asked)
         if not cfg.input_steps and out["l1"].startswith("int8_gemm"):
             raise NeuralError("the int8 L1 kernel needs input_steps > 0")
-        return self._check(out, cpu)
+        return self._check(out, cpu, w1, w3)
 
-    def _check(self, out: dict, cpu: bool) -> dict:
+    def _check(self, out: dict, cpu: bool, w1: torch.Tensor, w3: torch.Tensor) -> dict:
         if not cpu:
             bad = [s for s in ("input", "cohorts", "scan", "decide") if out[s] == "numpy"]
             bad += ["kwta"] if out["kwta"] == "partition" else []
@@ -262,17 +260,17 @@ class NeuralInference(nn.Module):
             if not numba_available():
                 raise NeuralError(f"the {out['step']!r} step kernel needs numba (the 'fast' "
                                   "extra: pip install torchseq[fast])")
-            if not self._numba_fits():
+            if not self._numba_fits(w1, w3):
                 raise NeuralError(f"the {out['step']!r} step kernel needs the integer L1 grids "
                                   "(input_steps a power of two, patch_mode 'zscore'), one "
                                   "cohort, a banded ring, the centre read-out, no unit search "
                                   "and a fixed ring")
         return out
 
-    def _numba_fits(self) -> bool:
+    def _numba_fits(self, w1: torch.Tensor, w3: torch.Tensor) -> bool:
         """Whether the compiled step (``_step_numba``) computes this model's step."""
-        if not self._int8_built:  # the L1 integer grids (CPU only)
-            self._build_int8(*self._weights)
+        if not self._int8_built:  # the L1 integer grids (CPU only; portable builds them here)
+            self._build_int8(w1, w3)
         return (self.w1_i8 is not None and self.cohorts.shape[1] == 1
                 and self.diagonals is not None and self.spans is None and self.search is None
                 and self.tracker is None)
