@@ -3,7 +3,7 @@
 One command (from the repository root, one thread):
 
     .venv/bin/python experiments/spiking_events.py [--places 400] [--seeds 0-2]
-        [--consumers] [--ablation] [--out experiments/results]
+        [--consumers] [--ablation] [--weight-bits 8,4] [--out experiments/results]
 
 Data (``../shared/data``):
 
@@ -29,9 +29,12 @@ the rate model and SeqSLAM on the intensity frames of the same places are given 
 context (what the events lose). ``--consumers`` also exports the event-driven model of seed
 0 to NIR and runs snnTorch and Norse on the query windows (16-window streams);
 ``--ablation`` also runs the event-driven model with per-patch scales (``scale="patch"``)
-beside the default one global scale. With ``--consumers`` the real DVS128 recording
-``../shared/data/events/alex_walking_again.aedat`` (100 ms windows, the first 34 as
-reference, the other 35 as query; one traverse, so no recall) is exported and run too.
+beside the default one global scale. ``--weight-bits 8,4`` adds the event-driven model at
+each chip precision (``SpikingConfig(weight_bits=b)``), and with ``--consumers`` exports
+each of those of seed 0 and runs the consumers on it too. With ``--consumers`` the real
+DVS128 recording ``../shared/data/events/alex_walking_again.aedat`` (100 ms windows, the
+first 34 as reference, the other 35 as query; one traverse, so no recall) is exported and
+run too.
 Writes ``spiking_events.json`` and ``spiking_events.md`` under ``--out``.
 """
 
@@ -56,7 +59,7 @@ from torchseq.atomic import write_json, write_text  # noqa: E402
 from torchseq.events import simulate_run  # noqa: E402
 from torchseq.metrics import recall_at_k  # noqa: E402
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
-from torchseq.neural.spiking import SpikingSeqSLAM  # noqa: E402
+from torchseq.neural.spiking import SpikingConfig, SpikingSeqSLAM  # noqa: E402
 from torchseq.neural.spiking_events import (  # noqa: E402
     EventSpikingSeqSLAM,
     count_frames,
@@ -130,8 +133,8 @@ def rate_recall(ref, qry, gts, seed) -> dict:
     return {k: recall_at_k(refs, gt, 1) for k, gt in gts.items()}
 
 
-def one_seed(ev_ref, ev_qry, gts, seed: int,
-             ablation: bool = False) -> tuple[dict, EventSpikingSeqSLAM]:
+def one_seed(ev_ref, ev_qry, gts, seed: int, ablation: bool = False,
+             bits: tuple[int, ...] = ()) -> tuple[dict, EventSpikingSeqSLAM, dict]:
     ref, qry = count_frames(ev_ref), count_frames(ev_qry)
     model = NeuralSeqSLAM(NeuralConfig(seed=seed))
     model.fit(ref, log=False)
@@ -156,7 +159,15 @@ def one_seed(ev_ref, ev_qry, gts, seed: int,
         refs = patch.run(ev_qry)["reference"]
         out["event-driven, per-patch scales"] = {k: recall_at_k(refs, gt, 1)
                                                  for k, gt in gts.items()}
-    return out, ev
+    quantised = {}
+    for b in bits:  # the event-driven model at chip precision
+        quantised[b] = EventSpikingSeqSLAM.convert_events(model, ev_ref,
+                                                          SpikingConfig(weight_bits=b))
+        refs = quantised[b].run(ev_qry)["reference"]
+        out[f"event-driven, {b}-bit weights"] = {k: recall_at_k(refs, gt, 1)
+                                                 for k, gt in gts.items()}
+        out[f"agreement {b}-bit vs float event-driven"] = float(np.mean(refs.numpy() == e))
+    return out, ev, quantised
 
 
 def consumers(ev, ev_qry) -> dict:
@@ -179,8 +190,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--consumers", action="store_true")
     ap.add_argument("--ablation", action="store_true",
                     help="also the event-driven model with per-patch scales")
+    ap.add_argument("--weight-bits", default="",
+                    help="comma-separated chip precisions for the event-driven model, e.g. 8,4")
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results"))
     args = ap.parse_args(argv)
+    bits = tuple(int(b) for b in args.weight_bits.split(",") if b)
     torch.set_num_threads(1)
     seeds = seeds_arg(args.seeds)
     sets = {}
@@ -198,12 +212,15 @@ def main(argv=None) -> dict:
                "sensor": list(ev_ref.shape[2:]), "seeds": {}}
         for seed in seeds:
             t0 = time.perf_counter()
-            row["seeds"][str(seed)], ev = one_seed(ev_ref, ev_qry, gts, seed,
-                                                       args.ablation)
+            row["seeds"][str(seed)], ev, quantised = one_seed(ev_ref, ev_qry, gts, seed,
+                                                                  args.ablation, bits)
             print(f"{name} seed {seed}: {row['seeds'][str(seed)]} "
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
             if seed == seeds[0] and args.consumers:
                 row["consumers"] = consumers(ev, ev_qry)
+                for b, q in quantised.items():
+                    row["consumers"].update({f"{k}, {b}-bit": v
+                                             for k, v in consumers(q, ev_qry).items()})
                 print(f"{name} consumers: {row['consumers']}", flush=True)
         row["seqslam (count frames)"] = seqslam_recall(count_frames(ev_ref),
                                                        count_frames(ev_qry), gts)
@@ -236,9 +253,10 @@ def table(results: dict, seeds: list[int]) -> str:
     for name, row in scored.items():
         for gt in next(iter(row["seeds"].values()))["rate"]:
             label = f"{gt} ({row['windows'][1]})"
+            first = row["seeds"][str(seeds[0])]
             models = [m for m in ("rate", "frame-driven spiking", "event-driven spiking",
-                                  "event-driven, per-patch scales")
-                      if m in row["seeds"][str(seeds[0])]]
+                                  "event-driven, per-patch scales") if m in first]
+            models += [m for m in first if m.endswith("-bit weights")]
             for model in models:
                 vals = [row["seeds"][str(s)][model][gt] for s in seeds]
                 lines.append(f"| {label} | {model} | {np.mean(vals):.3f} | "
@@ -262,6 +280,15 @@ def table(results: dict, seeds: list[int]) -> str:
                      f"{mean('agreement frame-driven vs rate'):.3f} | "
                      f"{mean('input events/window'):.0f} | {mean('event l2 spikes/window'):.0f} | "
                      f"{mean('frame l2 spikes/frame'):.0f} |")
+    quant = sorted({k for r in scored.values() for v in r["seeds"].values() for k in v
+                    if k.startswith("agreement") and k.endswith("vs float event-driven")})
+    if quant:
+        lines += ["", "| data | " + " | ".join(f"{k[len('agreement '):]} decisions"
+                                               for k in quant) + " |",
+                  "|---|" + "---|" * len(quant)]
+        for name, row in scored.items():
+            vals = [np.mean([v[k] for v in row["seeds"].values()]) for k in quant]
+            lines.append(f"| {name} | " + " | ".join(f"{v:.3f}" for v in vals) + " |")
     cons = {n: r["consumers"] for n, r in results.items() if "consumers" in r}
     if cons:
         lines += ["", "| data | consumer | decision agreement | spike agreement |",

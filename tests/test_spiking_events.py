@@ -231,9 +231,10 @@ class TestBadInput:
             EventSpikingSeqSLAM.convert_events(model, bad)
         with pytest.raises(SpikingError, match="scale must be one of"):
             EventSpikingSeqSLAM.convert_events(model, ref, scale="std")
-        for cfg in (SpikingConfig(weight_bits=8), SpikingConfig(input_threshold=0.5)):
-            with pytest.raises(SpikingError, match="no quantised or thresholded-input form"):
-                EventSpikingSeqSLAM.convert_events(model, ref, cfg)
+        with pytest.raises(SpikingError, match="event input is spikes already"):
+            EventSpikingSeqSLAM.convert_events(model, ref, SpikingConfig(input_threshold=0.5))
+        with pytest.raises(SpikingError, match="weight_bits must be None or an int"):
+            EventSpikingSeqSLAM.convert_events(model, ref, SpikingConfig(weight_bits=1))
         unfitted = NeuralSeqSLAM(NeuralConfig(unit_search="off", input_size=(8, 12),
                                               hidden=96, n_output=20))
         with pytest.raises(SpikingError, match="has not learnt a route"):
@@ -296,6 +297,89 @@ class TestGraph:
         assert b["neurons"] == 96 + sp.n_units * sp.levels
 
 
+@lru_cache(maxsize=None)
+def tiny_events_at(bits: int):
+    """:func:`tiny_events`' model converted with ``bits``-bit weights."""
+    model, ref, qry, _ = tiny_events()
+    return EventSpikingSeqSLAM.convert_events(model, ref, SpikingConfig(levels=6,
+                                                                        weight_bits=bits))
+
+
+@pytest.fixture(scope="module")
+def quantised_files(tmp_path_factory):
+    out = {}
+    for bits in (8, 4):
+        sp = tiny_events_at(bits)
+        path = tmp_path_factory.mktemp(f"nirev{bits}") / "events.nir"
+        write_nir(sp, path)
+        out[bits] = sp, path
+    return out
+
+
+class TestChipPrecision:
+    """Event input with weights at a chip's precision (``SpikingConfig(weight_bits=b)``)."""
+
+    @pytest.mark.parametrize("bits", [8, 4])
+    def test_every_graph_weight_sits_on_its_bit_grid(self, quantised_files, bits):
+        from torchseq.export.hardware_budget import budget, pow2_rows
+
+        sp, path = quantised_files[bits]
+        back = read_nir(path)
+        n, qmax = back.nodes, 2 ** (bits - 1) - 1
+        for node in ("l3", "levels", "shift"):
+            assert pow2_rows(n[node].weight, qmax), node
+        # the pool is 0/1; l1 holds the quantised fold over theta2: integers |q| <= qmax
+        # times one power of two per row, once multiplied back by theta2 (a plain loop)
+        assert set(np.unique(n["pool"].weight).tolist()) == {0.0, 1.0}
+        w = n["l1"].weight.astype(np.float64) * sp.calibration["theta2"]
+        for row in w:
+            e = np.ceil(np.log2(np.abs(row).max() / qmax) - 1e-6)  # float32 / theta2 slack
+            q = row / 2.0 ** e
+            assert np.abs(q).max() <= qmax + 1e-4 and np.abs(q - np.rint(q)).max() < 1e-4
+        assert int(back.metadata["weight_bits"]) == bits and budget(back)["weight_bits"] == bits
+        assert "pool (event input) holds 0/1" in str(back.metadata["quantisation"])
+
+    @pytest.mark.parametrize("bits", [8, 4])
+    def test_l2_threshold_sits_between_attainable_sums(self, bits):
+        """theta2 is mid-cell of the sums' grid: no window's L1 sum comes near it."""
+        model, ref, qry, _ = tiny_events()
+        sp = tiny_events_at(bits)
+        grid = sp.calibration["l1_grid"]
+        assert grid is not None
+        theta2 = sp.calibration["theta2"]
+        for x in (ref, qry):
+            pooled = sp.encode(x).double() @ sp.pool.double().T
+            h = pooled @ (sp.w1.double() * theta2).T  # the quantised fold's sums
+            assert np.abs(h - theta2).min().item() > 0.45 * grid
+
+    def test_eight_bits_keep_most_decisions_of_the_float_model(self):
+        model, ref, qry, sp = tiny_events()
+        ours = tiny_events_at(8).run(qry)["reference"]
+        assert float((ours == sp.run(qry)["reference"]).float().mean()) >= 0.8
+
+    @pytest.mark.parametrize("bits", [8, 4])
+    def test_nir_semantics_reproduce_the_quantised_event_model(self, quantised_files, bits):
+        sp, path = quantised_files[bits]
+        qry = tiny_events()[2]
+        ours = sp.run(qry, raster=True)["raster"].numpy()
+        assert ours.sum() > 0
+        np.testing.assert_array_equal(nir_reference_run(read_nir(path), sp.encode(qry).numpy(),
+                                                        DT), ours)
+
+    @pytest.mark.parametrize("name", ["snntorch", "norse"])
+    @pytest.mark.parametrize("bits", [8, pytest.param(4, marks=pytest.mark.slow)])
+    def test_consumer_runs_quantised_event_windows_spike_for_spike(self, quantised_files,
+                                                                   name, bits):
+        from torchseq.export.nir_consumers import available, compare
+
+        if available()[name] is not None:
+            pytest.skip(available()[name])
+        sp, path = quantised_files[bits]
+        qry = tiny_events()[2]
+        rep = compare(sp, path, sp.encode(qry), consumers=(name,), segment=8)[name]
+        assert rep["spike_agreement"] == 1.0 and rep["agreement"] == 1.0, rep
+
+
 @pytest.mark.parametrize("name", ["snntorch", "norse"])
 def test_consumer_runs_event_windows_spike_for_spike(name, event_file):
     from torchseq.export.nir_consumers import available, compare
@@ -331,8 +415,9 @@ def test_nir_104_reads_the_event_graph(event_file, tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("bits", [None, 8])
 @pytest.mark.parametrize("name", ["snntorch", "norse"])
-def test_consumer_agrees_on_lens_event_windows(name, tmp_path):
+def test_consumer_agrees_on_lens_event_windows(name, bits, tmp_path):
     """LENS frames as event windows (each pixel the window's count, polarity unknown: ON)."""
     from torchseq.export.nir_consumers import available, compare
     from torchseq.sources import load_traverse
@@ -345,7 +430,8 @@ def test_consumer_agrees_on_lens_event_windows(name, tmp_path):
     as_events = lambda f: torch.stack([torch.zeros_like(f), f], 1)  # noqa: E731
     model = NeuralSeqSLAM(NeuralConfig(unit_search="off"))
     model.fit(ref, log=False)
-    sp = EventSpikingSeqSLAM.convert_events(model, as_events(ref))
+    sp = EventSpikingSeqSLAM.convert_events(model, as_events(ref),
+                                            SpikingConfig(weight_bits=bits))
     path = tmp_path / "lens.nir"
     write_nir(sp, path)
     rep = compare(sp, path, sp.encode(as_events(qry)), consumers=(name,), segment=16)[name]

@@ -161,11 +161,15 @@ def quantisation_metadata(spiking) -> dict:
     bits = spiking.calibration.get("weight_bits")
     if bits is None:
         return {"weight_bits": 0, "quantisation": "none: float32 weights"}
+    pool = (" pool (event input) holds 0/1 sum-pooling weights, exact at any precision."
+            if getattr(spiking, "sensor", None) is not None else "")
     return {"weight_bits": int(bits),
             "quantisation": f"l1, l3, levels and shift: signed {bits}-bit integers (symmetric, "
                             f"|q| <= {2 ** (bits - 1) - 1}) times one power-of-two scale per "
-                            f"row (output neuron), rounded half away from zero; the stored "
-                            f"float32 weight is q * 2^e exactly; LIF thresholds 1"}
+                            f"row (output neuron), rounded half away from zero; l3, levels and "
+                            f"shift store q * 2^e exactly; l1 stores q * 2^e / theta2 (the L2 "
+                            f"threshold theta2, in the calibration, folded in: on a chip, q "
+                            f"with threshold theta2 / 2^e per row); LIF thresholds 1.{pool}"}
 
 
 def write_nir(spiking, path: str | Path, dt: float = DT):

@@ -26,8 +26,10 @@ stays one NIR graph:
    spike).
 
 Everything after L1 (the L2 threshold, the evidence scales, the ring ladder) is calibrated by
-:meth:`SpikingSeqSLAM.convert` itself on the stand-in's encoding of the reference windows:
-the one calibration, so a change there flows through here. What the stand-in loses: the
+:meth:`SpikingSeqSLAM.convert` itself on the reference windows' pooled counts through the
+folded ``W1 S C diag(1 / n)``: the one calibration, so a change there flows through here,
+including ``weight_bits`` (the folded ``l1`` quantised row by row, ``theta2`` mid-cell of
+its sums' grid; ``pool`` is 0/1 at any precision). What the stand-in loses: the
 z-score normalises every window by its own contrast; the fixed scale does not, so a window
 with twice the events drives L1 twice as hard (``docs/guide/nir.md``, "Camera events into
 L1").
@@ -156,18 +158,32 @@ def block_scales(frames: torch.Tensor, patch: int, scale: str = "global") -> tor
     return 1.0 / per_pixel.reshape(-1)
 
 
+class _FoldedL1:
+    """An L1 whose folded weight is given (``W1 S C diag(1 / n)``, the stand-in folded in)."""
+
+    def __init__(self, weight: torch.Tensor) -> None:
+        self._weight = weight
+
+    def folded_weight(self) -> torch.Tensor:
+        return self._weight
+
+
 class _EventView:
     """The fitted rate model seen through the event input stage (for ``convert``).
 
-    Its ``encode`` is the linear stand-in of event windows; its config has
-    ``input_steps = 0`` (the stand-in's values are on no input grid); everything else is
-    the model's own.
+    Its ``encode`` is the pooled event counts of a window (whole numbers), its ``l1`` the
+    model's L1 with the linear stand-in of the patch z-score folded in; its config has
+    ``input_steps = 1`` (the pooled counts are integers) and ``l1_levels = 0`` (the folded
+    weights are on no grid of the model's); everything else is the model's own. So
+    :meth:`SpikingSeqSLAM.convert` quantises (``weight_bits``) and calibrates ``theta2`` on
+    the very weights the graph's ``l1`` holds.
     """
 
-    def __init__(self, model, encode) -> None:
+    def __init__(self, model, encode, folded_l1: torch.Tensor) -> None:
         self._model = model
-        self.config = dataclasses.replace(model.config, input_steps=0)
+        self.config = dataclasses.replace(model.config, input_steps=1, l1_levels=0)
         self.encode = encode
+        self.l1 = _FoldedL1(folded_l1)
 
     def __getattr__(self, name):
         return getattr(self._model, name)
@@ -205,8 +221,10 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
                 ``"zscore"`` (or ``patch_size`` 0), fitted on the reference windows' count
                 frames (the polarities summed: what the frame-driven model sees).
             reference: ``(R, 2, H, W)`` event counts of the reference windows, ``R >= 2``.
-            config: :class:`SpikingConfig` (None: defaults); ``weight_bits`` and
-                ``input_threshold`` must be None (not yet with event input).
+            config: :class:`SpikingConfig` (None: defaults). ``weight_bits``: the folded
+                ``l1`` (and ``l3``, ``levels``, ``shift``, as for frames) on signed
+                ``b``-bit integers times a power of two per row; ``pool`` is 0/1, exact at
+                any precision. ``input_threshold`` must be None (events are spikes already).
             scale: the stand-in for the z-score's division (:func:`block_scales`):
                 ``"global"`` (default: one scale; measured better than ``"patch"`` on
                 nordland-b, docs/results/spiking-events.md) or ``"patch"``.
@@ -218,9 +236,10 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
         cfg = config or SpikingConfig()
         if scale not in SCALES:
             raise SpikingError(f"scale must be one of {SCALES}, got {scale!r}")
-        if cfg.weight_bits is not None or cfg.input_threshold is not None:
-            raise SpikingError("event input has no quantised or thresholded-input form yet: "
-                               "use weight_bits=None and input_threshold=None")
+        if cfg.input_threshold is not None:
+            raise SpikingError("event input is spikes already: input_threshold (which turns "
+                               "encoded frames into events) has no meaning here; use "
+                               "input_threshold=None")
         if not isinstance(reference, torch.Tensor) or reference.dim() != 4 \
                 or reference.shape[1] != 2 or reference.shape[0] < 2:
             raise SpikingError("reference must be (R, 2, H, W) event counts of R >= 2 windows, "
@@ -242,19 +261,19 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
             scales = None
             linear = torch.eye(len(cells), dtype=torch.float64)
         linear = linear / cells[None, :]  # (D, D): pooled counts -> the stand-in of encode
+        folded = (model.l1.folded_weight().detach().double().cpu() @ linear).float()  # (M, D)
 
-        def encode(x: torch.Tensor) -> torch.Tensor:
-            return ((check_counts(x, sensor).double() @ pool.double().T) @ linear.T).float()
+        def encode(x: torch.Tensor) -> torch.Tensor:  # pooled counts: exact integers
+            return check_counts(x, sensor) @ pool.T
 
-        sp = SpikingSeqSLAM.convert(_EventView(model, encode), reference, cfg)
-        w1 = (sp.w1.double() @ linear).float()  # (M, D): the graph's l1
+        sp = SpikingSeqSLAM.convert(_EventView(model, encode, folded), reference, cfg)
         calibration = {**sp.calibration, "event_input": {
             "sensor": list(sensor), "input_size": list(size), "patch": int(patch),
             "reference_windows": int(reference.shape[0]),
             "scale": scale if patch else "none (no patch normalisation)",
             "block_scales": None if scales is None else
             [float(v) for v in scales.reshape(size)[::patch, ::patch].reshape(-1)]}}
-        return cls(w1, sp.w3, sp.inv_theta, sp.rung_step, sp.shift, sp.unit_centre, sp.window,
+        return cls(sp.w1, sp.w3, sp.inv_theta, sp.rung_step, sp.shift, sp.unit_centre, sp.window,
                    calibration, None, shift_dense=sp.shift_dense, pool=pool, sensor=sensor)
 
     def forward(self, x: torch.Tensor, state=None):
