@@ -83,6 +83,22 @@ def test_sad_is_the_plain_loop_and_the_thermometer_bit_for_bit(kind, shape):
         assert kernel == "thermometer" and torch.equal(got, therm)
 
 
+@pytest.mark.parametrize("budget_rows, n_query", [(1, 9), (3, 9), (3, 2), (64, 9)])
+def test_sad_blocks_stay_within_the_budget(monkeypatch, budget_rows, n_query):
+    """Every uint8 block handed to the compiled loop holds at most max_chunk_elements."""
+    from torchseq.seqslam import _l1_numba
+
+    seen = []
+    real = _l1_numba.sad
+    monkeypatch.setattr(_l1_numba, "sad", lambda a, b, *rest: seen.append((a.size, b.size))
+                        or real(a, b, *rest))
+    ref, query = _pair("openseqslam", 10, n_query, 48)
+    budget = budget_rows * 48
+    got, kernel = difference_with_kernel(ref, query, max_chunk_elements=budget, kernel="sad")
+    assert kernel == "sad" and seen and max(max(s) for s in seen) <= budget
+    np.testing.assert_array_equal(got.double().numpy(), oracle_difference(ref, query))
+
+
 def test_sad_keeps_float64():
     ref, query = (x.double() for x in _pair("uint8", 20, 7, 100))
     got, kernel = difference_with_kernel(ref, query, kernel="sad")
