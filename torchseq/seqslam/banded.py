@@ -82,6 +82,7 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
     # the kernel for the whole run (l1_kernel's size rule on R x Q x D), the reference's
     # codes built once
     kernel = l1_kernel(reference, query, levels, budget) if c.metric == "l1" else None
+    per_band = kernel if kernel == "cdist" else None  # else (l2, cosine) the bands' own
     codes = weights = None
     if kernel == "sad":
         lo = sad_offset(reference, query, levels, budget)
@@ -105,7 +106,7 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
             d = d_t.T
         else:
             d, kernel = difference_with_kernel(reference, query[q0:q1], c.metric, budget,
-                                               workers, kernel)  # "cdist" (l1) or None
+                                               workers, per_band)
         seconds["difference"] += time.perf_counter() - t
         t = time.perf_counter()
         e = enhance_contrast(d, c.enhance_window, False, budget, workers)
