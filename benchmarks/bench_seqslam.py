@@ -441,7 +441,29 @@ def run_kernels(n: int, threads=(1,), repeats: int = 2) -> list[dict]:
     t = time.perf_counter()
     torch.cdist(qt[:m], rt[:m], p=1)
     rows[0]["cdist_per_pair_us"] = (time.perf_counter() - t) / (m * m) * 1e6
+    rows[0].update(run_banded_kernels(rt, qt))
     return rows
+
+
+def run_banded_kernels(rt, qt) -> dict:
+    """The banded engine's difference stage (keep_matrices=False, one worker) with each L1
+    kernel, chosen by moving the size rule's threshold (``difference.SAD_MIN_WORK``)."""
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, difference
+
+    out = {}
+    real = difference.SAD_MIN_WORK
+    try:
+        for kernel, min_work in (("thermometer", 2**62), ("sad", 0)):
+            difference.SAD_MIN_WORK = min_work
+            if kernel == "sad" and difference.thermometer_product("cpu") != "float32":
+                continue  # the rule keeps the int8 thermometer product on AVX-512
+            r = SeqSLAM(SeqSLAMConfig(keep_matrices=False, threads=1)).match_descriptors(rt, qt)
+            assert r.kernels["difference"] == kernel
+            out[f"banded_difference_{kernel}_s"] = r.seconds["difference"]
+            out[f"banded_total_{kernel}_s"] = r.seconds["total"]
+    finally:
+        difference.SAD_MIN_WORK = real
+    return out
 
 
 def main() -> None:
@@ -493,11 +515,22 @@ def main() -> None:
     if args.kernels:
         print("| N = M | threads | thermometer (product) s | sad s | speed-up | equal |\n"
               "|---:|---:|---:|---:|---:|---|")
+        banded = []
         for n in args.sizes:
             for r in run_kernels(n, args.kernel_threads):
                 print(f"| {n} | {r['threads']} | {r['thermometer_s']:.2f} ({r['product']}) | "
                       f"{r['sad_s']:.2f} | {r['speedup']:.1f}x | {r['exact']} |", flush=True)
                 print(json.dumps(r), file=sys.stderr, flush=True)
+                if "banded_difference_sad_s" in r:
+                    banded.append(f"| {n} | {r['banded_difference_thermometer_s']:.2f} | "
+                                  f"{r['banded_difference_sad_s']:.2f} | "
+                                  f"{r['banded_total_thermometer_s']:.2f} | "
+                                  f"{r['banded_total_sad_s']:.2f} |")
+        if banded:
+            print("\nbanded engine (keep_matrices=False), one worker\n\n| N = M | difference, "
+                  "thermometer s | difference, sad s | total, thermometer s | total, sad s |\n"
+                  "|---:|---:|---:|---:|---:|")
+            print("\n".join(banded))
         return
     sizes = [300, 1000] if args.quick else args.sizes
     if args.enhance:

@@ -46,7 +46,7 @@ THERMOMETER_BLOCK_ROWS = 1024
 # The "sad" kernel: largest value range (max - min, so the values fit uint8 after subtracting
 # the minimum), the R * Q * D from which it is chosen, and rows per block of work.
 SAD_MAX_RANGE = 255
-SAD_MIN_WORK = 2**31
+SAD_MIN_WORK = 2**33
 SAD_BLOCK_ROWS = 256
 L1_KERNELS = ("thermometer", "sad", "cdist")
 
