@@ -3,8 +3,9 @@
 Computed query-major: a ``(Q, R)`` buffer filled one block at a time (so the temporaries stay
 under ``max_chunk_elements``) and returned as its ``(R, Q)`` transposed view.
 
-``l1`` has two kernels, both exact, chosen from the data (:func:`thermometer_levels`;
-:func:`difference_with_kernel` says which ran):
+``l1`` has three kernels, all exact, chosen from the data, the size and the CPU
+(:func:`l1_kernel`; :func:`difference_with_kernel` says which ran, and its ``kernel=`` forces
+one for tests and benchmarks):
 
 - ``"thermometer"`` for integer-valued descriptors taking few distinct values, which is what
   OpenSeqSLAM's patch normalisation produces (127 +- 8, and 0 for flat blocks under its uint8
@@ -13,18 +14,29 @@ under ``max_chunk_elements``) and returned as its ``(R, Q)`` transposed view.
   ``|a - b| = sum_t w_t ([a > v_t] + [b > v_t] - 2 [a > v_t][b > v_t])``, so
   ``L1 = |A|_w + |B|_w - 2 (A w) B^T``: one int8 matrix product (``A w`` fits int8 while every
   gap is <= 127) with exact int32 accumulation.
+- ``"sad"``: the sum of absolute differences itself, a loop compiled by numba
+  (``_l1_numba.py``) over the values minus their minimum as uint8, for integer-valued
+  descriptors spanning at most 255 (:func:`sad_offset`); wider data keep the thermometer or
+  cdist kernel. Chosen on CPU where the alternative is slow: the thermometer's float32 product
+  (no AVX-512, below) or cdist, from ``R * Q * D >= SAD_MIN_WORK`` (2**33), since importing
+  numba and loading the compiled loop from its cache cost 1-2 s once per process (compiling
+  it the first time a few more) and would cost small runs more than they save; a run below
+  the size never imports numba.
 - ``"cdist"``: ``torch.cdist(p=1)`` for everything else (exact summation, slower).
 
 On this project's AMD EPYC (Zen 5, AVX-512 VNNI) the thermometer product at 3,576^2 and one
-thread took 0.56 s against 1.31 s for a direct sum of absolute differences compiled by Numba
-(LLVM, uint8 loops; ``benchmarks/bench_seqslam.py --kernels``), so it stays the kernel there
-in spite of doing 16x the arithmetic.
+thread took 0.56 s against 1.31-1.53 s for a direct uint8 sum of absolute differences
+compiled by numba (an earlier form of ``"sad"``, without its 2 x 2 register blocking and
+int32 sums; ``benchmarks/bench_seqslam.py --kernels``), so it stays the kernel there in spite
+of doing 16x the arithmetic (the present ``"sad"`` is not measured there yet).
 
 The thermometer product itself has two forms (:func:`thermometer_product`), both exact: the
 int8 GEMM (``torch._int_mm``) on CUDA and on CPUs with AVX-512, and a float32 product
 elsewhere. On an AVX2-only AMD EPYC (Zen 3) one thread took 8.1 s for a 512 x 512 product of
 32,768-wide codes with ``torch._int_mm`` against 0.46 s in float32 (conversions included):
-oneDNN's int8 GEMM has no fast path there.
+oneDNN's int8 GEMM has no fast path there. On that CPU the ``"sad"`` kernel took 3.0-3.8 s
+against 8.2-10.4 s for the float32 thermometer product at 3,576^2, D = 2,048, one thread
+(``bench_seqslam.py --kernels``), equal matrices, so it is the kernel there for large runs.
 """
 
 from __future__ import annotations
