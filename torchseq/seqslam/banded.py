@@ -23,11 +23,11 @@ from torchseq.area import Partial, area_mean, finish, reduce_rows
 from torchseq.seqslam._parallel import resolve_threads
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.difference import (
-    _as_uint8,
     _l1_sad,
     _l1_thermometer,
     difference_with_kernel,
     l1_kernel,
+    sad_codes,
     sad_offset,
     thermometer_codes,
     thermometer_levels,
@@ -86,7 +86,7 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
     codes = weights = None
     if kernel == "sad":
         lo = sad_offset(reference, query, levels, budget)
-        codes = _as_uint8(reference, lo)
+        codes = sad_codes(reference, lo, max(1, budget // reference.shape[1]))
     elif levels is not None:
         weights = levels[1].to(reference.device) if levels[1] is not None else None
         codes = thermometer_codes(reference, levels[0], weights)

@@ -158,6 +158,17 @@ def _as_uint8(x: torch.Tensor, lo: float) -> torch.Tensor:
     return (x - lo).to(torch.uint8).contiguous()
 
 
+def sad_codes(x: torch.Tensor, lo: float, rows: int = 1024) -> torch.Tensor:
+    """The uint8 reference ``x - lo`` of :func:`_l1_sad`, ``(N, D)``, to be reused.
+
+    Built ``rows`` rows at a time (the only full-size tensor is the result).
+    """
+    out = torch.empty(x.shape, dtype=torch.uint8, device=x.device)
+    for r0 in range(0, x.shape[0], rows):
+        out[r0:r0 + rows] = _as_uint8(x[r0:r0 + rows], lo)
+    return out
+
+
 def levels_span(levels: tuple[torch.Tensor, torch.Tensor | None]) -> float:
     """``max - min`` of the values behind :func:`thermometer_levels`' non-empty thresholds."""
     thresholds, weights = levels
@@ -221,7 +232,7 @@ def _l1_sad(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor, lo: flo
             budget: int, workers: int, ref_codes: torch.Tensor | None = None) -> None:
     """Fill ``out_t (Q, R)`` (CPU) with exact L1 distances by the compiled uint8 loop.
 
-    ``ref_codes``: the reference as :func:`_as_uint8`, when already built. Every uint8 block
+    ``ref_codes``: the reference's :func:`sad_codes`, when already built. Every uint8 block
     holds at most ``budget`` elements (one row at least).
     """
     from torchseq.seqslam import _l1_numba  # numba's import and compilation: only here
