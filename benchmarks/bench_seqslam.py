@@ -402,6 +402,43 @@ def run_scale(sizes) -> str:
     return "\n".join(lines)
 
 
+def sad_parallel_ways(ref, query, workers: int) -> tuple[float, float]:
+    """The library's compiled loop (``_l1_numba.sad``) over ``workers`` threads two ways:
+    the engine's worker threads (``_l1_sad`` through ``_parallel.run_blocks``, the uint8
+    reference built beforehand) and numba's own threads (``prange`` over 64-row tiles of the
+    reference; benchmark-only). Seconds of each, without the checks and the reference's
+    conversion that ``difference_with_kernel`` adds."""
+    import numba
+    import torch
+
+    from torchseq.seqslam import _l1_numba
+    from torchseq.seqslam.difference import _l1_sad, sad_codes
+
+    @numba.njit(parallel=True, nogil=True)
+    def spread(a, b, out):
+        tile = _l1_numba.TILE
+        for t in numba.prange((a.shape[0] + tile - 1) // tile):
+            i0 = t * tile
+            _l1_numba.sad(a[i0:min(i0 + tile, a.shape[0])], b, out, i0, 0)
+
+    lo = float(min(ref.min(), query.min()))
+    rt, qt = torch.from_numpy(ref), torch.from_numpy(query)
+    codes = sad_codes(rt, lo)
+    out_t = torch.empty(len(query), len(ref))
+    t = time.perf_counter()
+    _l1_sad(rt, qt, out_t, lo, 2**26, workers, codes)
+    blocks = time.perf_counter() - t
+    a, b = codes.numpy(), (qt - lo).to(torch.uint8).numpy()
+    out = np.empty((len(b), len(a)), np.float32)
+    numba.set_num_threads(workers)
+    spread(a[:3], b[:3], out)  # compile outside the timing (the same array types)
+    t = time.perf_counter()
+    spread(a, b, out)
+    prange = time.perf_counter() - t
+    assert np.array_equal(out, out_t.numpy())
+    return blocks, prange
+
+
 def run_kernels(n: int, threads=(1,), repeats: int = 2) -> list[dict]:
     """Exact L1 difference matrix: the thermometer kernel (int8 or float32 product, whichever
     ``thermometer_product`` picks on this CPU) against the compiled uint8 ``"sad"`` kernel,
@@ -431,7 +468,10 @@ def run_kernels(n: int, threads=(1,), repeats: int = 2) -> list[dict]:
                 best[kernel] = min(best[kernel], time.perf_counter() - t)
                 assert ran == kernel
                 got[kernel] = d
+        ways = [sad_parallel_ways(ref, query, workers) for _ in range(repeats)]
         rows.append({"n": n, "threads": workers, "product": thermometer_product("cpu"),
+                     "sad_loop_run_blocks_s": min(w[0] for w in ways),
+                     "sad_loop_prange_s": min(w[1] for w in ways),
                      "thermometer_s": best["thermometer"], "sad_s": best["sad"],
                      "speedup": best["thermometer"] / best["sad"],
                      "exact": bool(torch.equal(got["sad"], got["thermometer"])),
@@ -513,13 +553,16 @@ def main() -> None:
         print(run_scale(args.sizes))
         return
     if args.kernels:
-        print("| N = M | threads | thermometer (product) s | sad s | speed-up | equal |\n"
-              "|---:|---:|---:|---:|---:|---|")
+        print("| N = M | threads | thermometer (product) s | sad s | speed-up | equal | "
+              "sad loop alone: worker threads / numba prange s |\n"
+              "|---:|---:|---:|---:|---:|---|---:|")
         banded = []
         for n in args.sizes:
             for r in run_kernels(n, args.kernel_threads):
                 print(f"| {n} | {r['threads']} | {r['thermometer_s']:.2f} ({r['product']}) | "
-                      f"{r['sad_s']:.2f} | {r['speedup']:.1f}x | {r['exact']} |", flush=True)
+                      f"{r['sad_s']:.2f} | {r['speedup']:.1f}x | {r['exact']} | "
+                      f"{r['sad_loop_run_blocks_s']:.2f} / {r['sad_loop_prange_s']:.2f} |",
+                      flush=True)
                 print(json.dumps(r), file=sys.stderr, flush=True)
                 if "banded_difference_sad_s" in r:
                     banded.append(f"| {n} | {r['banded_difference_thermometer_s']:.2f} | "
