@@ -34,8 +34,8 @@ The thermometer product itself has two forms (:func:`thermometer_product`), both
 int8 GEMM (``torch._int_mm``) on CUDA and on CPUs with AVX-512, and a float32 product
 elsewhere. On an AVX2-only AMD EPYC (Zen 3) one thread took 8.1 s for a 512 x 512 product of
 32,768-wide codes with ``torch._int_mm`` against 0.46 s in float32 (conversions included):
-oneDNN's int8 GEMM has no fast path there. On that CPU the ``"sad"`` kernel took 3.0-3.8 s
-against 8.2-10.4 s for the float32 thermometer product at 3,576^2, D = 2,048, one thread
+oneDNN's int8 GEMM has no fast path there. On that CPU the ``"sad"`` kernel took 2.7-3.8 s
+against 7.9-10.4 s for the float32 thermometer product at 3,576^2, D = 2,048, one thread
 (``bench_seqslam.py --kernels``), equal matrices, so it is the kernel there for large runs.
 """
 
