@@ -162,6 +162,7 @@ def test_the_chosen_kernel_is_the_one_that_ran(monkeypatch, product, kernel):
     assert difference_with_kernel(ref, query[:29])[1] == "thermometer"  # below the size
 
 
+@pytest.mark.slow  # a fresh interpreter importing torch and numba: 5-10 s on a busy 2-core host
 def test_a_small_run_never_imports_numba_and_sad_does(tmp_path):
     """numba (seconds to import and load) only where the size rule picks "sad"."""
     code = """
