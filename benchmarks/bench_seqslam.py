@@ -7,7 +7,8 @@
     .venv/bin/python benchmarks/bench_seqslam.py --quality   # presets and edges on real data
     .venv/bin/python benchmarks/bench_seqslam.py --threads --sizes 3576 --baseline ../main
         # 1 thread vs the default, idle and beside a busy co-tenant process
-    .venv/bin/python benchmarks/bench_seqslam.py --kernels --sizes 3576  # L1 kernels, 1 thread
+    .venv/bin/python benchmarks/bench_seqslam.py --kernels --sizes 1024 3576 --kernel-threads 1 2
+        # exact L1 kernels side by side: thermometer vs the compiled uint8 "sad"
     .venv/bin/python benchmarks/bench_seqslam.py --scale --sizes 1000 3576 10000 20000 35768
         # default engine (threads and matrices as configured by default): time, peak RSS
 
@@ -401,64 +402,107 @@ def run_scale(sizes) -> str:
     return "\n".join(lines)
 
 
-def sad_numba(ref, query):
-    """A direct sum of absolute differences on uint8 descriptors, compiled by Numba (LLVM)
-    with the reference loop outermost; None when Numba is not installed."""
-    try:
-        import numba
-    except ImportError:
-        return None
-
-    @numba.njit(cache=False)
-    def kernel(a, b, out, tile):
-        for i0 in range(0, a.shape[0], tile):
-            for j0 in range(0, b.shape[0], tile):
-                for i in range(i0, min(i0 + tile, a.shape[0])):
-                    for j in range(j0, min(j0 + tile, b.shape[0])):
-                        s = np.uint32(0)
-                        for k in range(a.shape[1]):
-                            x, y = a[i, k], b[j, k]
-                            s += np.uint32(x - y if x > y else y - x)
-                        out[j, i] = s
-
-    a, b = ref.astype(np.uint8), query.astype(np.uint8)
-    out = np.empty((len(b), len(a)), np.int32)
-    kernel(a[:4], b[:4], out[:4, :4], 64)  # compile outside the timing
-    t = time.perf_counter()
-    kernel(a, b, out, 64)
-    return out, time.perf_counter() - t
-
-
-def run_kernels(n: int, repeats: int = 2) -> dict:
-    """Exact L1 difference matrix, one thread: the thermometer int8 product (the engine's
-    kernel), a direct sum of absolute differences (Numba) and torch.cdist, best of repeats."""
+def sad_parallel_ways(ref, query, workers: int) -> tuple[float, float]:
+    """The library's compiled loop (``_l1_numba.sad``) over ``workers`` threads two ways:
+    the engine's worker threads (``_l1_sad`` through ``_parallel.run_blocks``, the uint8
+    reference built beforehand) and numba's own threads (``prange`` over 64-row tiles of the
+    reference; benchmark-only). Seconds of each, without the checks and the reference's
+    conversion that ``difference_with_kernel`` adds."""
+    import numba
     import torch
 
-    from torchseq.seqslam.difference import difference_with_kernel
+    from torchseq.seqslam import _l1_numba
+    from torchseq.seqslam.difference import _l1_sad, sad_codes
+
+    @numba.njit(parallel=True, nogil=True)
+    def spread(a, b, out):
+        tile = _l1_numba.TILE
+        for t in numba.prange((a.shape[0] + tile - 1) // tile):
+            i0 = t * tile
+            _l1_numba.sad(a[i0:min(i0 + tile, a.shape[0])], b, out, i0, 0)
+
+    lo = float(min(ref.min(), query.min()))
+    rt, qt = torch.from_numpy(ref), torch.from_numpy(query)
+    codes = sad_codes(rt, lo)
+    out_t = torch.empty(len(query), len(ref))
+    t = time.perf_counter()
+    _l1_sad(rt, qt, out_t, lo, 2**26, workers, codes)
+    blocks = time.perf_counter() - t
+    a, b = codes.numpy(), (qt - lo).to(torch.uint8).numpy()
+    out = np.empty((len(b), len(a)), np.float32)
+    numba.set_num_threads(workers)
+    spread(a[:3], b[:3], out)  # compile outside the timing (the same array types)
+    t = time.perf_counter()
+    spread(a, b, out)
+    prange = time.perf_counter() - t
+    assert np.array_equal(out, out_t.numpy())
+    return blocks, prange
+
+
+def run_kernels(n: int, threads=(1,), repeats: int = 2) -> list[dict]:
+    """Exact L1 difference matrix: the thermometer kernel (int8 or float32 product, whichever
+    ``thermometer_product`` picks on this CPU) against the compiled uint8 ``"sad"`` kernel,
+    each forced through ``difference_with_kernel(kernel=...)``, at each worker count
+    (interleaved, best of repeats; torch on one intra-op thread). The first size also times
+    the sad kernel's start-up (numba import + loading the cached compiled code, or compiling
+    it when there is no cache); ``cdist_per_pair_us`` is torch.cdist(p=1) at one thread."""
+    import torch
+
+    from torchseq.seqslam.difference import difference_with_kernel, thermometer_product
 
     torch.set_num_threads(1)
     ref, query = make_descriptors(n)
     rt, qt = torch.from_numpy(ref), torch.from_numpy(query)
-    out = {"n": n}
-    best = math.inf
-    for _ in range(repeats):
-        t = time.perf_counter()
-        d, kernel = difference_with_kernel(rt, qt)
-        best = min(best, time.perf_counter() - t)
-    out["thermometer"] = best
-    assert kernel == "thermometer"
-    sad = None
-    for _ in range(repeats):
-        r = sad_numba(ref, query)
-        if r is None:
-            break
-        sad = r[1] if sad is None else min(sad, r[1])
-        out["sad_exact"] = bool(np.array_equal(r[0], d.T.numpy()))
-    out["sad_numba"] = sad
+    started = "numba" in sys.modules
+    t = time.perf_counter()
+    difference_with_kernel(rt[:2], qt[:2], kernel="sad")  # numba import and load / compile
+    startup = None if started else time.perf_counter() - t
+    rows = []
+    for workers in threads:
+        best = {"thermometer": math.inf, "sad": math.inf}
+        got = {}
+        for _ in range(repeats):
+            for kernel in best:
+                t = time.perf_counter()
+                d, ran = difference_with_kernel(rt, qt, threads=workers, kernel=kernel)
+                best[kernel] = min(best[kernel], time.perf_counter() - t)
+                assert ran == kernel
+                got[kernel] = d
+        ways = [sad_parallel_ways(ref, query, workers) for _ in range(repeats)]
+        rows.append({"n": n, "threads": workers, "product": thermometer_product("cpu"),
+                     "sad_loop_run_blocks_s": min(w[0] for w in ways),
+                     "sad_loop_prange_s": min(w[1] for w in ways),
+                     "thermometer_s": best["thermometer"], "sad_s": best["sad"],
+                     "speedup": best["thermometer"] / best["sad"],
+                     "exact": bool(torch.equal(got["sad"], got["thermometer"])),
+                     "sad_startup_s": startup})
+        startup = None
     m = min(n, 1000)
     t = time.perf_counter()
     torch.cdist(qt[:m], rt[:m], p=1)
-    out["cdist_per_pair_us"] = (time.perf_counter() - t) / (m * m) * 1e6
+    rows[0]["cdist_per_pair_us"] = (time.perf_counter() - t) / (m * m) * 1e6
+    rows[0].update(run_banded_kernels(rt, qt))
+    return rows
+
+
+def run_banded_kernels(rt, qt) -> dict:
+    """The banded engine's difference stage (keep_matrices=False, one worker) with each L1
+    kernel, chosen by moving the size rule's threshold (``difference.SAD_MIN_WORK``)."""
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, difference
+
+    out = {}
+    real = difference.SAD_MIN_WORK
+    try:
+        for kernel, min_work in (("thermometer", 2**62), ("sad", 0)):
+            difference.SAD_MIN_WORK = min_work
+            if kernel == "sad" and difference.thermometer_product("cpu") != "float32":
+                continue  # the rule keeps the int8 thermometer product on AVX-512
+            r = SeqSLAM(SeqSLAMConfig(keep_matrices=False, threads=1)).match_descriptors(rt, qt)
+            assert r.kernels["difference"] == kernel
+            out[f"banded_difference_{kernel}_s"] = r.seconds["difference"]
+            out[f"banded_total_{kernel}_s"] = r.seconds["total"]
+    finally:
+        difference.SAD_MIN_WORK = real
     return out
 
 
@@ -478,7 +522,9 @@ def main() -> None:
     parser.add_argument("--baseline", type=Path, default=None,
                         help="with --threads: also run the checkout at this path")
     parser.add_argument("--kernels", action="store_true",
-                        help="exact L1 kernels side by side at one thread")
+                        help="exact L1 kernels (thermometer, sad) side by side")
+    parser.add_argument("--kernel-threads", type=int, nargs="+", default=[1],
+                        help="with --kernels: worker threads to run each kernel with")
     parser.add_argument("--scale", action="store_true",
                         help="default engine: time and peak RSS per size")
     parser.add_argument("--one-scale", type=int, help=argparse.SUPPRESS)
@@ -507,8 +553,27 @@ def main() -> None:
         print(run_scale(args.sizes))
         return
     if args.kernels:
+        print("| N = M | threads | thermometer (product) s | sad s | speed-up | equal | "
+              "sad loop alone: worker threads / numba prange s |\n"
+              "|---:|---:|---:|---:|---:|---|---:|")
+        banded = []
         for n in args.sizes:
-            print(json.dumps(run_kernels(n)), flush=True)
+            for r in run_kernels(n, args.kernel_threads):
+                print(f"| {n} | {r['threads']} | {r['thermometer_s']:.2f} ({r['product']}) | "
+                      f"{r['sad_s']:.2f} | {r['speedup']:.1f}x | {r['exact']} | "
+                      f"{r['sad_loop_run_blocks_s']:.2f} / {r['sad_loop_prange_s']:.2f} |",
+                      flush=True)
+                print(json.dumps(r), file=sys.stderr, flush=True)
+                if "banded_difference_sad_s" in r:
+                    banded.append(f"| {n} | {r['banded_difference_thermometer_s']:.2f} | "
+                                  f"{r['banded_difference_sad_s']:.2f} | "
+                                  f"{r['banded_total_thermometer_s']:.2f} | "
+                                  f"{r['banded_total_sad_s']:.2f} |")
+        if banded:
+            print("\nbanded engine (keep_matrices=False), one worker\n\n| N = M | difference, "
+                  "thermometer s | difference, sad s | total, thermometer s | total, sad s |\n"
+                  "|---:|---:|---:|---:|---:|")
+            print("\n".join(banded))
         return
     sizes = [300, 1000] if args.quick else args.sizes
     if args.enhance:

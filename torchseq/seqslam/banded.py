@@ -2,8 +2,9 @@
 
 Every stage works along the reference axis of each query column (contrast enhancement) or
 over ``ds + 1`` neighbouring columns (search), so a band of ``B`` query centres needs only the
-``B + ds`` columns around it: memory is O(B R), not O(R Q). The reference's thermometer
-codes are built once and reused by every band.
+``B + ds`` columns around it: memory is O(B R), not O(R Q). The L1 kernel is chosen once for
+the whole ``R x Q`` run (``difference.l1_kernel``) and the reference's codes (thermometer, or
+uint8 for ``"sad"``) are built once and reused by every band.
 
 OpenSeqSLAM subtracts the *global* minimum ``m`` of the enhanced matrix, unknown until the
 last band. Every trajectory takes exactly ``ds + 1`` entries, so the subtraction shifts every
@@ -22,8 +23,12 @@ from torchseq.area import Partial, area_mean, finish, reduce_rows
 from torchseq.seqslam._parallel import resolve_threads
 from torchseq.seqslam.config import SeqSLAMConfig
 from torchseq.seqslam.difference import (
+    _l1_sad,
     _l1_thermometer,
     difference_with_kernel,
+    l1_kernel,
+    sad_codes,
+    sad_offset,
     thermometer_codes,
     thermometer_levels,
 )
@@ -74,25 +79,34 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
     levels = thermometer_levels(reference, query, budget) if c.metric == "l1" else None
     if levels is not None and levels[0].numel() == 0:
         levels = None  # every value equal: the general path gives the zero matrix
+    # the kernel for the whole run (l1_kernel's size rule on R x Q x D), the reference's
+    # codes built once
+    kernel = l1_kernel(reference, query, levels, budget) if c.metric == "l1" else None
+    per_band = kernel if kernel == "cdist" else None  # else (l2, cosine) the bands' own
     codes = weights = None
-    if levels is not None:
+    if kernel == "sad":
+        lo = sad_offset(reference, query, levels, budget)
+        codes = sad_codes(reference, lo, max(1, budget // reference.shape[1]))
+    elif levels is not None:
         weights = levels[1].to(reference.device) if levels[1] is not None else None
         codes = thermometer_codes(reference, levels[0], weights)
     seconds["difference"] += time.perf_counter() - t
-    kernel = "thermometer" if levels is not None else None
 
     def enhanced_columns(q0: int, q1: int) -> torch.Tensor:
         """``(R, q1 - q0)`` enhanced columns of queries ``q0 .. q1 - 1``, no min subtraction."""
         nonlocal kernel
         t = time.perf_counter()
-        if levels is not None:
+        if kernel in ("sad", "thermometer"):
             d_t = torch.empty(q1 - q0, n_ref, dtype=reference.dtype, device=reference.device)
-            _l1_thermometer(reference, query[q0:q1], d_t, levels[0], weights, budget, workers,
-                            codes)
+            if kernel == "sad":
+                _l1_sad(reference, query[q0:q1], d_t, lo, budget, workers, codes)
+            else:
+                _l1_thermometer(reference, query[q0:q1], d_t, levels[0], weights, budget,
+                                workers, codes)
             d = d_t.T
         else:
             d, kernel = difference_with_kernel(reference, query[q0:q1], c.metric, budget,
-                                               workers)
+                                               workers, per_band)
         seconds["difference"] += time.perf_counter() - t
         t = time.perf_counter()
         e = enhance_contrast(d, c.enhance_window, False, budget, workers)

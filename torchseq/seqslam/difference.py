@@ -3,8 +3,9 @@
 Computed query-major: a ``(Q, R)`` buffer filled one block at a time (so the temporaries stay
 under ``max_chunk_elements``) and returned as its ``(R, Q)`` transposed view.
 
-``l1`` has two kernels, both exact, chosen from the data (:func:`thermometer_levels`;
-:func:`difference_with_kernel` says which ran):
+``l1`` has three kernels, all exact, chosen from the data, the size and the CPU
+(:func:`l1_kernel`; :func:`difference_with_kernel` says which ran, and its ``kernel=`` forces
+one for tests and benchmarks):
 
 - ``"thermometer"`` for integer-valued descriptors taking few distinct values, which is what
   OpenSeqSLAM's patch normalisation produces (127 +- 8, and 0 for flat blocks under its uint8
@@ -13,21 +14,34 @@ under ``max_chunk_elements``) and returned as its ``(R, Q)`` transposed view.
   ``|a - b| = sum_t w_t ([a > v_t] + [b > v_t] - 2 [a > v_t][b > v_t])``, so
   ``L1 = |A|_w + |B|_w - 2 (A w) B^T``: one int8 matrix product (``A w`` fits int8 while every
   gap is <= 127) with exact int32 accumulation.
+- ``"sad"``: the sum of absolute differences itself, a loop compiled by numba
+  (``_l1_numba.py``) over the values minus their minimum as uint8, for integer-valued
+  descriptors spanning at most 255 (:func:`sad_offset`); wider data keep the thermometer or
+  cdist kernel. Chosen on CPU where the alternative is slow: the thermometer's float32 product
+  (no AVX-512, below) or cdist, from ``R * Q * D >= SAD_MIN_WORK`` (2**33), since importing
+  numba and loading the compiled loop from its cache cost 1-2 s once per process (compiling
+  it the first time a few more) and would cost small runs more than they save; a run below
+  the size never imports numba.
 - ``"cdist"``: ``torch.cdist(p=1)`` for everything else (exact summation, slower).
 
 On this project's AMD EPYC (Zen 5, AVX-512 VNNI) the thermometer product at 3,576^2 and one
-thread took 0.56 s against 1.31 s for a direct sum of absolute differences compiled by Numba
-(LLVM, uint8 loops; ``benchmarks/bench_seqslam.py --kernels``), so it stays the kernel there
-in spite of doing 16x the arithmetic.
+thread took 0.56 s against 1.31-1.53 s for a direct uint8 sum of absolute differences
+compiled by numba (an earlier form of ``"sad"``, without its 2 x 2 register blocking and
+int32 sums; ``benchmarks/bench_seqslam.py --kernels``), so it stays the kernel there in spite
+of doing 16x the arithmetic (the present ``"sad"`` is not measured there yet).
 
 The thermometer product itself has two forms (:func:`thermometer_product`), both exact: the
 int8 GEMM (``torch._int_mm``) on CUDA and on CPUs with AVX-512, and a float32 product
 elsewhere. On an AVX2-only AMD EPYC (Zen 3) one thread took 8.1 s for a 512 x 512 product of
 32,768-wide codes with ``torch._int_mm`` against 0.46 s in float32 (conversions included):
-oneDNN's int8 GEMM has no fast path there.
+oneDNN's int8 GEMM has no fast path there. On that CPU the ``"sad"`` kernel took 2.7-3.8 s
+against 7.9-10.4 s for the float32 thermometer product at 3,576^2, D = 2,048, one thread
+(``bench_seqslam.py --kernels``), equal matrices, so it is the kernel there for large runs.
 """
 
 from __future__ import annotations
+
+import importlib.util
 
 import torch
 
@@ -41,6 +55,12 @@ THERMOMETER_MAX_LEVELS = 64
 THERMOMETER_MAX_RANGE = 4096
 # Rows of reference codes per block (a block of work for one thread).
 THERMOMETER_BLOCK_ROWS = 1024
+# The "sad" kernel: largest value range (max - min, so the values fit uint8 after subtracting
+# the minimum), the R * Q * D from which it is chosen, and rows per block of work.
+SAD_MAX_RANGE = 255
+SAD_MIN_WORK = 2**33
+SAD_BLOCK_ROWS = 256
+L1_KERNELS = ("thermometer", "sad", "cdist")
 
 
 def _thermometer(x: torch.Tensor, thresholds: torch.Tensor,
@@ -131,6 +151,108 @@ def _l1_thermometer(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor,
             out.add_(query_norm[q0:q0 + block, None]).add_(ref_norm[None, r0:r0 + block])
 
     run_blocks(fill, range(0, ref.shape[0], block), workers, ref.device)
+
+
+def _as_uint8(x: torch.Tensor, lo: float) -> torch.Tensor:
+    """``x - lo`` as contiguous uint8 (exact: ``x`` is integer-valued within ``lo .. lo + 255``)."""
+    return (x - lo).to(torch.uint8).contiguous()
+
+
+def sad_codes(x: torch.Tensor, lo: float, rows: int = 1024) -> torch.Tensor:
+    """The uint8 reference ``x - lo`` of :func:`_l1_sad`, ``(N, D)``, to be reused.
+
+    Built ``rows`` rows at a time (the only full-size tensor is the result).
+    """
+    out = torch.empty(x.shape, dtype=torch.uint8, device=x.device)
+    for r0 in range(0, x.shape[0], rows):
+        out[r0:r0 + rows] = _as_uint8(x[r0:r0 + rows], lo)
+    return out
+
+
+def levels_span(levels: tuple[torch.Tensor, torch.Tensor | None]) -> float:
+    """``max - min`` of the values behind :func:`thermometer_levels`' non-empty thresholds."""
+    thresholds, weights = levels
+    top = 1 if weights is None else int(weights[-1])
+    return float(thresholds[-1] - thresholds[0]) + top
+
+
+def sad_offset(reference: torch.Tensor, query: torch.Tensor,
+               levels: tuple[torch.Tensor, torch.Tensor | None] | None,
+               max_chunk_elements: int = 2**26) -> float | None:
+    """The minimum ``lo`` the ``"sad"`` kernel subtracts to hold the values in uint8, or None.
+
+    None unless both inputs are integer-valued with ``max - min <= SAD_MAX_RANGE`` (255) and
+    ``D * (max - min) < 2**24`` (exact int32 sums and float32 results). ``levels``: the
+    inputs' :func:`thermometer_levels` (non-empty thresholds), which settles it without a scan.
+    """
+    if levels is not None:
+        return float(levels[0][0]) if levels_span(levels) <= SAD_MAX_RANGE else None
+    lo = float(torch.minimum(reference.min(), query.min()))
+    span = float(torch.maximum(reference.max(), query.max())) - lo
+    if span > SAD_MAX_RANGE or reference.shape[1] * span >= 2**24:
+        return None
+    rows = max(1, max_chunk_elements // (8 * reference.shape[1]))
+    return lo if _is_integer(reference, rows) and _is_integer(query, rows) else None
+
+
+def sad_available() -> bool:
+    """Whether numba is installed (found, not imported: it is imported when ``"sad"`` runs)."""
+    return importlib.util.find_spec("numba") is not None
+
+
+def l1_kernel(reference: torch.Tensor, query: torch.Tensor,
+              levels: tuple[torch.Tensor, torch.Tensor | None] | None,
+              max_chunk_elements: int = 2**26) -> str:
+    """The exact L1 kernel for ``(R, D)`` references and ``(Q, D)`` queries (module docstring).
+
+    ``"sad"`` on CPU from ``R * Q * D >= SAD_MIN_WORK`` (below it numba's start-up costs more
+    than the kernel saves) where numba is installed, the data qualify (:func:`sad_offset`)
+    and the alternative is slower: ``cdist`` (``levels`` None) or the thermometer kernel's
+    float32 product (:func:`thermometer_product`; its int8 GEMM on AVX-512 is faster).
+    Else ``"thermometer"`` when ``levels`` is not None, else ``"cdist"``.
+
+    Args:
+        reference: ``(R, D)``.
+        query: ``(Q, D)``.
+        levels: the inputs' :func:`thermometer_levels` (non-empty thresholds or None).
+        max_chunk_elements: bound on the rows scanned at a time by :func:`sad_offset`.
+    """
+    fallback = "thermometer" if levels is not None else "cdist"
+    device = reference.device
+    if (device.type != "cpu" or reference.shape[0] * query.shape[0] * reference.shape[1]
+            < SAD_MIN_WORK or not sad_available()):
+        return fallback
+    if levels is not None and thermometer_product(device) != "float32":
+        return fallback
+    return "sad" if sad_offset(reference, query, levels, max_chunk_elements) is not None \
+        else fallback
+
+
+def _l1_sad(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor, lo: float,
+            budget: int, workers: int, ref_codes: torch.Tensor | None = None) -> None:
+    """Fill ``out_t (Q, R)`` (CPU) with exact L1 distances by the compiled uint8 loop.
+
+    ``ref_codes``: the reference's :func:`sad_codes`, when already built. Every uint8 block
+    holds at most ``budget`` elements (one row at least).
+    """
+    from torchseq.seqslam import _l1_numba  # numba's import and compilation: only here
+
+    n_ref, dim = ref.shape
+    n_query = query.shape[0]
+    rows = max(1, min(budget // dim, SAD_BLOCK_ROWS))  # rows per block of either side
+    out = out_t.numpy()
+    whole = _as_uint8(query, lo).numpy() if n_query * dim <= budget else None
+
+    def fill(r0: int) -> None:
+        a = (ref_codes[r0:r0 + rows] if ref_codes is not None
+             else _as_uint8(ref[r0:r0 + rows], lo)).numpy()
+        if whole is not None:
+            _l1_numba.sad(a, whole, out, r0, 0)
+            return
+        for q0 in range(0, n_query, rows):
+            _l1_numba.sad(a, _as_uint8(query[q0:q0 + rows], lo).numpy(), out, r0, q0)
+
+    run_blocks(fill, range(0, n_ref, rows), workers, ref.device)
 
 
 def _is_integer(x: torch.Tensor, rows: int) -> bool:
@@ -227,17 +349,30 @@ def difference_matrix(
 
 def difference_with_kernel(
     reference: torch.Tensor, query: torch.Tensor, metric: str = "l1",
-    max_chunk_elements: int = 2**26, threads: int = 1,
+    max_chunk_elements: int = 2**26, threads: int = 1, kernel: str | None = None,
 ) -> tuple[torch.Tensor, str]:
     """:func:`difference_matrix` and the name of the kernel that computed it.
 
+    Args:
+        reference: as :func:`difference_matrix`.
+        query: as :func:`difference_matrix`.
+        metric: as :func:`difference_matrix`.
+        max_chunk_elements: as :func:`difference_matrix`.
+        threads: as :func:`difference_matrix`.
+        kernel: ``"l1"`` only: run this kernel (``"thermometer"``, ``"sad"`` or ``"cdist"``;
+            for tests and benchmarks) instead of :func:`l1_kernel`'s choice; ``ValueError``
+            where the data do not qualify for it. Constant inputs still give ``"constant"``.
+
     Returns:
-        ``(R, Q)`` distances and one of ``"thermometer"``, ``"cdist"``, ``"constant"`` (all
-        inputs equal), ``"l2"``, ``"cosine"``.
+        ``(R, Q)`` distances and one of ``"thermometer"``, ``"sad"``, ``"cdist"``,
+        ``"constant"`` (all inputs equal), ``"l2"``, ``"cosine"``.
     """
     check_descriptors(reference, query)
     if metric not in METRICS:
         raise ValueError(f"metric must be one of {METRICS}, got {metric!r}")
+    if kernel is not None and (metric != "l1" or kernel not in L1_KERNELS):
+        raise ValueError(f"kernel must be None or, for metric 'l1', one of {L1_KERNELS}; got "
+                         f"{kernel!r} for metric {metric!r}")
     if not reference.is_floating_point():
         reference = reference.float()
     query = query.to(reference.dtype)
@@ -249,7 +384,19 @@ def difference_with_kernel(
         levels = thermometer_levels(reference, query, max_chunk_elements)
         if levels is not None and levels[0].numel() == 0:
             return out_t.zero_().T, "constant"
-        if levels is not None:
+        chosen = kernel or l1_kernel(reference, query, levels, max_chunk_elements)
+        if chosen == "thermometer" and levels is None:
+            raise ValueError("the 'thermometer' L1 kernel needs integer-valued descriptors "
+                             "with few distinct values (thermometer_levels); these have not")
+        if chosen == "sad":
+            lo = sad_offset(reference, query, levels, max_chunk_elements)
+            if reference.device.type != "cpu" or lo is None:
+                why = "values that do not qualify" if lo is None else "not on CPU"
+                raise ValueError(f"the 'sad' L1 kernel needs CPU tensors of integer values "
+                                 f"spanning at most {SAD_MAX_RANGE} (sad_offset); got {why}")
+            _l1_sad(reference, query, out_t, lo, max_chunk_elements, threads)
+            return out_t.T, "sad"
+        if chosen == "thermometer":
             weights = levels[1].to(reference.device) if levels[1] is not None else None
             _l1_thermometer(reference, query, out_t, levels[0], weights, max_chunk_elements,
                             threads)
