@@ -63,6 +63,7 @@ own pipeline must equal ``NeuralSeqSLAM.run`` frame for frame (it stops otherwis
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from pathlib import Path
@@ -84,6 +85,7 @@ from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
 from torchseq.neural.readout import decide  # noqa: E402
 from torchseq.neural.spiking import SpikingSeqSLAM  # noqa: E402
 
+SQ_FIRST, SQ_RATIO = 0.25, 2.0  # sq<T>: first rung at 1/4 of the reference's median std
 VARIANTS = [
     SPIKING,  # the one-step spiking model (split's pipeline)
     RATE,  # the rate model through this script's own pipeline
@@ -148,6 +150,95 @@ def ring_bounds(h: torch.Tensor, k: int, widen: float = 0.25) -> tuple[float, fl
     return lo - widen * (hi - lo), hi + widen * (hi - lo)
 
 
+def square_rungs(top: float, first: float, ratio: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Thresholds ``k_0 = 0 < k_1 < ...`` and weights of the rungs that square by parts.
+
+    ``sum_r w_r max(x - k_r, 0)`` is the chord interpolant of ``x ** 2`` between the knots
+    ``0, first, first * ratio, first * ratio ** 2, ...`` (``w_0 = k_1``,
+    ``w_r = k_{r+1} - k_{r-1}``), up to the first knot at or above ``top``; past the last rung
+    it continues linearly. Returns ``(knots (R,), weights (R,))`` float64.
+    """
+    if not (0.0 < first and ratio > 1.0 and top > 0.0):
+        raise ValueError(f"need first > 0, ratio > 1, top > 0, got {first}, {ratio}, {top}")
+    k = [0.0, first]
+    while k[-1] < top:
+        k.append(k[-1] * ratio)
+    w = [k[1]] + [k[i + 1] - k[i - 1] for i in range(1, len(k) - 1)]
+    return torch.tensor(k[:-1], dtype=torch.float64), torch.tensor(w, dtype=torch.float64)
+
+
+def rung_squares(c: torch.Tensor, knots: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """``sum_r w_r max(|c| - k_r, 0)`` elementwise: the rungs' piecewise-linear ``c ** 2``."""
+    return ((c.abs()[..., None] - knots).clamp_min(0.0) * weights).sum(-1)
+
+
+def square_window(c: torch.Tensor, g: torch.Tensor, rate: float, knots: torch.Tensor,
+                  weights: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed form of the division by the std by timing: ``(+ counts (F, N), windows (F, C))``.
+
+    ``c`` ``(F, N)``: the cohort-centred evidence; ``g`` ``(N, C)``: the cohorts; ``rate``:
+    spikes per step per unit of ``c``; ``theta`` ``(C,)``: the window's threshold. Rate units
+    (IF, threshold 1, reset by subtraction, a one-off ``+1/2`` at the phase's first step)
+    fed ``rate * (+-c_j - k_r)`` spike ``floor(t x + 1/2)`` times in ``t`` steps; a
+    non-spiking integrator per cohort sums their spikes with weights ``w_r / n_c``, so its
+    membrane is ``rate * Q * t`` with ``Q`` the cohort's mean rung square (about its
+    variance), and the window IF unit fed that membrane crosses ``theta`` at the first ``t``
+    with ``rate * Q * t (t + 1) / 2 > theta``: ``W ~ sqrt(2 theta / (rate Q))``, one over
+    the std. The ``+`` units (``r = 0``) are inhibited from step ``W + 1``.
+    """
+    n_c = g.sum(0).clamp_min(1.0)
+    q = (rung_squares(c, knots, weights) @ g) / n_c  # (F, C)
+    y = theta / (rate * q).clamp_min(1e-300)
+    t = torch.floor((torch.sqrt(1.0 + 8.0 * y) - 1.0) / 2.0) + 1.0
+    t = torch.where((t - 1.0) * t / 2.0 > y, t - 1.0, t)  # float rounding at the root
+    t = torch.where(t * (t + 1.0) / 2.0 <= y, t + 1.0, t).clamp(1.0, 2.0 ** 31)
+    w = t @ g.T  # each unit's cohort window (F, N)
+    return torch.minimum(torch.floor(rate * c.clamp_min(0.0) * w + 0.5), w), t
+
+
+def square_window_steps(c: torch.Tensor, g: torch.Tensor, rate: float, knots: torch.Tensor,
+                        weights: torch.Tensor, theta: torch.Tensor,
+                        max_steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`square_window` stepped one time step at a time, with 0/1 spikes.
+
+    ``2 N R`` IF units (``+c_j`` and ``-c_j`` for each rung ``r``; rung 0 is the evidence
+    pair), one integrator (its membrane is the weighted spike count so far) and one window
+    IF unit per cohort fed that membrane, which fires once and inhibits its cohort's ``+``
+    units from the next step on. Windows still closed after ``max_steps`` are 0.
+    """
+    n_c = g.sum(0).clamp_min(1.0)
+    sign = torch.tensor([1.0, -1.0], dtype=c.dtype)
+    x = rate * (sign[:, None, None] * c[:, None, :, None] - knots)  # (F, 2, N, R)
+    v = torch.zeros_like(x)
+    plus = torch.zeros_like(c)
+    acc = torch.zeros(c.shape[0], g.shape[1], dtype=c.dtype)
+    window_v = torch.zeros_like(acc)
+    windows = torch.zeros_like(acc)
+    open_ = torch.ones_like(c)  # the + units not yet inhibited by their window
+    for t in range(1, max_steps + 1):
+        v = v + x + (0.5 if t == 1 else 0.0)  # the phase's start channel: a one-off 1/2
+        z = (v > 1.0).to(c.dtype)
+        v = v - z
+        plus = plus + z[:, 0, :, 0] * open_
+        acc = acc + ((z * weights).sum((1, 3)) @ g) / n_c  # integrator: membrane = count
+        window_v = window_v + acc
+        fire = (window_v > theta) & (windows == 0)
+        windows = torch.where(fire, torch.full_like(windows, float(t)), windows)
+        open_ = ((windows == 0).to(c.dtype) @ g.T).clamp(max=1.0)  # inhibited from t + 1
+        if bool((windows > 0).all()):
+            break
+    return plus, windows
+
+
+def square_spec(norm: str) -> dict | None:
+    """``sq<T>[k<first>r<ratio>]`` / ``sqstep<T>...`` as a dict, or None for another norm."""
+    m = re.fullmatch(r"sq(step)?(\d+)(?:k([0-9.]+)r([0-9.]+))?", norm)
+    if m is None:
+        return None
+    return {"stepped": m.group(1) is not None, "steps": int(m.group(2)),
+            "first": float(m.group(3) or SQ_FIRST), "ratio": float(m.group(4) or SQ_RATIO)}
+
+
 def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = None) -> dict:
     """Decisions ``(Q,)``, L2 winners, ties, division windows and evidence ``(Q, N)`` of a variant.
 
@@ -190,6 +281,17 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
 
     def evidence(z2, sigma):
         c, sd = centred_sd(z2)
+        if sq is not None:  # division by the std by timing: rung squares, double integrator
+            if sq["stepped"]:
+                count, w = square_window_steps(c, g, rate, knots, weights, theta_sq,
+                                               64 * sq["steps"])
+                if bool((w == 0).any()):
+                    raise SystemExit(f"{variant}: a window did not close in {64 * sq['steps']}"
+                                     " steps")
+            else:
+                count, w = square_window(c, g, rate, knots, weights, theta_sq)
+            windows.append(w)
+            return count * gain / ((ratio_sq * (2.0 * theta_sq * rate).sqrt()) @ g.T)
         if norm.startswith("div"):  # division by timing (rectified, counts over a window)
             spread = ratio * mad(c) if not norm.startswith("divsd") else sd
             w = torch.ceil(theta_w / (rate * spread).clamp_min(1e-300)).clamp(max=2**31)
@@ -215,6 +317,13 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
     ratio = torch.quantile(sdr / mad(cr).clamp_min(1e-300), 0.5, dim=0)
     rate = 1.0 / float(cr.abs().max())
     steps_div = int(norm.lstrip("divsd") or 1) if norm.startswith("div") else 1
+    sq = square_spec(norm)
+    if sq is not None:  # rungs from the reference's median std up to its largest |c|
+        knots, weights = square_rungs(float(cr.abs().max()), sq["first"] * float(sdr.median()),
+                                      sq["ratio"])
+        qr = (rung_squares(cr, knots, weights) @ g) / n_c
+        ratio_sq = torch.quantile(sdr / qr.sqrt().clamp_min(1e-300), 0.5, dim=0)
+        theta_sq = sq["steps"] ** 2 * rate * torch.quantile(qr, 0.5, dim=0) / 2.0
     theta_w = steps_div * rate * torch.quantile(ratio * mad(cr), 0.5, dim=0)
     er = evidence(zr, sigma)
     steps_ring = int(ring[4:] if ring.startswith("rate") else ring[2:]) if ring != "exact" else 0
@@ -253,7 +362,7 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
         if not bool((lowest_win >= highest_loss).all()):
             raise SystemExit(f"{variant}: the inhibition k-WTA kept a unit below a loser")
     window = None
-    if norm.startswith("div"):  # the query's windows: the steps the division phase takes
+    if norm.startswith("div") or sq is not None:  # the query's windows: the division's steps
         wq = windows[-1]
         window = [int(wq.min()), float(wq.median()), int(wq.max())]
     return {"reference": ref.numpy(), "fired": fired.numpy(), "ties": ties, "window": window,
