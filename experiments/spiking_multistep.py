@@ -3,7 +3,8 @@
 One command (from the repository root, one thread, a few minutes on a quiet host):
 
     PYTHONPATH=. .venv/bin/python experiments/spiking_multistep.py [--seeds 0-7]
-        [--data corridor,lens] [--variants all] [--out experiments/results]
+        [--data corridor,lens] [--variants default|stages|std|all|v1,v2,...]
+        [--out experiments/results]
 
 An experiment, not a library feature: nothing here is exported to NIR. It extends
 ``experiments/spiking_split.py`` (whose loading, seeding, L2 rules and one-step variants it
@@ -53,6 +54,23 @@ parts (IF units, Linear/Affine weights, recurrent edges), simulated in float64. 
   unquantised ring is a linear integrator; ``rate<T>``: the ring's IF count, as above).
   ``divsd<T>``: the same window from the frame's cohort std itself (as if a circuit
   squaring and taking the root by timing were exact; not built, not simulated).
+  ``sq<T>`` / ``sqstep<T>``: the division by the std by timing, built
+  (:func:`square_window`, stepped: :func:`square_window_steps`). Squares by parts: per
+  output unit ``2 R`` rate IF units (reset by subtraction) fed ``rate * (+-c_j - k_r)``
+  (rung 0 is the evidence pair; thresholds ``k_r``: 0, then from a quarter of the
+  reference's median cohort std doubling up to its largest ``|c|``: ``R`` = 6 on the
+  corridor, 7 on LENS; :func:`square_rungs`), whose spikes, weighted ``w_r / n_c``, are the
+  chord interpolant of ``c_j ** 2`` per step. A non-spiking integrator per cohort (NIR
+  ``I``) sums them, so its membrane grows as ``rate * var * t``; the window IF unit is fed
+  that membrane (a double integrator) and crosses ``theta`` at ``t ~ sqrt(2 theta / (rate
+  var))``, one over the std, then inhibits the ``+`` units, whose count is ``max(c_j, 0) /
+  std`` up to a constant. Every rate unit gets a one-off ``+1/2`` at the phase's first step
+  (from a start channel) so its count rounds rather than floors (the integer counts would
+  otherwise bias the window by a MAD-like term). ``theta`` makes the reference's median
+  window ``T`` steps; ``ratio`` (the reference's median std over the rung estimate) sets the
+  output scale. ``sq`` is the closed form (the integrator's membrane analog), ``sqstep`` the
+  network stepped with 0/1 spikes (closes the window at most one step later: tested).
+  ``sq<T>k<a>r<rho>``: first rung ``a`` median stds, ratio ``rho`` (default ``k0.25r2``).
 
 Prints a markdown table per route (agreement per seed, min and mean; the L2 winners per frame
 and the frames with ties at the k-th place for the inhibition forms) and writes
@@ -110,6 +128,28 @@ VARIANTS = [
     "kwta:divsd256:evidence:exact", "inh256:divsd256:evidence:rate4096",
     "inh1024:divsd1024:evidence:rate4096",
 ]
+# the division by the std by timing, built (rung squares, a double integrator): closed form
+# (sq) and the stepped network (sqstep), alone and with the inhibition k-WTA and count ring
+STD_VARIANTS = [
+    RATE,
+    "kwta:sq32:evidence:exact", "kwta:sq64:evidence:exact", "kwta:sq128:evidence:exact",
+    "kwta:sq256:evidence:exact", "kwta:sqstep32:evidence:exact",
+    "kwta:sqstep64:evidence:exact", "kwta:sqstep128:evidence:exact",
+    "kwta:sqstep256:evidence:exact",
+    "kwta:frame:evidence:rate1536", "kwta:frame:evidence:rate2048",
+    "inh256:sqstep64:evidence:rate4096", "inh256:sqstep128:evidence:rate4096",
+    "inh256:sqstep256:evidence:rate4096", "inh64:sqstep128:evidence:rate4096",
+    "inh256:sqstep128:evidence:rate2048", "inh64:sqstep128:evidence:rate2048",
+]
+VARIANT_GROUPS = {
+    "stages": VARIANTS,  # the stage-by-stage table (docs/results/nir.md)
+    "std": STD_VARIANTS,
+    "all": VARIANTS + STD_VARIANTS[1:],
+    "default": [SPIKING, RATE, "inh256:frame:evidence:exact", "kwta:frame:evidence:rate4096",
+                "kwta:div256:evidence:exact", "kwta:divsd256:evidence:exact",
+                "kwta:sqstep128:evidence:exact", "inh256:div256:evidence:rate4096",
+                "inh256:sqstep128:evidence:rate4096", "inh64:sqstep128:evidence:rate2048"],
+}
 
 
 def inhibition_kwta(h: torch.Tensor, k: int, steps: int, lo: float, hi: float,
@@ -276,11 +316,17 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
 
     windows = []  # the division's window lengths (steps), reference then query
 
+    spreads = []  # the spread estimate over the cohort std, reference then query
+
     def mad(c):  # each cohort's mean absolute deviation (T, C)
         return (c.abs() @ g) / n_c
 
     def evidence(z2, sigma):
         c, sd = centred_sd(z2)
+        if sq is not None:  # the spread estimate's ratio to the std, frame by frame
+            spreads.append((((rung_squares(c, knots, weights) @ g) / n_c).sqrt() / sd))
+        elif norm == "mad" or (norm.startswith("div") and not norm.startswith("divsd")):
+            spreads.append(mad(c) / sd)
         if sq is not None:  # division by the std by timing: rung squares, double integrator
             if sq["stepped"]:
                 count, w = square_window_steps(c, g, rate, knots, weights, theta_sq,
@@ -366,40 +412,63 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
         wq = windows[-1]
         window = [int(wq.min()), float(wq.median()), int(wq.max())]
     return {"reference": ref.numpy(), "fired": fired.numpy(), "ties": ties, "window": window,
-            "evidence": eq.numpy()}
+            "evidence": eq.numpy(), "rungs": None if sq is None else len(knots),
+            "spread_vs_std": None if not spreads else
+            [float(spreads[-1].min() / spreads[-1].median()),
+             float(spreads[-1].max() / spreads[-1].median())]}
 
 
-def design_budget(model) -> dict:
-    """Arithmetic budget of the ``inh:div:evidence:rate`` design for a fitted model.
+def design_budget(model, rungs: int | None = None) -> dict:
+    """Arithmetic budget of the ``inh:div:evidence:rate`` (or ``inh:sq:evidence:rate``) design.
 
     Not an exported graph: counts by hand, with :func:`memory_bytes` of
-    ``torchseq.export.hardware_budget`` (8-bit synapses, 16-bit states). Populations: ``M``
-    L2 IF units, 1 inhibitory counter, ``2 N`` evidence IF units (``+c``, ``-c``), one window
-    unit per cohort, ``N`` ring IF units. Synapses: input -> L2 (``nnz(w1)``), L2 <-> counter
-    (``2 M``), L2 -> evidence (``2 N M``, the dense centred ``l3`` and its negative),
-    evidence -> window (``2 N``), window -> evidence (``2 N``), evidence+ -> ring (``N``),
-    ring -> ring (``nnz(S)``, through a Delay of one frame).
+    ``torchseq.export.hardware_budget`` (8-bit synapses, 16-bit states). ``rungs=None``: the
+    MAD division. Populations: ``M`` L2 IF units, 1 inhibitory counter, ``2 N`` evidence IF
+    units (``+c``, ``-c``), one window unit per cohort, ``N`` ring IF units. Synapses: input
+    -> L2 (``nnz(w1)``), L2 <-> counter (``2 M``), L2 -> evidence (``2 N M``, the dense
+    centred ``l3`` and its negative), evidence -> window (``2 N``), window -> evidence
+    (``2 N``), evidence+ -> ring (``N``), ring -> ring (``nnz(S)``, through a Delay of one
+    frame). ``rungs=R``: the division by the std (``sq<T>``): the L2 spikes integrate into
+    ``N`` non-spiking L3 units holding ``c`` (``N M`` synapses, the dense centred ``l3``),
+    which feed ``2 N R`` rate IF units (``+-c_j`` at each rung; rung 0 is the evidence pair;
+    one synapse each, the rung's threshold a constant bias); one non-spiking integrator per
+    cohort sums their spikes (``2 N R`` synapses) and feeds the window unit (one per cohort);
+    the window inhibits the ``N`` ``+`` units.
     """
     w1 = model.l1.folded_weight().detach()
     m, d = w1.shape
     n = model.unit_centre.shape[0]
     c = model.cohorts.shape[1]
     nnz_s = int((model.ring.shift.detach() != 0).sum())
-    pops = {"l2": m, "counter": 1, "evidence": 2 * n, "window": c, "ring": n}
-    pairs = {"input->l2": int((w1 != 0).sum()), "l2->counter": m, "counter->l2": m,
-             "l2->evidence": 2 * n * m, "evidence->window": 2 * n, "window->evidence": 2 * n,
-             "evidence->ring": n, "ring->ring (delay: one frame)": nnz_s}
+    if rungs is None:
+        pops = {"l2": m, "counter": 1, "evidence": 2 * n, "window": c, "ring": n}
+        pairs = {"input->l2": int((w1 != 0).sum()), "l2->counter": m, "counter->l2": m,
+                 "l2->evidence": 2 * n * m, "evidence->window": 2 * n,
+                 "window->evidence": 2 * n, "evidence->ring": n,
+                 "ring->ring (delay: one frame)": nnz_s}
+        fan_in, fan_out = m + 1, max(m, 2 * n + 1)
+    else:
+        pops = {"l2": m, "counter": 1, "l3 (integrator)": n, "evidence and rungs": 2 * n * rungs,
+                "accumulator (integrator)": c, "window": c, "ring": n}
+        pairs = {"input->l2": int((w1 != 0).sum()), "l2->counter": m, "counter->l2": m,
+                 "l2->l3": n * m, "l3->evidence and rungs": 2 * n * rungs,
+                 "evidence and rungs->accumulator": 2 * n * rungs, "accumulator->window": c,
+                 "window->evidence+": n, "evidence->ring": n,
+                 "ring->ring (delay: one frame)": nnz_s}
+        fan_in, fan_out = max(m + 1, 2 * n * rungs), max(m, n + 1, 2 * rungs)
     b = {"neurons": sum(pops.values()), "effective_synapses": sum(pairs.values())}
     return {"input": d, "populations": pops, "synapses_by_pair": pairs, **b,
-            "memory_bytes_8bit": memory_bytes(b, 8),
-            "max_fan_in": m + 1, "max_fan_out": max(m, 2 * n + 1)}
+            "memory_bytes_8bit": memory_bytes(b, 8), "max_fan_in": fan_in,
+            "max_fan_out": fan_out}
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0-7")
     ap.add_argument("--data", default="corridor,lens")
-    ap.add_argument("--variants", default="all", help="'all' or comma-separated l2:norm:rect:ring")
+    ap.add_argument("--variants", default="default",
+                    help=f"a group ({', '.join(VARIANT_GROUPS)}) or comma-separated "
+                         "l2:norm:rect:ring")
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results"))
     ap.add_argument("--budget", action="store_true",
                     help="only print design_budget of each route's first seed")
@@ -412,15 +481,19 @@ def main(argv=None) -> dict:
             if not name.endswith("+-2"):
                 model = NeuralSeqSLAM(NeuralConfig(seed=seeds[0]))
                 model.fit(ref, log=False)
-                out[name] = design_budget(model)
+                xr = model.encode(ref).double()
+                rungs = simulate(model, xr, xr, 0.0, "kwta:sq64:evidence:exact")["rungs"]
+                out[name] = {"div": design_budget(model), "sq": design_budget(model, rungs)}
                 print(name, out[name])
         return out
-    variants = VARIANTS if args.variants == "all" else args.variants.split(",")
+    variants = VARIANT_GROUPS.get(args.variants) or args.variants.split(",")
+    variants = variants if RATE in variants else [RATE, *variants]  # the check below runs
     results = {}
     for name, (ref, qry, _gt) in datasets(tuple(args.data.split(","))).items():
         if name.endswith("+-2"):
             continue
-        rows = {v: {"agreement": [], "fired": [], "ties": [], "window": []} for v in variants}
+        rows = {v: {"agreement": [], "fired": [], "ties": [], "window": [], "spread": []}
+                for v in variants}
         for seed in seeds:
             t0 = time.perf_counter()
             model = NeuralSeqSLAM(NeuralConfig(seed=seed))
@@ -440,6 +513,7 @@ def main(argv=None) -> dict:
                 rows[v]["fired"].append([int(f.min()), int(f.max())])
                 rows[v]["ties"].append(r["ties"])
                 rows[v]["window"].append(r["window"])
+                rows[v]["spread"].append(r["spread_vs_std"])
             print(f"{name} seed {seed} done ({time.perf_counter() - t0:.1f} s)", flush=True)
         results[name] = rows
         write_json(Path(args.out) / "spiking_multistep.json", {"seeds": seeds,
@@ -461,6 +535,13 @@ def main(argv=None) -> dict:
             print(f"| {name} | `{v}` | " + " | ".join(f"{x:.3f}" for x in a)
                   + f" | {min(a):.3f} | {np.mean(a):.3f} | {f[:, 0].min()}..{f[:, 1].max()} | "
                   + f"{ties} | {win} |")
+    print("\n| data | variant | spread estimate / cohort std over the query frames, "
+          "divided by its median: min..max (over seeds) |\n|---|---|---|")
+    for name, rows in results.items():
+        for v, r in rows.items():
+            if r["spread"][0] is not None:
+                lo, hi = min(x[0] for x in r["spread"]), max(x[1] for x in r["spread"])
+                print(f"| {name} | `{v}` | {lo:.3f}..{hi:.3f} |")
     return results
 
 
