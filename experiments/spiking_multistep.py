@@ -140,6 +140,8 @@ STD_VARIANTS = [
     "inh256:sqstep64:evidence:rate4096", "inh256:sqstep128:evidence:rate4096",
     "inh256:sqstep256:evidence:rate4096", "inh64:sqstep128:evidence:rate4096",
     "inh256:sqstep128:evidence:rate2048", "inh64:sqstep128:evidence:rate2048",
+    "inh128:sqstep128:evidence:rate2048", "inh256:sqstep96:evidence:rate4096",
+    "inh128:sqstep96:evidence:rate2048", "inh256:sqstep128:evidence:rate1536",
 ]
 VARIANT_GROUPS = {
     "stages": VARIANTS,  # the stage-by-stage table (docs/results/nir.md)
