@@ -74,8 +74,10 @@ parts (IF units, Linear/Affine weights, recurrent edges), simulated in float64. 
 
 Prints a markdown table per route (agreement per seed, min and mean; the L2 winners per frame
 and the frames with ties at the k-th place for the inhibition forms) and writes
-``spiking_multistep.json`` under ``--out``. The all-exact variant run through this script's
-own pipeline must equal ``NeuralSeqSLAM.run`` frame for frame (it stops otherwise).
+``spiking_multistep.json`` (group ``stages``; ``spiking_multistep_<group>.json`` for another
+group, ``spiking_multistep_list.json`` for a list) under ``--out``. The all-exact variant
+run through this script's own pipeline must equal ``NeuralSeqSLAM.run`` frame for frame (it
+stops otherwise; it runs whatever the list).
 """
 
 from __future__ import annotations
@@ -490,6 +492,9 @@ def main(argv=None) -> dict:
         return out
     variants = VARIANT_GROUPS.get(args.variants) or args.variants.split(",")
     variants = variants if RATE in variants else [RATE, *variants]  # the check below runs
+    json_name = ("spiking_multistep.json" if args.variants == "stages" else
+                 f"spiking_multistep_{args.variants}.json" if args.variants in VARIANT_GROUPS
+                 else "spiking_multistep_list.json")
     results = {}
     for name, (ref, qry, _gt) in datasets(tuple(args.data.split(","))).items():
         if name.endswith("+-2"):
@@ -518,8 +523,7 @@ def main(argv=None) -> dict:
                 rows[v]["spread"].append(r["spread_vs_std"])
             print(f"{name} seed {seed} done ({time.perf_counter() - t0:.1f} s)", flush=True)
         results[name] = rows
-        write_json(Path(args.out) / "spiking_multistep.json", {"seeds": seeds,
-                                                                "results": results})
+        write_json(Path(args.out) / json_name, {"seeds": seeds, "results": results})
     print("| data | variant | " + " | ".join(f"seed {s}" for s in seeds)
           + " | worst | mean | L2 winners per frame (min..max) | frames with > k / < k winners "
           "(sum over seeds) | division window, steps (min / median / max over seeds) |")
