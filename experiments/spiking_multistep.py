@@ -144,6 +144,8 @@ STD_VARIANTS = [
     "inh256:sqstep128:evidence:rate2048", "inh64:sqstep128:evidence:rate2048",
     "inh128:sqstep128:evidence:rate2048", "inh256:sqstep96:evidence:rate4096",
     "inh128:sqstep96:evidence:rate2048", "inh256:sqstep128:evidence:rate1536",
+    "inh128:sqstep96:evidence:rate1536", "inh64:sqstep96:evidence:rate1536",
+    "inh64:sqstep64:evidence:rate1536",
 ]
 VARIANT_GROUPS = {
     "stages": VARIANTS,  # the stage-by-stage table (docs/results/nir.md)
@@ -152,7 +154,7 @@ VARIANT_GROUPS = {
     "default": [SPIKING, RATE, "inh256:frame:evidence:exact", "kwta:frame:evidence:rate4096",
                 "kwta:div256:evidence:exact", "kwta:divsd256:evidence:exact",
                 "kwta:sqstep128:evidence:exact", "inh256:div256:evidence:rate4096",
-                "inh256:sqstep128:evidence:rate4096", "inh64:sqstep128:evidence:rate2048"],
+                "inh256:sqstep128:evidence:rate4096", "inh128:sqstep96:evidence:rate1536"],
 }
 
 
