@@ -295,7 +295,7 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
     if not (l2.startswith("inh") or ring.startswith(("rate", "li"))) and ring != "exact":
         refs, fired = split_simulate(model, xr, xq, theta2, variant)
         return {"reference": refs, "fired": fired, "ties": None, "window": None,
-                "evidence": None}
+                "evidence": None, "rungs": None, "spread_vs_std": None}
     if ring.startswith("li") and rect != "evidence":
         raise ValueError("li<T> integrates rectified evidence: use rect=evidence")
     w1 = model.l1.folded_weight().detach().double()

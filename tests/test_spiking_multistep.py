@@ -155,3 +155,12 @@ def test_square_division_tends_to_the_std_division(ms, route):
     top = float(np.abs(exact["evidence"]).max())
     np.testing.assert_allclose(sq["evidence"], exact["evidence"], rtol=0, atol=2e-3 * top)
     assert (sq["reference"] == rate).all()
+
+
+def test_every_variant_reports_the_same_fields(ms, route):
+    # main tabulates every field of every variant: the split's one-step path must carry them
+    model, sp, xr, xq, _rate = route
+    th = sp.calibration["theta2"]
+    keys = {v: set(ms.simulate(model, xr, xq, th, v)) for v in
+            [ms.SPIKING, ms.RATE, "kwta:sq64:evidence:exact", "kwta:div64:evidence:exact"]}
+    assert len({frozenset(k) for k in keys.values()}) == 1, keys
