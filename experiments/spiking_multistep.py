@@ -3,7 +3,8 @@
 One command (from the repository root, one thread, a few minutes on a quiet host):
 
     PYTHONPATH=. .venv/bin/python experiments/spiking_multistep.py [--seeds 0-7]
-        [--data corridor,lens] [--variants all] [--out experiments/results]
+        [--data corridor,lens] [--variants default|stages|std|all|v1,v2,...]
+        [--out experiments/results]
 
 An experiment, not a library feature: nothing here is exported to NIR. It extends
 ``experiments/spiking_split.py`` (whose loading, seeding, L2 rules and one-step variants it
@@ -53,16 +54,36 @@ parts (IF units, Linear/Affine weights, recurrent edges), simulated in float64. 
   unquantised ring is a linear integrator; ``rate<T>``: the ring's IF count, as above).
   ``divsd<T>``: the same window from the frame's cohort std itself (as if a circuit
   squaring and taking the root by timing were exact; not built, not simulated).
+  ``sq<T>`` / ``sqstep<T>``: the division by the std by timing, built
+  (:func:`square_window`, stepped: :func:`square_window_steps`). Squares by parts: per
+  output unit ``2 R`` rate IF units (reset by subtraction) fed ``rate * (+-c_j - k_r)``
+  (rung 0 is the evidence pair; thresholds ``k_r``: 0, then from a quarter of the
+  reference's median cohort std doubling up to its largest ``|c|``: ``R`` = 6 on the
+  corridor, 7 on LENS; :func:`square_rungs`), whose spikes, weighted ``w_r / n_c``, are the
+  chord interpolant of ``c_j ** 2`` per step. A non-spiking integrator per cohort (NIR
+  ``I``) sums them, so its membrane grows as ``rate * var * t``; the window IF unit is fed
+  that membrane (a double integrator) and crosses ``theta`` at ``t ~ sqrt(2 theta / (rate
+  var))``, one over the std, then inhibits the ``+`` units, whose count is ``max(c_j, 0) /
+  std`` up to a constant. Every rate unit gets a one-off ``+1/2`` at the phase's first step
+  (from a start channel) so its count rounds rather than floors (the integer counts would
+  otherwise bias the window by a MAD-like term). ``theta`` makes the reference's median
+  window ``T`` steps; ``ratio`` (the reference's median std over the rung estimate) sets the
+  output scale. ``sq`` is the closed form (the integrator's membrane analog), ``sqstep`` the
+  network stepped with 0/1 spikes (closes the window at most one step later: tested).
+  ``sq<T>k<a>r<rho>``: first rung ``a`` median stds, ratio ``rho`` (default ``k0.25r2``).
 
 Prints a markdown table per route (agreement per seed, min and mean; the L2 winners per frame
 and the frames with ties at the k-th place for the inhibition forms) and writes
-``spiking_multistep.json`` under ``--out``. The all-exact variant run through this script's
-own pipeline must equal ``NeuralSeqSLAM.run`` frame for frame (it stops otherwise).
+``spiking_multistep.json`` (group ``stages``; ``spiking_multistep_<group>.json`` for another
+group, ``spiking_multistep_list.json`` for a list) under ``--out``. The all-exact variant
+run through this script's own pipeline must equal ``NeuralSeqSLAM.run`` frame for frame (it
+stops otherwise; it runs whatever the list).
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from pathlib import Path
@@ -84,6 +105,7 @@ from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
 from torchseq.neural.readout import decide  # noqa: E402
 from torchseq.neural.spiking import SpikingSeqSLAM  # noqa: E402
 
+SQ_FIRST, SQ_RATIO = 0.25, 2.0  # sq<T>: first rung at 1/4 of the reference's median std
 VARIANTS = [
     SPIKING,  # the one-step spiking model (split's pipeline)
     RATE,  # the rate model through this script's own pipeline
@@ -108,6 +130,32 @@ VARIANTS = [
     "kwta:divsd256:evidence:exact", "inh256:divsd256:evidence:rate4096",
     "inh1024:divsd1024:evidence:rate4096",
 ]
+# the division by the std by timing, built (rung squares, a double integrator): closed form
+# (sq) and the stepped network (sqstep), alone and with the inhibition k-WTA and count ring
+STD_VARIANTS = [
+    RATE,
+    "kwta:sq32:evidence:exact", "kwta:sq64:evidence:exact", "kwta:sq128:evidence:exact",
+    "kwta:sq256:evidence:exact", "kwta:sqstep32:evidence:exact",
+    "kwta:sqstep64:evidence:exact", "kwta:sqstep128:evidence:exact",
+    "kwta:sqstep256:evidence:exact",
+    "kwta:frame:evidence:rate1536", "kwta:frame:evidence:rate2048",
+    "inh256:sqstep64:evidence:rate4096", "inh256:sqstep128:evidence:rate4096",
+    "inh256:sqstep256:evidence:rate4096", "inh64:sqstep128:evidence:rate4096",
+    "inh256:sqstep128:evidence:rate2048", "inh64:sqstep128:evidence:rate2048",
+    "inh128:sqstep128:evidence:rate2048", "inh256:sqstep96:evidence:rate4096",
+    "inh128:sqstep96:evidence:rate2048", "inh256:sqstep128:evidence:rate1536",
+    "inh128:sqstep96:evidence:rate1536", "inh64:sqstep96:evidence:rate1536",
+    "inh64:sqstep64:evidence:rate1536",
+]
+VARIANT_GROUPS = {
+    "stages": VARIANTS,  # the stage-by-stage table (docs/results/nir.md)
+    "std": STD_VARIANTS,
+    "all": VARIANTS + STD_VARIANTS[1:],
+    "default": [SPIKING, RATE, "inh256:frame:evidence:exact", "kwta:frame:evidence:rate4096",
+                "kwta:div256:evidence:exact", "kwta:divsd256:evidence:exact",
+                "kwta:sqstep128:evidence:exact", "inh256:div256:evidence:rate4096",
+                "inh256:sqstep128:evidence:rate4096", "inh128:sqstep96:evidence:rate1536"],
+}
 
 
 def inhibition_kwta(h: torch.Tensor, k: int, steps: int, lo: float, hi: float,
@@ -148,6 +196,95 @@ def ring_bounds(h: torch.Tensor, k: int, widen: float = 0.25) -> tuple[float, fl
     return lo - widen * (hi - lo), hi + widen * (hi - lo)
 
 
+def square_rungs(top: float, first: float, ratio: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Thresholds ``k_0 = 0 < k_1 < ...`` and weights of the rungs that square by parts.
+
+    ``sum_r w_r max(x - k_r, 0)`` is the chord interpolant of ``x ** 2`` between the knots
+    ``0, first, first * ratio, first * ratio ** 2, ...`` (``w_0 = k_1``,
+    ``w_r = k_{r+1} - k_{r-1}``), up to the first knot at or above ``top``; past the last rung
+    it continues linearly. Returns ``(knots (R,), weights (R,))`` float64.
+    """
+    if not (0.0 < first and ratio > 1.0 and top > 0.0):
+        raise ValueError(f"need first > 0, ratio > 1, top > 0, got {first}, {ratio}, {top}")
+    k = [0.0, first]
+    while k[-1] < top:
+        k.append(k[-1] * ratio)
+    w = [k[1]] + [k[i + 1] - k[i - 1] for i in range(1, len(k) - 1)]
+    return torch.tensor(k[:-1], dtype=torch.float64), torch.tensor(w, dtype=torch.float64)
+
+
+def rung_squares(c: torch.Tensor, knots: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """``sum_r w_r max(|c| - k_r, 0)`` elementwise: the rungs' piecewise-linear ``c ** 2``."""
+    return ((c.abs()[..., None] - knots).clamp_min(0.0) * weights).sum(-1)
+
+
+def square_window(c: torch.Tensor, g: torch.Tensor, rate: float, knots: torch.Tensor,
+                  weights: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed form of the division by the std by timing: ``(+ counts (F, N), windows (F, C))``.
+
+    ``c`` ``(F, N)``: the cohort-centred evidence; ``g`` ``(N, C)``: the cohorts; ``rate``:
+    spikes per step per unit of ``c``; ``theta`` ``(C,)``: the window's threshold. Rate units
+    (IF, threshold 1, reset by subtraction, a one-off ``+1/2`` at the phase's first step)
+    fed ``rate * (+-c_j - k_r)`` spike ``floor(t x + 1/2)`` times in ``t`` steps; a
+    non-spiking integrator per cohort sums their spikes with weights ``w_r / n_c``, so its
+    membrane is ``rate * Q * t`` with ``Q`` the cohort's mean rung square (about its
+    variance), and the window IF unit fed that membrane crosses ``theta`` at the first ``t``
+    with ``rate * Q * t (t + 1) / 2 > theta``: ``W ~ sqrt(2 theta / (rate Q))``, one over
+    the std. The ``+`` units (``r = 0``) are inhibited from step ``W + 1``.
+    """
+    n_c = g.sum(0).clamp_min(1.0)
+    q = (rung_squares(c, knots, weights) @ g) / n_c  # (F, C)
+    y = theta / (rate * q).clamp_min(1e-300)
+    t = torch.floor((torch.sqrt(1.0 + 8.0 * y) - 1.0) / 2.0) + 1.0
+    t = torch.where((t - 1.0) * t / 2.0 > y, t - 1.0, t)  # float rounding at the root
+    t = torch.where(t * (t + 1.0) / 2.0 <= y, t + 1.0, t).clamp(1.0, 2.0 ** 31)
+    w = t @ g.T  # each unit's cohort window (F, N)
+    return torch.minimum(torch.floor(rate * c.clamp_min(0.0) * w + 0.5), w), t
+
+
+def square_window_steps(c: torch.Tensor, g: torch.Tensor, rate: float, knots: torch.Tensor,
+                        weights: torch.Tensor, theta: torch.Tensor,
+                        max_steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`square_window` stepped one time step at a time, with 0/1 spikes.
+
+    ``2 N R`` IF units (``+c_j`` and ``-c_j`` for each rung ``r``; rung 0 is the evidence
+    pair), one integrator (its membrane is the weighted spike count so far) and one window
+    IF unit per cohort fed that membrane, which fires once and inhibits its cohort's ``+``
+    units from the next step on. Windows still closed after ``max_steps`` are 0.
+    """
+    n_c = g.sum(0).clamp_min(1.0)
+    sign = torch.tensor([1.0, -1.0], dtype=c.dtype)
+    x = rate * (sign[:, None, None] * c[:, None, :, None] - knots)  # (F, 2, N, R)
+    v = torch.zeros_like(x)
+    plus = torch.zeros_like(c)
+    acc = torch.zeros(c.shape[0], g.shape[1], dtype=c.dtype)
+    window_v = torch.zeros_like(acc)
+    windows = torch.zeros_like(acc)
+    open_ = torch.ones_like(c)  # the + units not yet inhibited by their window
+    for t in range(1, max_steps + 1):
+        v = v + x + (0.5 if t == 1 else 0.0)  # the phase's start channel: a one-off 1/2
+        z = (v > 1.0).to(c.dtype)
+        v = v - z
+        plus = plus + z[:, 0, :, 0] * open_
+        acc = acc + ((z * weights).sum((1, 3)) @ g) / n_c  # integrator: membrane = count
+        window_v = window_v + acc
+        fire = (window_v > theta) & (windows == 0)
+        windows = torch.where(fire, torch.full_like(windows, float(t)), windows)
+        open_ = ((windows == 0).to(c.dtype) @ g.T).clamp(max=1.0)  # inhibited from t + 1
+        if bool((windows > 0).all()):
+            break
+    return plus, windows
+
+
+def square_spec(norm: str) -> dict | None:
+    """``sq<T>[k<first>r<ratio>]`` / ``sqstep<T>...`` as a dict, or None for another norm."""
+    m = re.fullmatch(r"sq(step)?(\d+)(?:k([0-9.]+)r([0-9.]+))?", norm)
+    if m is None:
+        return None
+    return {"stepped": m.group(1) is not None, "steps": int(m.group(2)),
+            "first": float(m.group(3) or SQ_FIRST), "ratio": float(m.group(4) or SQ_RATIO)}
+
+
 def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = None) -> dict:
     """Decisions ``(Q,)``, L2 winners, ties, division windows and evidence ``(Q, N)`` of a variant.
 
@@ -158,7 +295,7 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
     if not (l2.startswith("inh") or ring.startswith(("rate", "li"))) and ring != "exact":
         refs, fired = split_simulate(model, xr, xq, theta2, variant)
         return {"reference": refs, "fired": fired, "ties": None, "window": None,
-                "evidence": None}
+                "evidence": None, "rungs": None, "spread_vs_std": None}
     if ring.startswith("li") and rect != "evidence":
         raise ValueError("li<T> integrates rectified evidence: use rect=evidence")
     w1 = model.l1.folded_weight().detach().double()
@@ -185,11 +322,28 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
 
     windows = []  # the division's window lengths (steps), reference then query
 
+    spreads = []  # the spread estimate over the cohort std, reference then query
+
     def mad(c):  # each cohort's mean absolute deviation (T, C)
         return (c.abs() @ g) / n_c
 
     def evidence(z2, sigma):
         c, sd = centred_sd(z2)
+        if sq is not None:  # the spread estimate's ratio to the std, frame by frame
+            spreads.append((((rung_squares(c, knots, weights) @ g) / n_c).sqrt() / sd))
+        elif norm == "mad" or (norm.startswith("div") and not norm.startswith("divsd")):
+            spreads.append(mad(c) / sd)
+        if sq is not None:  # division by the std by timing: rung squares, double integrator
+            if sq["stepped"]:
+                count, w = square_window_steps(c, g, rate, knots, weights, theta_sq,
+                                               64 * sq["steps"])
+                if bool((w == 0).any()):
+                    raise SystemExit(f"{variant}: a window did not close in {64 * sq['steps']}"
+                                     " steps")
+            else:
+                count, w = square_window(c, g, rate, knots, weights, theta_sq)
+            windows.append(w)
+            return count * gain / ((ratio_sq * (2.0 * theta_sq * rate).sqrt()) @ g.T)
         if norm.startswith("div"):  # division by timing (rectified, counts over a window)
             spread = ratio * mad(c) if not norm.startswith("divsd") else sd
             w = torch.ceil(theta_w / (rate * spread).clamp_min(1e-300)).clamp(max=2**31)
@@ -215,6 +369,13 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
     ratio = torch.quantile(sdr / mad(cr).clamp_min(1e-300), 0.5, dim=0)
     rate = 1.0 / float(cr.abs().max())
     steps_div = int(norm.lstrip("divsd") or 1) if norm.startswith("div") else 1
+    sq = square_spec(norm)
+    if sq is not None:  # rungs from the reference's median std up to its largest |c|
+        knots, weights = square_rungs(float(cr.abs().max()), sq["first"] * float(sdr.median()),
+                                      sq["ratio"])
+        qr = (rung_squares(cr, knots, weights) @ g) / n_c
+        ratio_sq = torch.quantile(sdr / qr.sqrt().clamp_min(1e-300), 0.5, dim=0)
+        theta_sq = sq["steps"] ** 2 * rate * torch.quantile(qr, 0.5, dim=0) / 2.0
     theta_w = steps_div * rate * torch.quantile(ratio * mad(cr), 0.5, dim=0)
     er = evidence(zr, sigma)
     steps_ring = int(ring[4:] if ring.startswith("rate") else ring[2:]) if ring != "exact" else 0
@@ -253,44 +414,67 @@ def simulate(model, xr, xq, theta2: float, variant: str, cache: dict | None = No
         if not bool((lowest_win >= highest_loss).all()):
             raise SystemExit(f"{variant}: the inhibition k-WTA kept a unit below a loser")
     window = None
-    if norm.startswith("div"):  # the query's windows: the steps the division phase takes
+    if norm.startswith("div") or sq is not None:  # the query's windows: the division's steps
         wq = windows[-1]
         window = [int(wq.min()), float(wq.median()), int(wq.max())]
     return {"reference": ref.numpy(), "fired": fired.numpy(), "ties": ties, "window": window,
-            "evidence": eq.numpy()}
+            "evidence": eq.numpy(), "rungs": None if sq is None else len(knots),
+            "spread_vs_std": None if not spreads else
+            [float(spreads[-1].min() / spreads[-1].median()),
+             float(spreads[-1].max() / spreads[-1].median())]}
 
 
-def design_budget(model) -> dict:
-    """Arithmetic budget of the ``inh:div:evidence:rate`` design for a fitted model.
+def design_budget(model, rungs: int | None = None) -> dict:
+    """Arithmetic budget of the ``inh:div:evidence:rate`` (or ``inh:sq:evidence:rate``) design.
 
     Not an exported graph: counts by hand, with :func:`memory_bytes` of
-    ``torchseq.export.hardware_budget`` (8-bit synapses, 16-bit states). Populations: ``M``
-    L2 IF units, 1 inhibitory counter, ``2 N`` evidence IF units (``+c``, ``-c``), one window
-    unit per cohort, ``N`` ring IF units. Synapses: input -> L2 (``nnz(w1)``), L2 <-> counter
-    (``2 M``), L2 -> evidence (``2 N M``, the dense centred ``l3`` and its negative),
-    evidence -> window (``2 N``), window -> evidence (``2 N``), evidence+ -> ring (``N``),
-    ring -> ring (``nnz(S)``, through a Delay of one frame).
+    ``torchseq.export.hardware_budget`` (8-bit synapses, 16-bit states). ``rungs=None``: the
+    MAD division. Populations: ``M`` L2 IF units, 1 inhibitory counter, ``2 N`` evidence IF
+    units (``+c``, ``-c``), one window unit per cohort, ``N`` ring IF units. Synapses: input
+    -> L2 (``nnz(w1)``), L2 <-> counter (``2 M``), L2 -> evidence (``2 N M``, the dense
+    centred ``l3`` and its negative), evidence -> window (``2 N``), window -> evidence
+    (``2 N``), evidence+ -> ring (``N``), ring -> ring (``nnz(S)``, through a Delay of one
+    frame). ``rungs=R``: the division by the std (``sq<T>``): the L2 spikes integrate into
+    ``N`` non-spiking L3 units holding ``c`` (``N M`` synapses, the dense centred ``l3``),
+    which feed ``2 N R`` rate IF units (``+-c_j`` at each rung; rung 0 is the evidence pair;
+    one synapse each, the rung's threshold a constant bias); one non-spiking integrator per
+    cohort sums their spikes (``2 N R`` synapses) and feeds the window unit (one per cohort);
+    the window inhibits the ``N`` ``+`` units.
     """
     w1 = model.l1.folded_weight().detach()
     m, d = w1.shape
     n = model.unit_centre.shape[0]
     c = model.cohorts.shape[1]
     nnz_s = int((model.ring.shift.detach() != 0).sum())
-    pops = {"l2": m, "counter": 1, "evidence": 2 * n, "window": c, "ring": n}
-    pairs = {"input->l2": int((w1 != 0).sum()), "l2->counter": m, "counter->l2": m,
-             "l2->evidence": 2 * n * m, "evidence->window": 2 * n, "window->evidence": 2 * n,
-             "evidence->ring": n, "ring->ring (delay: one frame)": nnz_s}
+    if rungs is None:
+        pops = {"l2": m, "counter": 1, "evidence": 2 * n, "window": c, "ring": n}
+        pairs = {"input->l2": int((w1 != 0).sum()), "l2->counter": m, "counter->l2": m,
+                 "l2->evidence": 2 * n * m, "evidence->window": 2 * n,
+                 "window->evidence": 2 * n, "evidence->ring": n,
+                 "ring->ring (delay: one frame)": nnz_s}
+        fan_in, fan_out = m + 1, max(m, 2 * n + 1)
+    else:
+        pops = {"l2": m, "counter": 1, "l3 (integrator)": n, "evidence and rungs": 2 * n * rungs,
+                "accumulator (integrator)": c, "window": c, "ring": n}
+        pairs = {"input->l2": int((w1 != 0).sum()), "l2->counter": m, "counter->l2": m,
+                 "l2->l3": n * m, "l3->evidence and rungs": 2 * n * rungs,
+                 "evidence and rungs->accumulator": 2 * n * rungs, "accumulator->window": c,
+                 "window->evidence+": n, "evidence->ring": n,
+                 "ring->ring (delay: one frame)": nnz_s}
+        fan_in, fan_out = max(m + 1, 2 * n * rungs), max(m, n + 1, 2 * rungs)
     b = {"neurons": sum(pops.values()), "effective_synapses": sum(pairs.values())}
     return {"input": d, "populations": pops, "synapses_by_pair": pairs, **b,
-            "memory_bytes_8bit": memory_bytes(b, 8),
-            "max_fan_in": m + 1, "max_fan_out": max(m, 2 * n + 1)}
+            "memory_bytes_8bit": memory_bytes(b, 8), "max_fan_in": fan_in,
+            "max_fan_out": fan_out}
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0-7")
     ap.add_argument("--data", default="corridor,lens")
-    ap.add_argument("--variants", default="all", help="'all' or comma-separated l2:norm:rect:ring")
+    ap.add_argument("--variants", default="default",
+                    help=f"a group ({', '.join(VARIANT_GROUPS)}) or comma-separated "
+                         "l2:norm:rect:ring")
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results"))
     ap.add_argument("--budget", action="store_true",
                     help="only print design_budget of each route's first seed")
@@ -303,15 +487,22 @@ def main(argv=None) -> dict:
             if not name.endswith("+-2"):
                 model = NeuralSeqSLAM(NeuralConfig(seed=seeds[0]))
                 model.fit(ref, log=False)
-                out[name] = design_budget(model)
+                xr = model.encode(ref).double()
+                rungs = simulate(model, xr, xr, 0.0, "kwta:sq64:evidence:exact")["rungs"]
+                out[name] = {"div": design_budget(model), "sq": design_budget(model, rungs)}
                 print(name, out[name])
         return out
-    variants = VARIANTS if args.variants == "all" else args.variants.split(",")
+    variants = VARIANT_GROUPS.get(args.variants) or args.variants.split(",")
+    variants = variants if RATE in variants else [RATE, *variants]  # the check below runs
+    json_name = ("spiking_multistep.json" if args.variants == "stages" else
+                 f"spiking_multistep_{args.variants}.json" if args.variants in VARIANT_GROUPS
+                 else "spiking_multistep_list.json")
     results = {}
     for name, (ref, qry, _gt) in datasets(tuple(args.data.split(","))).items():
         if name.endswith("+-2"):
             continue
-        rows = {v: {"agreement": [], "fired": [], "ties": [], "window": []} for v in variants}
+        rows = {v: {"agreement": [], "fired": [], "ties": [], "window": [], "spread": []}
+                for v in variants}
         for seed in seeds:
             t0 = time.perf_counter()
             model = NeuralSeqSLAM(NeuralConfig(seed=seed))
@@ -331,10 +522,10 @@ def main(argv=None) -> dict:
                 rows[v]["fired"].append([int(f.min()), int(f.max())])
                 rows[v]["ties"].append(r["ties"])
                 rows[v]["window"].append(r["window"])
+                rows[v]["spread"].append(r["spread_vs_std"])
             print(f"{name} seed {seed} done ({time.perf_counter() - t0:.1f} s)", flush=True)
         results[name] = rows
-        write_json(Path(args.out) / "spiking_multistep.json", {"seeds": seeds,
-                                                                "results": results})
+        write_json(Path(args.out) / json_name, {"seeds": seeds, "results": results})
     print("| data | variant | " + " | ".join(f"seed {s}" for s in seeds)
           + " | worst | mean | L2 winners per frame (min..max) | frames with > k / < k winners "
           "(sum over seeds) | division window, steps (min / median / max over seeds) |")
@@ -352,6 +543,13 @@ def main(argv=None) -> dict:
             print(f"| {name} | `{v}` | " + " | ".join(f"{x:.3f}" for x in a)
                   + f" | {min(a):.3f} | {np.mean(a):.3f} | {f[:, 0].min()}..{f[:, 1].max()} | "
                   + f"{ties} | {win} |")
+    print("\n| data | variant | spread estimate / cohort std over the query frames, "
+          "divided by its median: min..max (over seeds) |\n|---|---|---|")
+    for name, rows in results.items():
+        for v, r in rows.items():
+            if r["spread"][0] is not None:
+                lo, hi = min(x[0] for x in r["spread"]), max(x[1] for x in r["spread"])
+                print(f"| {name} | `{v}` | {lo:.3f}..{hi:.3f} |")
     return results
 
 
