@@ -67,11 +67,12 @@ def oracle_ring(im, state, g, speed):
     p, a, st = im.params, im.arrays, im.velocity
     one, n_units = 2 ** p["ring_frac"], p["n_units"]
     powers = [list(state)]
+    cols, shift = a["ring.cols"].tolist(), a["ring.shift"].tolist()  # Python ints (faster sums)
     for _ in range(-(-st.v_max // ONE)):
         prev = powers[-1]
         nxt = []
         for u in range(n_units):
-            m = sum(int(v) * prev[int(c)] for c, v in zip(a["ring.cols"][u], a["ring.shift"][u]))
+            m = sum(v * prev[c] for c, v in zip(cols[u], shift[u]))
             nxt.append(max(-(2**31 - 1), min(2**31 - 1, round_half_away(Fraction(m, one)))))
         powers.append(nxt)
     n, f = divmod(speed, ONE)

@@ -13,9 +13,9 @@ import numpy as np
 import onnx
 import pytest
 import torch
+from export_helpers import small_setup
 from onnx import numpy_helper
 
-from tests.export_helpers import small_setup
 from torchseq.export import validate
 from torchseq.export.validate import TIE_ULPS, decision_agreement, near_ties
 

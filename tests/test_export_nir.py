@@ -5,9 +5,9 @@ import sys
 import numpy as np
 import pytest
 import torch
+from conftest import coarse_units_expected
+from test_spiking import demo_setup, tiny
 
-from tests.conftest import coarse_units_expected
-from tests.test_spiking import demo_setup, tiny
 from torchseq.export.hardware_budget import LIMITS, budget, check
 from torchseq.export.nir_export import FORMAT, NIRExportError, read_nir, to_nir, write_nir
 from torchseq.neural.spiking import DT
@@ -402,7 +402,8 @@ class TestBudget:
 def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     import json
 
-    from tests.export_helpers import small_setup
+    from export_helpers import small_setup
+
     from torchseq.cli.export import main
 
     model, demo, *_ = small_setup()
@@ -477,7 +478,8 @@ def test_the_query_does_not_influence_the_calibration(tmp_path):
     # identical whichever validation query the export is given
     import json
 
-    from tests.export_helpers import small_setup
+    from export_helpers import small_setup
+
     from torchseq.export.checkpoint import export_checkpoint
 
     model, demo, *_ = small_setup()

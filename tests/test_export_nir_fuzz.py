@@ -18,8 +18,8 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from test_spiking import tiny
 
-from tests.test_spiking import tiny
 from torchseq.export.nir_export import FORMAT, NIRExportError, graph_metadata, read_nir, write_nir
 
 pytest.importorskip("nir", reason="the 'nir' package is absent: pip install 'torchseq[nir]'")

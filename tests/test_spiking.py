@@ -6,8 +6,8 @@ from functools import lru_cache
 import numpy as np
 import pytest
 import torch
+from conftest import coarse_units_expected, shared_data
 
-from tests.conftest import coarse_units_expected, shared_data
 from torchseq.demo import make_demo
 from torchseq.layers import kwta
 from torchseq.metrics import recall_at_k

@@ -6,8 +6,8 @@ from functools import lru_cache
 import numpy as np
 import pytest
 import torch
+from test_spiking import tiny
 
-from tests.test_spiking import tiny
 from torchseq.neural.spiking import (
     SpikingConfig,
     SpikingError,
@@ -18,7 +18,8 @@ from torchseq.neural.spiking import (
 
 nir = pytest.importorskip("nir", reason="the 'nir' package is absent: pip install 'torchseq[nir]'")
 
-from tests.test_export_nir import nir_reference_run  # noqa: E402
+from test_export_nir import nir_reference_run  # noqa: E402
+
 from torchseq.export.hardware_budget import (  # noqa: E402
     CHIPS,
     LIMITS,
@@ -293,7 +294,8 @@ def test_export_flags_reject_bad_bits(tmp_path, capsys):
 def test_export_command_reports_each_chip_at_8_bits(tmp_path, capsys):
     import json
 
-    from tests.export_helpers import small_setup
+    from export_helpers import small_setup
+
     from torchseq.cli.export import main
 
     model, demo, *_ = small_setup()

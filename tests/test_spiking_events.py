@@ -7,8 +7,8 @@ from functools import lru_cache
 import numpy as np
 import pytest
 import torch
+from conftest import coarse_units_expected, shared_data
 
-from tests.conftest import coarse_units_expected, shared_data
 from torchseq.demo import make_demo
 from torchseq.events import simulate_run
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
@@ -253,7 +253,8 @@ class TestBadInput:
 # ------------------------------------------------------------------ NIR
 nir = pytest.importorskip("nir", reason="the 'nir' package is absent: pip install 'torchseq[nir]'")
 
-from tests.test_export_nir import nir_reference_run  # noqa: E402
+from test_export_nir import nir_reference_run  # noqa: E402
+
 from torchseq.export.nir_export import read_nir, write_nir  # noqa: E402
 from torchseq.neural.spiking import DT  # noqa: E402
 
@@ -396,7 +397,7 @@ def test_consumer_runs_event_windows_spike_for_spike(name, event_file):
 def test_nir_104_reads_the_event_graph(event_file, tmp_path_factory):
     import subprocess
 
-    from tests.test_spiking_chips import NIR104_SCRIPT, nir104_python
+    from test_spiking_chips import NIR104_SCRIPT, nir104_python
 
     sp, qry, graph, path = event_file
     py = nir104_python(tmp_path_factory)
