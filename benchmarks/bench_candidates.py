@@ -311,16 +311,18 @@ def route_repeats(k: int, ds: int, repeats: int) -> list[str]:
     lines = [f"Nordland-b, {len(ref)} x {len(query)}, ds = {ds}, one thread, minimum of "
              f"{repeats} interleaved repeats, load average {load[0]:.1f} -> {load[1]:.1f}", "",
              "| mode | wall s | CPU s | CPU / exact | stages, wall s | recall@1 (+-2) | "
-             "same match as exact | dense keys / tile keys |",
-             "|---|---:|---:|---:|---|---:|---:|---|"]
+             "same match as exact | dense keys / tile keys | L1 kernel |",
+             "|---|---:|---:|---:|---|---:|---:|---|---|"]
     for name, (res, w, c) in best.items():
         stages = ", ".join(f"{key} {v:.1f}" for key, v in res.seconds.items()
                            if key not in ("index", "total"))
         same = float((res.matches.reference == exact.matches.reference).float().mean())
         keys = (f"{res.kernels['dense_keys']} / {res.kernels['tile_keys']}"
                 if "dense_keys" in res.kernels else "")
+        kernel = res.kernels.get("dense_difference") or res.kernels.get("difference", "")
         lines.append(f"| {name} | {w:.1f} | {c:.1f} | {c / c0:.2f} | {stages} | "
-                     f"{evaluate(res.matches, gt)['recall_at_1']:.3f} | {same:.3f} | {keys} |")
+                     f"{evaluate(res.matches, gt)['recall_at_1']:.3f} | {same:.3f} | {keys} | "
+                     f"{kernel} |")
     return lines
 
 
