@@ -282,13 +282,22 @@ def route_repeats(k: int, ds: int, repeats: int) -> list[str]:
     """The 3,576-place route: exact mode and candidate mode side by side, interleaved,
     ``repeats`` times; each row the minimum CPU (and wall) seconds of its repeats."""
     from torchseq.metrics import evaluate
-    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, difference
     from torchseq.seqslam.candidates import CandidateSeqSLAM
 
     one_thread()
     ref, query, gt = nordland(True)
     config = SeqSLAMConfig(ds=ds, candidates=k)
     index = CandidateSeqSLAM(ref, config).index  # built once, outside the timings
+
+    def without_sad():
+        """Candidate mode with its whole columns by pair_differences (the size rule off)."""
+        saved, difference.SAD_MIN_WORK = difference.SAD_MIN_WORK, 2**62
+        try:
+            return CandidateSeqSLAM(ref, config, index=index).match_descriptors(query)
+        finally:
+            difference.SAD_MIN_WORK = saved
+
     modes = {
         "exact": lambda: SeqSLAM(SeqSLAMConfig(ds=ds, candidates=0)).match_descriptors(
             ref, query),
@@ -296,6 +305,7 @@ def route_repeats(k: int, ds: int, repeats: int) -> list[str]:
             ref, config, index=index).match_descriptors(query),
         f"candidates, K = {k}, shared, dense=False": lambda: CandidateSeqSLAM(
             ref, config, index=index, dense=False).match_descriptors(query),
+        f"candidates, K = {k}, shared, whole columns without sad": without_sad,
     }
     best = {}
     load = [os.getloadavg()[0]]
