@@ -205,7 +205,7 @@ class TileTable:
       The whole columns are a difference matrix of those columns against the reference, so
       for ``l1`` they go through the exact mode's ``"sad"`` kernel where its rule
       (:func:`~torchseq.seqslam.difference.l1_kernel`, for the reference against the dense
-      columns) chooses it, else :func:`pair_differences` (:meth:`dense_kernel`): the same
+      columns) chooses it, else :func:`pair_differences` (:meth:`dense_kernel_for`): the same
       values, integer sums being exact in float32 below ``2**24``.
 
     ``kernels`` counts the keys each kernel computed; ``dense_kernel`` is the whole columns'
