@@ -1,5 +1,6 @@
 """SeqSLAM candidate mode against the exact engine, the loop oracle and a loop candidate rule."""
 
+import dataclasses
 import math
 import warnings
 
@@ -462,3 +463,51 @@ def test_dense_columns_equal_tile_windows(over, n_ref, k, layout):
     assert got.kernels["dense_keys"] > 0
     assert (got.kernels["tile_keys"] > 0) == (k < n_ref), got.kernels  # a mix, or all dense
     assert_same_result(got, want)
+
+
+@pytest.mark.parametrize("k", [1, 200])
+def test_dense_columns_through_sad_where_the_rule_says(monkeypatch, corridor, k):
+    """Whole columns go through the exact mode's "sad" kernel exactly where its rule
+    (``l1_kernel`` for the reference against the dense columns) picks it: from R m D =
+    SAD_MIN_WORK, on a CPU whose thermometer product is float32, for l1. On the real corridor
+    the tables and results are bit for bit those of the float path (``pair_differences``), for
+    a mix of dense and tiled columns (K = 1) and all dense (K >= R)."""
+    from torchseq.seqslam import difference as difference_module
+
+    engine = SeqSLAM(SeqSLAMConfig.openseqslam())
+    ref, query = engine.descriptors(corridor.ref), engine.descriptors(corridor.query)
+    config = SeqSLAMConfig.openseqslam(candidates=k)
+    ran = []
+    real = cm._l1_sad
+    monkeypatch.setattr(cm, "_l1_sad", lambda *a: ran.append(a[1].shape[0]) or real(*a))
+    first = cm.CandidateSeqSLAM(ref, config)
+
+    def run(product, min_work, **over):
+        monkeypatch.setattr(difference_module, "thermometer_product", lambda device: product)
+        monkeypatch.setattr(difference_module, "SAD_MIN_WORK", min_work)
+        ran.clear()
+        engine = cm.CandidateSeqSLAM(ref, dataclasses.replace(config, **over),
+                                     index=first.index if not over else "auto")
+        return engine.match_descriptors(query)
+
+    want = run("float32", 2**62)
+    assert want.kernels["dense_difference"] == "pairs" and ran == []
+    n_dense = len((want.difference.indices()[1].unique()))  # an upper bound on dense columns
+    assert want.kernels["dense_keys"] > 0
+    assert (want.kernels["tile_keys"] > 0) == (k < len(ref)), want.kernels
+    got = run("float32", 0)
+    assert got.kernels["dense_difference"] == "sad" and sum(ran) > 0
+    m = sum(ran)  # the dense columns, all through sad
+    assert m <= n_dense
+    assert_same_result(got, want)
+    assert float(got.difference.values().std()) > 0  # real distances, not a blank table
+    # the size boundary: R m D = SAD_MIN_WORK runs sad, one more does not
+    work = len(ref) * m * ref.shape[1]
+    assert run("float32", work).kernels["dense_difference"] == "sad" and sum(ran) == m
+    assert run("float32", work + 1).kernels["dense_difference"] == "pairs" and ran == []
+    # not where the rule says otherwise: the thermometer's int8 product (AVX-512), other metrics
+    assert run("int8", 0).kernels["dense_difference"] == "pairs" and ran == []
+    other = run("float32", 0, metric="l2")
+    assert other.kernels["dense_difference"] == "pairs" and ran == []
+    monkeypatch.setattr(difference_module, "sad_available", lambda: False)
+    assert run("float32", 0).kernels["dense_difference"] == "pairs" and ran == []

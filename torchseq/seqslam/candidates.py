@@ -56,6 +56,7 @@ from torchseq._checks import check_finite, check_not_empty, check_shape
 from torchseq.matches import Matches
 from torchseq.seqslam.ann_index import CandidateIndex
 from torchseq.seqslam.config import SeqSLAMConfig
+from torchseq.seqslam.difference import _l1_sad, l1_kernel, sad_offset, thermometer_levels
 from torchseq.seqslam.enhance import enhance_contrast
 from torchseq.seqslam.result import SeqSLAMResult
 from torchseq.seqslam.search import rank_scores, trajectory_offsets, trajectory_scores, velocities
@@ -201,8 +202,14 @@ class TileTable:
       whole column computed once, reference block by block (each block met by all such
       columns), and every tile window is a slice of it: no row is computed twice. Only for a
       plain tensor reference (a shard's rows do not hold whole columns) with ``dense=True``.
+      The whole columns are a difference matrix of those columns against the reference, so
+      for ``l1`` they go through the exact mode's ``"sad"`` kernel where its rule
+      (:func:`~torchseq.seqslam.difference.l1_kernel`, for the reference against the dense
+      columns) chooses it, else :func:`pair_differences` (:meth:`dense_kernel_for`): the same
+      values, integer sums being exact in float32 below ``2**24``.
 
-    ``kernels`` counts the keys each kernel computed.
+    ``kernels`` counts the keys each kernel computed; ``dense_kernel`` is the whole columns'
+    kernel (``"sad"`` or ``"pairs"``; None when no column was dense).
 
     Args:
         reference: ``(R, D)`` reference descriptors (any real dtype; rows are converted to
@@ -237,8 +244,9 @@ class TileTable:
         whole = per_column[col] * length >= n_ref
         if not (dense and isinstance(reference, torch.Tensor)):
             whole = torch.zeros_like(whole)
+        self.dense_kernel = None
         if bool(whole.any()):
-            self._dense(reference, columns, col, lo, whole, d, metric)
+            self.dense_kernel = self._dense(reference, columns, col, lo, whole, d, metric)
         self.kernels = {"dense": int(whole.sum()), "tiles": len(keys) - int(whole.sum())}
         # tiles that many columns need: their rows are converted once and met by every column
         # (a slice, no gather); the rest: their rows gathered per key
@@ -273,8 +281,30 @@ class TileTable:
         self.seconds["enhance"] += time.perf_counter() - t
 
     @staticmethod
+    def dense_kernel_for(reference: torch.Tensor, columns: torch.Tensor,
+                         metric: str) -> tuple[str, float | None]:
+        """The kernel of whole columns ``columns (m, D)`` against ``reference (R, D)``.
+
+        ``("sad", lo)`` where the exact mode's rule
+        (:func:`~torchseq.seqslam.difference.l1_kernel`) picks ``"sad"`` for this difference
+        matrix (``lo``: the minimum it subtracts), else ``("pairs", None)``
+        (:func:`pair_differences`). The rule is asked first without thermometer levels, which
+        answers ``"sad"`` only when the size, device and values allow it; only then are the
+        levels scanned (they decide between ``"sad"`` and the thermometer's int8 product).
+        """
+        if metric != "l1" or l1_kernel(reference, columns, None) != "sad":
+            return "pairs", None
+        ref = reference if reference.is_floating_point() else reference.to(columns.dtype)
+        levels = thermometer_levels(ref, columns)
+        if levels is not None and levels[0].numel() == 0:
+            return "pairs", None  # all values equal: no work worth numba's start-up
+        if l1_kernel(ref, columns, levels) != "sad":
+            return "pairs", None
+        return "sad", sad_offset(ref, columns, levels)
+
+    @staticmethod
     def _dense(reference: torch.Tensor, columns: torch.Tensor, col: torch.Tensor,
-               lo: torch.Tensor, whole: torch.Tensor, d: torch.Tensor, metric: str) -> None:
+               lo: torch.Tensor, whole: torch.Tensor, d: torch.Tensor, metric: str) -> str:
         """Fill the windows ``d[whole]`` from whole columns, each pair computed once.
 
         Args:
@@ -285,26 +315,34 @@ class TileTable:
             whole: ``(n,)`` bool, the keys of dense columns.
             d: ``(n, L)`` windows, written at ``whole``.
             metric: the engine's metric.
+
+        Returns:
+            The kernel that computed the columns (:meth:`dense_kernel_for`).
         """
         n_ref, dim = reference.shape
         length = d.shape[1]
         at = whole.nonzero()[:, 0]
         ids, slot = torch.unique(col[at], return_inverse=True)  # dense columns, each key's
+        kernel, offset = TileTable.dense_kernel_for(reference, columns[ids], metric)
         per_chunk = max(1, DENSE_CHUNK_ELEMENTS // n_ref)
         block = max(1, PAIR_BLOCK_ELEMENTS // (DENSE_BLOCK_ROWS * dim))
         for c0 in range(0, len(ids), per_chunk):
             chunk = ids[c0:c0 + per_chunk]
             full = torch.empty(len(chunk), n_ref, dtype=d.dtype, device=d.device)  # (m, R)
-            for r0 in range(0, n_ref, DENSE_BLOCK_ROWS):  # rows converted once per block
-                ref = reference[r0:r0 + DENSE_BLOCK_ROWS].to(d.dtype)[None]  # (1, b, D)
-                for b0 in range(0, len(chunk), block):
-                    q = columns[chunk[b0:b0 + block]][:, None, :]  # (c, 1, D)
-                    full[b0:b0 + block, r0:r0 + DENSE_BLOCK_ROWS] = pair_differences(
-                        ref, q, metric)
+            if kernel == "sad":  # (m, R) is the difference matrix's query-major buffer
+                _l1_sad(reference, columns[chunk], full, offset, DENSE_CHUNK_ELEMENTS, 1)
+            else:
+                for r0 in range(0, n_ref, DENSE_BLOCK_ROWS):  # rows converted once per block
+                    ref = reference[r0:r0 + DENSE_BLOCK_ROWS].to(d.dtype)[None]  # (1, b, D)
+                    for b0 in range(0, len(chunk), block):
+                        q = columns[chunk[b0:b0 + block]][:, None, :]  # (c, 1, D)
+                        full[b0:b0 + block, r0:r0 + DENSE_BLOCK_ROWS] = pair_differences(
+                            ref, q, metric)
             mine = (slot >= c0) & (slot < c0 + len(chunk))
             k = at[mine]
             rows = lo[k, None] + torch.arange(length, device=d.device)  # (k, L)
             d[k] = full[(slot[mine] - c0)[:, None], rows]
+        return kernel
 
     @classmethod
     def from_values(cls, keys: torch.Tensor, values: torch.Tensor, n_tiles: int) -> TileTable:
@@ -315,7 +353,7 @@ class TileTable:
         table = cls.__new__(cls)
         table.keys, table.values, table.n_tiles = keys, values, n_tiles
         table.difference, table.seconds = None, {"difference": 0.0, "enhance": 0.0}
-        table.kernels = {"dense": 0, "tiles": 0}
+        table.kernels, table.dense_kernel = {"dense": 0, "tiles": 0}, None
         return table
 
     def lookup(self, column: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
@@ -723,7 +761,8 @@ class CandidateSeqSLAM:
             (building it, not in ``"total"``), ``"candidates"`` (querying it) and ``"bands"``;
             ``kernels["layout"]`` is the layout that ran, ``kernels["dense_keys"]`` and
             ``kernels["tile_keys"]`` the tiles whose differences came from whole columns and
-            from their own windows (:class:`TileTable`).
+            from their own windows (:class:`TileTable`), ``kernels["dense_difference"]`` the
+            whole columns' kernel (``"sad"``, ``"pairs"``, None: no whole column).
         """
         c = self.config
         query = torch.as_tensor(query)
@@ -774,7 +813,8 @@ class CandidateSeqSLAM:
         return self._result(table, floor, (match, best_score, uniqueness, ranked), seconds,
                             {"layout": "shared", "blocks": len(blocks),
                              "dense_keys": table.kernels["dense"],
-                             "tile_keys": table.kernels["tiles"]})
+                             "tile_keys": table.kernels["tiles"],
+                             "dense_difference": table.dense_kernel})
 
     def _match_per_window(self, query: torch.Tensor, progress: bool):
         """:meth:`match_descriptors` with every window in its own layout (checked query)."""
@@ -813,7 +853,8 @@ class CandidateSeqSLAM:
         seconds["total"] = time.perf_counter() - t0
         return self._result(table, floor, (match, best_score, uniqueness, ranked), seconds,
                             {"layout": "per-window", "dense_keys": table.kernels["dense"],
-                             "tile_keys": table.kernels["tiles"]})
+                             "tile_keys": table.kernels["tiles"],
+                             "dense_difference": table.dense_kernel})
 
     def _outputs(self, n_query: int) -> tuple[torch.Tensor, ...]:
         """Empty ``match (Q,)``, ``best_score (Q,)``, ``uniqueness (Q,)``, ``ranked (Q, K)``."""
