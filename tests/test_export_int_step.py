@@ -132,7 +132,7 @@ def larger():
     # the runtime's torch kernel runs this same module (numpy == torch on the tiny models
     # in the quick run, test_runtime_kernel_is_chosen_at_construction); here in the slow pass
     pytest.param("torch", marks=pytest.mark.slow)])
-def test_module_equals_numpy_stream_and_onnx_on_a_larger_model(larger, runtime):
+def test_module_equals_numpy_stream_and_torch_runtimes_on_a_larger_model(larger, runtime):
     im, frames, (act, ref, conf) = larger
     got = {"numpy": lambda: IntegerRuntime(im).run(frames),
            "stream": lambda: StreamRuntime(im, chunk=16).run(frames),
