@@ -128,16 +128,16 @@ def test_l1_kernel_rule(monkeypatch, product):
     product or cdist; the thermometer where its int8 GEMM runs (AVX-512), below the size, for
     data outside a byte and without numba."""
     monkeypatch.setattr(difference_module, "thermometer_product", lambda device: product)
-    assert SAD_MIN_WORK == 2**33
-    ref, query = _pair("openseqslam", 2048, 2048, 2048)  # R Q D = 2**33 exactly
+    assert SAD_MIN_WORK == 2**31
+    ref, query = _pair("openseqslam", 1024, 1024, 2048)  # R Q D = 2**31 exactly
     levels = thermometer_levels(ref, query)
     big = "sad" if product == "float32" else "thermometer"
     assert l1_kernel(ref, query, levels) == big
-    assert l1_kernel(ref, query[:2047], levels) == "thermometer"  # one query fewer
+    assert l1_kernel(ref, query[:1023], levels) == "thermometer"  # one query fewer
     wide = (ref % 4) * 100  # 0, 100, 200, 300: few levels, a span above a byte
     assert thermometer_levels(wide, wide) is not None
     assert l1_kernel(wide, wide, thermometer_levels(wide, wide)) == "thermometer"
-    many, many_q = _pair("uint8", 2048, 2048, 2048)  # no thermometer levels: else cdist
+    many, many_q = _pair("uint8", 1024, 1024, 2048)  # no thermometer levels: else cdist
     assert thermometer_levels(many, many_q) is None
     assert l1_kernel(many, many_q, None) == "sad"
     assert l1_kernel(many + 0.5, many_q, None) == "cdist"

@@ -18,10 +18,13 @@ one for tests and benchmarks):
   (``_l1_numba.py``) over the values minus their minimum as uint8, for integer-valued
   descriptors spanning at most 255 (:func:`sad_offset`); wider data keep the thermometer or
   cdist kernel. Chosen on CPU where the alternative is slow: the thermometer's float32 product
-  (no AVX-512, below) or cdist, from ``R * Q * D >= SAD_MIN_WORK`` (2**33), since importing
-  numba and loading the compiled loop from its cache cost 1-2 s once per process (compiling
-  it the first time a few more) and would cost small runs more than they save; a run below
-  the size never imports numba.
+  (no AVX-512, below) or cdist, from ``R * Q * D >= SAD_MIN_WORK`` (2**31: 1,024^2 x 2,048),
+  since importing numba and loading the compiled loop from its cache cost 0.4-2 s once per
+  process (by the host's load; compiling it the first time about 1.5 s more) and would cost
+  small runs more than they save: on nordland-b, numba's start-up included, quiet host, it
+  broke even at 800 places (1.3e9) and took 0.71x the thermometer's CPU at 1,000 places,
+  0.42x at 1,788 (``benchmarks/bench_l1_size_rule.py``). A run below the size never imports
+  numba.
 - ``"cdist"``: ``torch.cdist(p=1)`` for everything else (exact summation, slower).
 
 On this project's AMD EPYC (Zen 5, AVX-512 VNNI) the thermometer product at 3,576^2 and one
@@ -58,7 +61,7 @@ THERMOMETER_BLOCK_ROWS = 1024
 # The "sad" kernel: largest value range (max - min, so the values fit uint8 after subtracting
 # the minimum), the R * Q * D from which it is chosen, and rows per block of work.
 SAD_MAX_RANGE = 255
-SAD_MIN_WORK = 2**33
+SAD_MIN_WORK = 2**31
 SAD_BLOCK_ROWS = 256
 L1_KERNELS = ("thermometer", "sad", "cdist")
 
