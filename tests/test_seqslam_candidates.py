@@ -501,6 +501,12 @@ def test_dense_columns_through_sad_where_the_rule_says(monkeypatch, corridor, k)
     assert m <= n_dense
     assert_same_result(got, want)
     assert float(got.difference.values().std()) > 0  # real distances, not a blank table
+    # a uint8 reference (how 10^6 places are kept) is scanned and read as it is: sad, same
+    ran.clear()
+    small = cm.CandidateSeqSLAM(ref.to(torch.uint8), config, index=first.index)
+    as_uint8 = small.match_descriptors(query)
+    assert as_uint8.kernels["dense_difference"] == "sad" and sum(ran) == m
+    assert_same_result(as_uint8, want)
     # the size boundary: R m D = SAD_MIN_WORK runs sad, one more does not
     work = len(ref) * m * ref.shape[1]
     assert run("float32", work).kernels["dense_difference"] == "sad" and sum(ran) == m

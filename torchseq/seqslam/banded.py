@@ -3,7 +3,7 @@
 Every stage works along the reference axis of each query column (contrast enhancement) or
 over ``ds + 1`` neighbouring columns (search), so a band of ``B`` query centres needs only the
 ``B + ds`` columns around it: memory is O(B R), not O(R Q). The L1 kernel is chosen once for
-the whole ``R x Q`` run (``difference.l1_kernel``) and the reference's codes (thermometer, or
+the whole ``R x Q`` run (``difference.l1_choice``) and the reference's codes (thermometer, or
 uint8 for ``"sad"``) are built once and reused by every band.
 
 OpenSeqSLAM subtracts the *global* minimum ``m`` of the enhanced matrix, unknown until the
@@ -26,9 +26,8 @@ from torchseq.seqslam.difference import (
     _l1_sad,
     _l1_thermometer,
     difference_with_kernel,
-    l1_kernel,
+    l1_choice,
     sad_codes,
-    sad_offset,
     thermometer_codes,
     thermometer_levels,
 )
@@ -79,13 +78,14 @@ def match_banded(reference: torch.Tensor, query: torch.Tensor, config: SeqSLAMCo
     levels = thermometer_levels(reference, query, budget) if c.metric == "l1" else None
     if levels is not None and levels[0].numel() == 0:
         levels = None  # every value equal: the general path gives the zero matrix
-    # the kernel for the whole run (l1_kernel's size rule on R x Q x D), the reference's
+    # the kernel for the whole run (l1_choice's size rule on R x Q x D), the reference's
     # codes built once
-    kernel = l1_kernel(reference, query, levels, budget) if c.metric == "l1" else None
+    kernel = lo = None
+    if c.metric == "l1":
+        kernel, lo = l1_choice(reference, query, levels, budget)
     per_band = kernel if kernel == "cdist" else None  # else (l2, cosine) the bands' own
     codes = weights = None
     if kernel == "sad":
-        lo = sad_offset(reference, query, levels, budget)
         codes = sad_codes(reference, lo, max(1, budget // reference.shape[1]))
     elif levels is not None:
         weights = levels[1].to(reference.device) if levels[1] is not None else None

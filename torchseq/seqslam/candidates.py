@@ -56,7 +56,7 @@ from torchseq._checks import check_finite, check_not_empty, check_shape
 from torchseq.matches import Matches
 from torchseq.seqslam.ann_index import CandidateIndex
 from torchseq.seqslam.config import SeqSLAMConfig
-from torchseq.seqslam.difference import _l1_sad, l1_kernel, sad_offset, thermometer_levels
+from torchseq.seqslam.difference import _l1_sad, l1_choice, l1_kernel, thermometer_levels
 from torchseq.seqslam.enhance import enhance_contrast
 from torchseq.seqslam.result import SeqSLAMResult
 from torchseq.seqslam.search import rank_scores, trajectory_offsets, trajectory_scores, velocities
@@ -294,13 +294,12 @@ class TileTable:
         """
         if metric != "l1" or l1_kernel(reference, columns, None) != "sad":
             return "pairs", None
-        ref = reference if reference.is_floating_point() else reference.to(columns.dtype)
-        levels = thermometer_levels(ref, columns)
+        # a uint8 reference is scanned as it is (no float copy of the whole reference)
+        levels = thermometer_levels(reference, columns)
         if levels is not None and levels[0].numel() == 0:
             return "pairs", None  # all values equal: no work worth numba's start-up
-        if l1_kernel(ref, columns, levels) != "sad":
-            return "pairs", None
-        return "sad", sad_offset(ref, columns, levels)
+        kernel, lo = l1_choice(reference, columns, levels)
+        return (kernel, lo) if kernel == "sad" else ("pairs", None)
 
     @staticmethod
     def _dense(reference: torch.Tensor, columns: torch.Tensor, col: torch.Tensor,

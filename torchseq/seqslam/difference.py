@@ -203,9 +203,9 @@ def sad_available() -> bool:
     return importlib.util.find_spec("numba") is not None
 
 
-def l1_kernel(reference: torch.Tensor, query: torch.Tensor,
+def l1_choice(reference: torch.Tensor, query: torch.Tensor,
               levels: tuple[torch.Tensor, torch.Tensor | None] | None,
-              max_chunk_elements: int = 2**26) -> str:
+              max_chunk_elements: int = 2**26) -> tuple[str, float | None]:
     """The exact L1 kernel for ``(R, D)`` references and ``(Q, D)`` queries (module docstring).
 
     ``"sad"`` on CPU from ``R * Q * D >= SAD_MIN_WORK`` (below it numba's start-up costs more
@@ -219,16 +219,27 @@ def l1_kernel(reference: torch.Tensor, query: torch.Tensor,
         query: ``(Q, D)``.
         levels: the inputs' :func:`thermometer_levels` (non-empty thresholds or None).
         max_chunk_elements: bound on the rows scanned at a time by :func:`sad_offset`.
+
+    Returns:
+        ``(kernel, lo)``: ``lo`` the minimum ``"sad"`` subtracts (:func:`sad_offset`, found
+        while deciding, so callers need not scan the data again), None for the other kernels.
     """
     fallback = "thermometer" if levels is not None else "cdist"
     device = reference.device
     if (device.type != "cpu" or reference.shape[0] * query.shape[0] * reference.shape[1]
             < SAD_MIN_WORK or not sad_available()):
-        return fallback
+        return fallback, None
     if levels is not None and thermometer_product(device) != "float32":
-        return fallback
-    return "sad" if sad_offset(reference, query, levels, max_chunk_elements) is not None \
-        else fallback
+        return fallback, None
+    lo = sad_offset(reference, query, levels, max_chunk_elements)
+    return ("sad", lo) if lo is not None else (fallback, None)
+
+
+def l1_kernel(reference: torch.Tensor, query: torch.Tensor,
+              levels: tuple[torch.Tensor, torch.Tensor | None] | None,
+              max_chunk_elements: int = 2**26) -> str:
+    """The name :func:`l1_choice` gives: ``"sad"``, ``"thermometer"`` or ``"cdist"``."""
+    return l1_choice(reference, query, levels, max_chunk_elements)[0]
 
 
 def _l1_sad(ref: torch.Tensor, query: torch.Tensor, out_t: torch.Tensor, lo: float,
@@ -387,12 +398,14 @@ def difference_with_kernel(
         levels = thermometer_levels(reference, query, max_chunk_elements)
         if levels is not None and levels[0].numel() == 0:
             return out_t.zero_().T, "constant"
-        chosen = kernel or l1_kernel(reference, query, levels, max_chunk_elements)
+        chosen, lo = (kernel, None) if kernel else l1_choice(reference, query, levels,
+                                                             max_chunk_elements)
         if chosen == "thermometer" and levels is None:
             raise ValueError("the 'thermometer' L1 kernel needs integer-valued descriptors "
                              "with few distinct values (thermometer_levels); these have not")
         if chosen == "sad":
-            lo = sad_offset(reference, query, levels, max_chunk_elements)
+            if lo is None:  # forced: the data not checked yet
+                lo = sad_offset(reference, query, levels, max_chunk_elements)
             if reference.device.type != "cpu" or lo is None:
                 why = "values that do not qualify" if lo is None else "not on CPU"
                 raise ValueError(f"the 'sad' L1 kernel needs CPU tensors of integer values "
