@@ -112,6 +112,14 @@ def check_counts(x: torch.Tensor, sensor: tuple[int, int]) -> torch.Tensor:
     return x
 
 
+def pooled_counts(x: torch.Tensor, sensor: tuple[int, int], pool: torch.Tensor) -> torch.Tensor:
+    """The graph's ``pool`` stage: checked counts (:func:`check_counts`) ``@ pool.T``, ``(B, D)``.
+
+    Sums of whole counts with 0/1 weights: exact integers in float32.
+    """
+    return check_counts(x, sensor) @ pool.T
+
+
 def block_centring(size: tuple[int, int], patch: int) -> torch.Tensor:
     """``C (D, D)`` float64: minus each ``patch x patch`` block's mean, row-major ``(h, w)``."""
     h, w = size
@@ -264,7 +272,7 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
         folded = (model.l1.folded_weight().detach().double().cpu() @ linear).float()  # (M, D)
 
         def encode(x: torch.Tensor) -> torch.Tensor:  # pooled counts: exact integers
-            return check_counts(x, sensor) @ pool.T
+            return pooled_counts(x, sensor, pool)
 
         sp = SpikingSeqSLAM.convert(_EventView(model, encode, folded), reference, cfg)
         calibration = {**sp.calibration, "event_input": {
@@ -286,8 +294,7 @@ class EventSpikingSeqSLAM(SpikingSeqSLAM):
         Returns:
             ``(SpikingStep, new state)``.
         """
-        pooled = check_counts(x, self.sensor) @ self.pool.T  # (B, D): exact integers
-        return super().forward(pooled, state)
+        return super().forward(pooled_counts(x, self.sensor, self.pool), state)
 
     step = forward
 
