@@ -240,6 +240,30 @@ def l1_sum_grid(w1: torch.Tensor, input_steps: int, l1_levels: int,
     return None
 
 
+def check_convertible(model, reference: torch.Tensor) -> None:
+    """Raise :class:`SpikingError` unless ``model`` and ``reference`` can be made spiking.
+
+    A fitted rate model with the centre readout, a fixed ring and no unit search, and a
+    reference of ``R >= 2`` frames ``(R, H, W)`` (or RGB).
+    """
+    refuse_export(model, "the spiking (NIR) form", SpikingError)
+    if not getattr(model, "fitted", False):
+        raise SpikingError("the model has not learnt a route yet: call fit(reference) first")
+    if not isinstance(reference, torch.Tensor) or reference.dim() not in (3, 4) \
+            or reference.shape[0] < 2:
+        raise SpikingError("reference must be a (R, H, W) tensor of R >= 2 frames, got "
+                           f"{getattr(reference, 'shape', type(reference).__name__)}")
+    mc = model.config
+    if mc.readout != "centre":  # the decision would silently differ from the rate model's
+        raise SpikingError(f"the spiking network reads each unit's centre frame; the rate "
+                           f"model's readout={mc.readout!r} has no spiking (or NIR) form "
+                           f"yet: convert a model with readout='centre'")
+    if getattr(mc, "ring_velocity", "fixed") != "fixed":  # a silently fixed ring otherwise
+        raise SpikingError(f"ring_velocity={mc.ring_velocity!r} has no spiking (or NIR) form "
+                           "(the spiking ring moves at the reference speed): convert a "
+                           "model with ring_velocity='fixed'")
+
+
 class SpikingSeqSLAM(nn.Module):
     """A fitted :class:`~torchseq.neural.NeuralSeqSLAM` as a spiking network (one step per frame).
 
@@ -322,24 +346,10 @@ class SpikingSeqSLAM(nn.Module):
             SpikingError: an unfitted model, a readout other than ``"centre"``, a bad
                 reference, or a degenerate calibration.
         """
-        refuse_export(model, "the spiking (NIR) form", SpikingError)
         cfg = config or SpikingConfig()
         cfg.validate()
-        if not getattr(model, "fitted", False):
-            raise SpikingError("the model has not learnt a route yet: call fit(reference) first")
-        if not isinstance(reference, torch.Tensor) or reference.dim() not in (3, 4) \
-                or reference.shape[0] < 2:
-            raise SpikingError("reference must be a (R, H, W) tensor of R >= 2 frames, got "
-                               f"{getattr(reference, 'shape', type(reference).__name__)}")
+        check_convertible(model, reference)
         mc = model.config
-        if mc.readout != "centre":  # the decision would silently differ from the rate model's
-            raise SpikingError(f"the spiking network reads each unit's centre frame; the rate "
-                               f"model's readout={mc.readout!r} has no spiking (or NIR) form "
-                               f"yet: convert a model with readout='centre'")
-        if getattr(mc, "ring_velocity", "fixed") != "fixed":  # a silently fixed ring otherwise
-            raise SpikingError(f"ring_velocity={mc.ring_velocity!r} has no spiking (or NIR) form "
-                               "(the spiking ring moves at the reference speed): convert a "
-                               "model with ring_velocity='fixed'")
         w1 = model.l1.folded_weight().detach().float().cpu()  # (M, D)
         w3f = model.l3.folded_weight().detach().float().cpu()  # (N, M)
         g = model.cohorts.detach().float().cpu()  # (N, C)
