@@ -60,10 +60,11 @@ import torch
 from torch import nn
 
 from torchseq.neural.readout import decide
-from torchseq.neural.spiking import SpikingError, check_convertible
+from torchseq.neural.spiking import SpikingError, check_convertible, quantise_rows
 
 INHIBIT = 1e9  # the inhibitory current of a fired L2 unit on itself and of the counter
 RING_KERNELS = ("closed", "stepped")
+SPIKING_POPULATIONS = ("l2", "counter", "rate", "window", "ring")  # IF; the rest integrate
 DRIVE_GRID = 2.0 ** -32  # phase C's currents are multiples of this (exact sums in float64)
 DRIVE_MAX = 2.0 ** 16  # and clamped here (>= 2 fires every step, <= 0 never)
 
@@ -82,6 +83,8 @@ class TimedConfig:
         first: phase B's first rung above 0, in reference median stds.
         ratio: phase B's rungs grow by this factor.
         chunk: frames stepped together through phases A and B.
+        weight_bits: None: float weights. An int ``b`` in 2..16: the graph's weight
+            matrices on signed ``b``-bit grids, one power-of-two scale per row.
         ring_kernel: phase C's kernel, ``"closed"`` (its spike count in closed form) or
             ``"stepped"`` (step by step): the same counts (:func:`ring_by_rate`).
     """
@@ -95,6 +98,7 @@ class TimedConfig:
     ratio: float = 2.0
     chunk: int = 64
     ring_kernel: str = "closed"
+    weight_bits: int | None = None
 
     def validate(self) -> None:
         """Raise :class:`SpikingError` on an impossible setting."""
@@ -102,6 +106,9 @@ class TimedConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 2**20:
                 raise SpikingError(f"{name} must be an int in 1..2**20, got {v!r}")
+        b = self.weight_bits
+        if b is not None and (isinstance(b, bool) or not isinstance(b, int) or not 2 <= b <= 16):
+            raise SpikingError(f"weight_bits must be None or an int in 2..16, got {b!r}")
         if self.ring_kernel not in RING_KERNELS:
             raise SpikingError(f"ring_kernel must be one of {RING_KERNELS}, got "
                                f"{self.ring_kernel!r}")
@@ -176,23 +183,21 @@ def rung_squares(c: torch.Tensor, knots: torch.Tensor, weights: torch.Tensor) ->
     return ((c.abs()[..., None] - knots).clamp_min(0.0) * weights).sum(-1)
 
 
-def kwta_by_inhibition(h: torch.Tensor, k: int, steps: int, lo: float,
-                       hi: float) -> tuple[torch.Tensor, torch.Tensor]:
+def kwta_by_inhibition(first: torch.Tensor, k: int,
+                       steps: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Phase A stepped: the L2 winners ``(F, M)`` 0/1 and the counter's spikes ``(F,)``.
 
     Args:
-        h: ``(F, M)`` L1 sums of ``F`` frames.
+        first: ``(F, M)`` the frame's current at step 1, ``(h - hi) / span + 1``.
         k: the counter's threshold is ``k - 1/2``.
-        steps: ``T_A``.
-        lo: the ramp's bottom.
-        hi: the ramp's top (``hi > lo``).
+        steps: ``T_A``; every step adds ``1 / T_A``.
     """
+    h = first
     v = torch.zeros_like(h)
     fired = torch.zeros_like(h)
     counter = h.new_zeros(h.shape[0], 1)
     stop = h.new_zeros(h.shape[0], 1)  # the counter has fired (inhibits from the next step)
     counter_spikes = h.new_zeros(h.shape[0])
-    first = (h - hi) / (hi - lo) + 1.0
     for t in range(1, steps + 1):
         current = (first if t == 1 else 0.0) + 1.0 / steps
         v = v + current - INHIBIT * (stop + fired)
@@ -297,17 +302,23 @@ def _ring_stepped(drive: torch.Tensor, steps: int) -> torch.Tensor:
 class TimedSpikingSeqSLAM(nn.Module):
     """A fitted :class:`~torchseq.neural.NeuralSeqSLAM` as a timed spiking network.
 
-    Build it with :meth:`convert`. Buffers (float64): ``w1 (M, D)`` the L1 weights,
-    ``w3 (N, M)`` cohort-centred L3, ``cohorts (N, C)``, ``knots``/``rung_weights (R,)``,
-    ``theta (C,)``, ``evidence_scale (N,)`` (``gain / s_c`` per unit), ``shift (N, N)``
-    (``decay * S``), ``unit_centre (N,)`` int64. :attr:`calibration` records the scalars.
+    Build it with :meth:`convert`. Buffers (float64), the graph's weights: ``w1 (M, D)``
+    L1 (phase A's step-1 current is ``(x @ w1.T - hi) / span + 1``: on a chip, L2's
+    threshold and ramp are ``span`` times larger), ``w3 (N, M)`` cohort-centred L3,
+    ``cohorts (N, C)``, ``knots``/``rung_weights (R,)``, ``theta (C,)``, ``ring_weight
+    (N,)`` (``gain / (s_c top)``: a ``+`` spike's current into the ring every step of phase
+    C), ``shift (N, N)``
+    (``decay * S``), ``unit_centre (N,)`` int64. With ``weight_bits`` the matrices ``w1``,
+    ``w3``, ``shift`` and ``ring_weight`` are on signed ``b``-bit grids with one
+    power-of-two scale per row (:func:`~torchseq.neural.spiking.quantise_rows`).
+    :attr:`calibration` records the scalars.
     """
 
     def __init__(self, tensors: dict, calibration: dict, config: TimedConfig, k: int,
                  window: int, encode: Callable | None = None) -> None:
         super().__init__()
         for name in ("w1", "w3", "cohorts", "knots", "rung_weights", "theta",
-                     "evidence_scale", "shift"):
+                     "ring_weight", "shift"):
             self.register_buffer(name, tensors[name].detach().to(torch.float64).contiguous())
         self.register_buffer("unit_centre", tensors["unit_centre"].detach().clone())
         self.calibration = dict(calibration)
@@ -360,65 +371,70 @@ class TimedSpikingSeqSLAM(nn.Module):
                            for i in range(0, reference.shape[0], cfg.chunk)])
         except ValueError as err:
             raise SpikingError(f"reference cannot be encoded: {err}") from None
+        bits = cfg.weight_bits
         h = x @ w1.T
         kth = h.topk(min(mc.k, h.shape[1]), dim=1).values[:, -1]
         lo, hi = float(kth.min()), float(kth.max())
         spread = hi - lo if hi > lo else abs(hi) or 1.0  # one reference level: any span
         lo, hi = lo - cfg.widen * spread, hi + cfg.widen * spread
-        w3 = w3f - g @ ((g / n_c).T @ w3f)  # minus each cohort's mean row
-        tensors = {"w1": w1, "w3": w3, "cohorts": g, "shift": decay * s,
-                   "unit_centre": model.unit_centre.detach().cpu()}
-        z2 = torch.cat([kwta_by_inhibition(h[i:i + cfg.chunk], mc.k, cfg.l2_steps, lo, hi)[0]
-                        for i in range(0, h.shape[0], cfg.chunk)])
+        w1g = quantise_rows(w1, bits).double()  # the rate model's L1 integers fit 8 bits
+        w3 = quantise_rows(w3f - g @ ((g / n_c).T @ w3f), bits).double()  # minus cohort means
+        first = (x @ w1g.T - hi) / (hi - lo) + 1.0
+        z2 = torch.cat([kwta_by_inhibition(first[i:i + cfg.chunk], mc.k, cfg.l2_steps)[0]
+                        for i in range(0, x.shape[0], cfg.chunk)])
         c = z2 @ w3.T
         sd = (((c ** 2) @ g) / n_c).sqrt()  # (R, C)
         c_max, sd_med = float(c.abs().max()), float(sd.median())
         if not (c_max > 0 and sd_med > 0):
             raise SpikingError("the reference's L3 evidence has no spread (a blank reference?)")
-        rate = 1.0 / c_max
+        # the l3 -> rate weight: <= 1 spike per step on the reference (on the weight grid)
+        rate = float(quantise_rows(torch.tensor([[1.0 / c_max]]), bits)[0, 0])
         knots, weights = square_rungs(c_max, cfg.first * sd_med, float(cfg.ratio))
         q = (rung_squares(c, knots, weights) @ g) / n_c  # (R, C)
         ratio_sq = torch.quantile(sd / q.sqrt().clamp_min(1e-300), 0.5, dim=0)
         theta = cfg.norm_steps ** 2 * rate * torch.quantile(q, 0.5, dim=0) / 2.0
-        scale = gain / (ratio_sq * (2.0 * theta * rate).sqrt())  # (C,)
-        tensors.update(knots=knots, rung_weights=weights, theta=theta,
-                       evidence_scale=g @ scale)
+        scale = g @ (gain / (ratio_sq * (2.0 * theta * rate).sqrt()))  # (N,) e = p * scale
+        shift = quantise_rows(decay * s, bits).double()
+        tensors = {"w1": w1g, "w3": w3, "cohorts": g, "shift": shift,
+                   "knots": knots, "rung_weights": weights, "theta": theta,
+                   "ring_weight": scale, "unit_centre": model.unit_centre.detach().cpu()}
         calibration = {"lo": lo, "hi": hi, "rate": rate, "top": 1.0, "decay": decay,
                        "gain": gain, "k": mc.k, "rungs": int(knots.numel()),
-                       "reference_frames": int(reference.shape[0]), "config": vars(cfg)}
+                       "weight_bits": bits, "reference_frames": int(reference.shape[0]),
+                       "config": vars(cfg)}
         net = cls(tensors, calibration, cfg, mc.k, mc.uniqueness_window, model.encode)
-        e = torch.cat([net.evidence(z2[i:i + cfg.chunk])[0]
+        e = torch.cat([net.divide(z2[i:i + cfg.chunk])[0] * scale
                        for i in range(0, z2.shape[0], cfg.chunk)])
         a, top = torch.zeros(e.shape[1], dtype=torch.float64), 0.0
         for t in range(e.shape[0]):  # the exact ring on the reference's evidence
-            a = (e[t] + net.shift @ a).clamp_min(0.0)
+            a = (e[t] + shift @ a).clamp_min(0.0)
             top = max(top, float(a.max()))
         if not top > 0:
             raise SpikingError("the ring never becomes active on the reference: nothing to scale")
         net.calibration["top"] = top
+        net.ring_weight.copy_(quantise_rows((scale / top)[:, None], bits)[:, 0].double())
         return net
 
     # ------------------------------------------------------------------ the phases
     def winners(self, x: torch.Tensor) -> torch.Tensor:
         """Phase A: L2 winners ``(F, M)`` 0/1 of encoded frames ``(F, D)``."""
-        cal = self.calibration
-        return kwta_by_inhibition(x.to(self.w1.dtype) @ self.w1.T, self.k,
-                                  self.config.l2_steps, cal["lo"], cal["hi"])[0]
+        lo, hi = self.calibration["lo"], self.calibration["hi"]
+        first = (x.to(self.w1.dtype) @ self.w1.T - hi) / (hi - lo) + 1.0
+        return kwta_by_inhibition(first, self.k, self.config.l2_steps)[0]
 
-    def evidence(self, z2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Phase B: ``(evidence (F, N), windows (F, C), spikes (F,))`` of L2 winners ``(F, M)``.
+    def divide(self, z2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Phase B: ``(+ counts (F, N), windows (F, C), spikes (F,))`` of L2 winners ``(F, M)``.
 
-        The evidence is ``gain * p_j / s_c``, the rate model's normalised rectified L3.
+        ``p_j * gain / s_c`` is the rate model's normalised, rectified L3 evidence.
         """
-        plus, windows, spikes = divide_by_timing(
-            z2 @ self.w3.T, self.cohorts, self.calibration["rate"], self.knots,
-            self.rung_weights, self.theta, self.config.phase_b_steps)
-        return plus * self.evidence_scale, windows, spikes
+        return divide_by_timing(z2 @ self.w3.T, self.cohorts, self.calibration["rate"],
+                                self.knots, self.rung_weights, self.theta,
+                                self.config.phase_b_steps)
 
-    def ring(self, evidence: torch.Tensor, previous: torch.Tensor) -> torch.Tensor:
-        """Phase C: ring counts ``(B, N)`` from evidence and the previous counts ``(B, N)``."""
+    def ring(self, plus: torch.Tensor, previous: torch.Tensor) -> torch.Tensor:
+        """Phase C: ring counts ``(B, N)`` from phase B's counts and the previous ring counts."""
         t = self.config.ring_steps
-        drive = ring_drive(evidence / self.calibration["top"] + (previous @ self.shift.T) / t)
+        drive = ring_drive(plus * self.ring_weight + (previous @ self.shift.T) / t)
         return ring_by_rate(drive, t, self.ring_kernel)
 
     # ------------------------------------------------------------------ frames
@@ -453,11 +469,11 @@ class TimedSpikingSeqSLAM(nn.Module):
             raise SpikingError(f"state must be ({x.shape[0]}, {self.n_units}), got "
                                f"{tuple(state.shape)}")
         z2 = self.winners(x)
-        e, windows, norm_spikes = self.evidence(z2)
-        return self._ring_step(z2, e, windows, norm_spikes, state)
+        plus, windows, norm_spikes = self.divide(z2)
+        return self._ring_step(z2, plus, windows, norm_spikes, state)
 
-    def _ring_step(self, z2, e, windows, norm_spikes, state):
-        counts = self.ring(e, state)
+    def _ring_step(self, z2, plus, windows, norm_spikes, state):
+        counts = self.ring(plus, state)
         reference, confidence = decide(counts, self.unit_centre, self.window)
         spikes = {"l2": z2.sum(1), "norm": norm_spikes, "ring": counts.sum(1)}
         return TimedStep(reference, confidence, counts, z2.sum(1), windows, spikes), counts
@@ -497,9 +513,9 @@ class TimedSpikingSeqSLAM(nn.Module):
         state, out = self.zero_state(1), []
         for i in range(0, x.shape[0], chunk):
             z2 = self.winners(x[i:i + chunk])
-            e, windows, norm_spikes = self.evidence(z2)
+            plus, windows, norm_spikes = self.divide(z2)
             for t in range(z2.shape[0]):
-                step, state = self._ring_step(z2[t:t + 1], e[t:t + 1], windows[t:t + 1],
+                step, state = self._ring_step(z2[t:t + 1], plus[t:t + 1], windows[t:t + 1],
                                               norm_spikes[t:t + 1], state)
                 out.append(step)
         return {"reference": torch.cat([o.reference for o in out]),
@@ -508,4 +524,57 @@ class TimedSpikingSeqSLAM(nn.Module):
                 "winners": torch.cat([o.winners for o in out]),
                 "windows": torch.cat([o.windows for o in out]),
                 "spikes": {k: torch.cat([o.spikes[k] for o in out]) for k in out[0].spikes},
+                "steps_per_frame": self.config.steps_per_frame}
+
+    def budget(self) -> dict:
+        """The network's hardware budget, in :func:`torchseq.export.hardware_budget.check`'s form.
+
+        Populations (neurons): ``l2`` ``M`` IF, ``counter`` 1 IF, ``l3`` ``N`` integrators,
+        ``rate`` ``2 N R`` IF (the evidence pair and the rungs), ``accumulator`` ``C``
+        integrators, ``window`` ``C`` IF, ``evidence`` ``N`` integrators (phase B's ``+``
+        counts, held through phase C), ``ring`` ``N`` IF, ``ring_hold`` ``N`` integrators
+        (the previous frame's counts). Synapses: the non-zero weights of every edge (``l2``
+        inhibits itself and is inhibited by the counter: ``M`` each). Inputs: ``D`` plus
+        two start channels (phase A's ramp and step-1 offset, phase B's start pulse).
+        """
+        m, d = self.w1.shape
+        n, c = self.n_units, self.cohorts.shape[1]
+        r = self.knots.numel()
+        n_c = self.cohorts.sum(0)
+        pops = {"l2": m, "counter": 1, "l3": n, "rate": 2 * n * r, "accumulator": c,
+                "window": c, "evidence": n, "ring": n, "ring_hold": n}
+        nz = {"w1": self.w1 != 0, "w3": self.w3 != 0, "shift": self.shift != 0}
+        pairs = {"input->l2": int(nz["w1"].sum()), "l2->l2": m, "l2->counter": m,
+                 "counter->l2": m, "l2->l3": int(nz["w3"].sum()), "l3->rate": 2 * n * r,
+                 "rate->accumulator": 2 * n * r, "accumulator->window": c,
+                 "window->rate": n, "rate->evidence": n, "evidence->ring": n,
+                 "ring->ring_hold": n, "ring_hold->ring": int(nz["shift"].sum())}
+        fan_in = {"l2": int(nz["w1"].sum(1).max()) + 2, "counter": m,
+                  "l3": int(nz["w3"].sum(1).max()), "rate": 2,
+                  "accumulator": int(2 * r * n_c.max()), "window": 1, "evidence": 1,
+                  "ring": 1 + int(nz["shift"].sum(1).max()), "ring_hold": 1}
+        fan_out = {"input": int(nz["w1"].sum(0).max()), "l2": int(nz["w3"].sum(0).max()) + 2,
+                   "counter": m, "l3": 2 * r, "rate": 2, "accumulator": 1,
+                   "window": int(n_c.max()), "evidence": 1, "ring": 1,
+                   "ring_hold": int(nz["shift"].sum(0).max())}
+        neurons = sum(pops.values())
+        syn = sum(pairs.values())
+        sources: dict[str, list[str]] = {}
+        for pair in pairs:
+            a, b = pair.split("->")
+            sources.setdefault(b, []).append(a)
+        sizes = dict(pops, input=d + 2)
+        return {"neurons": neurons, "populations": pops, "inputs": d + 2, "outputs": n,
+                "effective_synapses": syn, "effective_synapses_by_pair": pairs,
+                "recurrent_synapses": pairs["l2->l2"],
+                "max_fan_in": max(fan_in.values()), "max_fan_in_by_population": fan_in,
+                "max_fan_out": max(fan_out.values()), "max_fan_out_by_population": fan_out,
+                "population_sources": {k: sorted(v) for k, v in sources.items()},
+                "population_destinations": {s: sorted(b for b, v in sources.items() if s in v)
+                                            for s in sizes},
+                "population_input_channels": {b: int(sum(sizes[a] for a in v))
+                                              for b, v in sources.items()},
+                "weight_bits": self.calibration.get("weight_bits"), "input_kind": "analog",
+                "memory_bytes_8bit": syn + 2 * neurons,
+                "spiking_layers": sum(1 for p in pops if p in SPIKING_POPULATIONS),
                 "steps_per_frame": self.config.steps_per_frame}
