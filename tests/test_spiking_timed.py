@@ -320,3 +320,19 @@ def test_agreement_goal_over_eight_seeds(name):
         out = TimedSpikingSeqSLAM.convert(model, ref).run(qry)
         worst = min(worst, float((out["reference"] == rate).double().mean()))
     assert worst >= 0.95, worst
+
+
+def test_synaptic_ops_count_spikes_and_graded_steps(demo, net):
+    d, _ = demo
+    x = net.encode(d.query[:4])
+    step, _ = net(x)
+    z2 = net.winners(x)
+    n, m = net.n_units, net.w1.shape[0]
+    fan = [int((net.w3[:, i] != 0).sum()) + 2 for i in range(m)]
+    for b in range(4):  # phase A: the input once, each winner's fan-out, the counter's M
+        winners = [i for i in range(m) if z2[b, i] > 0]
+        want = int((net.w1 != 0).sum()) + sum(fan[i] for i in winners) + m * (len(winners) >= net.k)
+        assert int(step.ops["a"][b]) == want
+    t = net.config.ring_steps
+    assert torch.equal(step.ops["c"], t * (n + float((net.shift != 0).sum())) + step.counts.sum(1))
+    assert (step.ops["b"] > step.spikes["norm"]).all()

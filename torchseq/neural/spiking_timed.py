@@ -147,6 +147,8 @@ class TimedStep(NamedTuple):
         winners: ``(B,)`` L2 units that fired in phase A.
         windows: ``(B, C)`` phase B's window per cohort, steps (0: clipped).
         spikes: ``{"l2", "norm", "ring"}`` ``(B,)`` spikes per phase.
+        ops: ``{"a", "b", "c"}`` ``(B,)`` synaptic operations per phase
+            (:meth:`TimedSpikingSeqSLAM.synaptic_ops`).
     """
 
     reference: torch.Tensor
@@ -155,6 +157,7 @@ class TimedStep(NamedTuple):
     winners: torch.Tensor
     windows: torch.Tensor
     spikes: dict
+    ops: dict
 
 
 def square_rungs(top: float, first: float, ratio: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -247,7 +250,8 @@ def divide_by_timing(c: torch.Tensor, cohorts: torch.Tensor, rate: float, knots:
         window_v = window_v + acc
         fire = (window_v > theta) & (windows == 0)
         windows = torch.where(fire, torch.full_like(windows, float(t)), windows)
-        spikes = spikes + z.sum((1, 2, 3)) + fire.sum(1)
+        # spikes that exist: a + unit of rung 0 is silent once its window inhibits it
+        spikes = spikes + z.sum((1, 2, 3)) - (z[:, 0, :, 0] * (1.0 - open_)).sum(1) + fire.sum(1)
         open_ = ((windows == 0).to(c.dtype) @ cohorts.T).clamp(max=1.0)
         if bool((windows > 0).all()):  # every + unit inhibited: the counts are final
             break
@@ -476,7 +480,40 @@ class TimedSpikingSeqSLAM(nn.Module):
         counts = self.ring(plus, state)
         reference, confidence = decide(counts, self.unit_centre, self.window)
         spikes = {"l2": z2.sum(1), "norm": norm_spikes, "ring": counts.sum(1)}
-        return TimedStep(reference, confidence, counts, z2.sum(1), windows, spikes), counts
+        ops = self.synaptic_ops(z2, norm_spikes, plus, windows, counts)
+        return TimedStep(reference, confidence, counts, z2.sum(1), windows, spikes, ops), counts
+
+    def synaptic_ops(self, z2: torch.Tensor, norm_spikes: torch.Tensor, plus: torch.Tensor,
+                     windows: torch.Tensor, counts: torch.Tensor) -> dict:
+        """Synaptic operations of one frame per stream ``(B,)``, by phase.
+
+        Spikes cost their fan-out, integrators (graded outputs) their synapses on every step
+        of their phase: ``"a"``: the input (every L1 synapse, once), each L2 spike's
+        non-zero ``w3`` column and 2 (itself, the counter), the counter's spike ``M``;
+        ``"b"``: ``2 N R`` (L3 -> rate) and ``C`` (accumulator -> window) every step until
+        the last window closes (phase B's length where one is clipped), each rate spike 1,
+        each counted ``+`` spike 1 more (the evidence integrator), each window spike ``n_c``;
+        ``"c"``: ``N`` (evidence -> ring) and ``nnz(S)`` (held counts -> ring) every step of
+        phase C, each ring spike 1.
+
+        Args:
+            z2: ``(B, M)`` phase A's winners.
+            norm_spikes: ``(B,)`` phase B's spikes.
+            plus: ``(B, N)`` phase B's ``+`` counts.
+            windows: ``(B, C)`` phase B's windows (0: clipped).
+            counts: ``(B, N)`` phase C's ring counts.
+        """
+        n, c, r = self.n_units, self.cohorts.shape[1], self.knots.numel()
+        fan_l2 = (self.w3 != 0).sum(0).to(z2.dtype) + 2.0
+        counter = (z2.sum(1) >= self.k).to(z2.dtype)
+        a = float((self.w1 != 0).sum()) + z2 @ fan_l2 + counter * self.w1.shape[0]
+        steps_b = torch.where((windows > 0).all(1), windows.max(1).values,
+                              torch.full_like(windows[:, 0], float(self.config.phase_b_steps)))
+        fired_windows = (windows > 0).to(windows.dtype) @ self.cohorts.sum(0)
+        b = steps_b * (2 * n * r + c) + norm_spikes + plus.sum(1) + fired_windows
+        t = self.config.ring_steps
+        cc = t * (n + float((self.shift != 0).sum())) + counts.sum(1)
+        return {"a": a, "b": b, "c": cc}
 
     step = forward
 
@@ -504,7 +541,7 @@ class TimedSpikingSeqSLAM(nn.Module):
         Returns:
             ``{"reference" (T,), "confidence" (T,), "counts" (T, N), "winners" (T,),
             "windows" (T, C) (0: clipped), "spikes" {"l2", "norm", "ring"} (T,) each,
-            "steps_per_frame"}``.
+            "synaptic_ops" {"a", "b", "c"} (T,) each, "steps_per_frame"}``.
         """
         x = self._check_x(query if encoded else self.encode(query))
         if x.shape[0] < 1:
@@ -524,6 +561,7 @@ class TimedSpikingSeqSLAM(nn.Module):
                 "winners": torch.cat([o.winners for o in out]),
                 "windows": torch.cat([o.windows for o in out]),
                 "spikes": {k: torch.cat([o.spikes[k] for o in out]) for k in out[0].spikes},
+                "synaptic_ops": {k: torch.cat([o.ops[k] for o in out]) for k in out[0].ops},
                 "steps_per_frame": self.config.steps_per_frame}
 
     def budget(self) -> dict:
