@@ -432,6 +432,13 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     assert 0.0 <= rep["spiking"]["agreement_with_rate_model"] <= 1.0
     assert rep["budget"]["neurons"] == 1024 + rep["levels"] * 40
     assert set(rep["chips"]) == set(LIMITS)
+    # the timed spiking model: figures on the same query, no file
+    timed = rep["timed"]
+    assert timed["written"] is False and "subtraction" in timed["why_not_written"]
+    assert timed["agreement_with_rate_model"] >= 0.9  # 1.000 measured (one-step: lower)
+    assert 0.0 <= timed["recall_at_1"] <= 1.0 and timed["steps_per_frame"] == 256 + 1536 + 4096
+    assert set(timed["chips"]) == set(LIMITS)
+    assert timed["budget"]["neurons"] > 1024 and timed["synaptic_ops_per_frame"] > 0
     # --no-nir: neither the file nor its checks
     out2 = tmp_path / "export2"
     assert main([str(tmp_path / "small.pt"), "--out", str(out2), "--query",

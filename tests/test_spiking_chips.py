@@ -313,6 +313,11 @@ def test_export_command_reports_each_chip_at_8_bits(tmp_path, capsys):
     assert report["chips"]["loihi2"]["fits"], report["chips"]["loihi2"]
     assert "nir_chip_loihi2: fits" in printed
     assert "nir_chip_speck: does not fit: input is an analog current" in printed
+    # the timed model at the same 8 bits: its own per-chip lines (no file)
+    assert report["timed"]["weight_bits"] == 8 and report["timed"]["chips"]["loihi2"]["fits"]
+    assert "timed spiking model (not in model.nir" in printed
+    assert "timed_chip_loihi2: fits" in printed
+    assert "timed_chip_xylo_audio2: does not fit" in printed
     for name in ("snntorch", "norse"):
         c = report["consumers"][name]
         assert "skipped" in c or c["agreement"] == 1.0

@@ -61,6 +61,15 @@ def summary_lines(out_dir) -> list[str]:
         for chip, r in nir.get("chips", {}).items():  # the hardware budget, per chip
             lines.append(f"nir_chip_{chip}: " + ("fits" if r["fits"] else
                                                   "does not fit: " + "; ".join(r["exceeds"])))
+        timed = nir.get("timed")
+        if timed:  # the timed spiking model: figures only, no file
+            lines.append(f"timed spiking model (not in model.nir: {timed['why_not_written']}): "
+                         f"agreement with the rate model {timed['agreement_with_rate_model']}, "
+                         f"recall_at_1 {timed['recall_at_1']}, {timed['steps_per_frame']} "
+                         "time steps per frame")
+            for chip, r in timed["chips"].items():
+                lines.append(f"timed_chip_{chip}: " + ("fits" if r["fits"] else
+                                                        "does not fit: " + "; ".join(r["exceeds"])))
     lines += [f"warning: {w}" for w in report.get("warnings", [])]
     failed = [k for k, v in report["checks"].items() if not v]
     lines.append("PASS" if report["passed"] else f"FAIL: {', '.join(failed)}")

@@ -93,7 +93,8 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
         ``{"file", "bytes", "round_trip_equal", "steps_per_frame", "time_steps", "levels",
         "calibration_source", "spiking": {agreement with the rate model, recall},
         "consumers": {name: agreement, recall, time steps, streams ..., skipped (not
-        installed) or failed (it raised: the check fails)}, "budget", "chips", "checks"}``,
+        installed) or failed (it raised: the check fails)}, "budget", "chips", "timed"
+        (:func:`timed_report`), "checks"}``,
         or ``{"skipped": reason}`` without the ``nir`` package or the learnt reference.
     """
     from torchseq.export.nir_export import NIRExportError, read_nir, require_nir, write_nir
@@ -129,6 +130,8 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
     ran = {k: v for k, v in consumers.items() if "skipped" not in v}
     with progress.step("NIR: hardware budget"):
         b = budget(graph)
+    timed = timed_report(model, calib, query, ground_truth, rate, progress,
+                         None if config is None else config.weight_bits)
     return {
         "file": NIR_FILE, "bytes": path.stat().st_size, "round_trip_equal": same,
         "steps_per_frame": 1, "time_steps": int(x.shape[0]), "levels": sp.levels,
@@ -152,7 +155,46 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
                                  rep["torchseq"].get("streams_recall_at_1")},
         "budget": {k: v for k, v in b.items() if k != "effective_synapses_by_pair"},
         "chips": check(b),
+        "timed": timed,
         "checks": {"nir_round_trip": same,
                    "nir_consumers_agree": all(v.get("agreement", 0.0) >= MIN_CONSUMER_AGREEMENT
                                               for v in ran.values())},
+    }
+
+
+def timed_report(model, calib, query, ground_truth, rate, progress,
+                 weight_bits: int | None) -> dict:
+    """The timed spiking model's figures on the query: it is not written to ``model.nir``.
+
+    :class:`~torchseq.neural.spiking_timed.TimedSpikingSeqSLAM` (many steps per frame,
+    calibrated on ``calib`` only, at ``weight_bits``): agreement with the rate model's
+    decisions ``rate`` ``(T,)``, recall@1, steps per frame, its budget and the chips it
+    fits. Its IF units reset by subtraction and its phases start from zero, which NIR's
+    nodes do not express (``docs/results/nir.md``, "The timed model").
+    """
+    from torchseq.export.hardware_budget import check, memory_bytes
+    from torchseq.metrics import recall_at_k
+    from torchseq.neural.spiking_timed import TimedConfig, TimedSpikingSeqSLAM
+
+    with progress.step("timed spiking model: conversion and whole query", int(len(query))):
+        net = TimedSpikingSeqSLAM.convert(model, torch.as_tensor(calib).to(torch.float32),
+                                          TimedConfig(weight_bits=weight_bits))
+        out = net.run(query)
+    refs = out["reference"].numpy()
+    b = net.budget()
+    ops = sum(out["synaptic_ops"].values())
+    return {
+        "written": False,
+        "why_not_written": "IF units with reset by subtraction and per-phase resets have no "
+                           "NIR node (docs/results/nir.md, 'The timed model')",
+        "agreement_with_rate_model": float(np.mean(refs == rate)),
+        "recall_at_1": (None if ground_truth is None else
+                        recall_at_k(torch.as_tensor(refs), ground_truth, 1)),
+        "steps_per_frame": out["steps_per_frame"], "weight_bits": weight_bits,
+        "windows_clipped": int((out["windows"] == 0).sum()),
+        "synaptic_ops_per_frame": float(ops.mean()),
+        "budget": {"neurons": b["neurons"], "effective_synapses": b["effective_synapses"],
+                   "memory_bytes_8bit": memory_bytes(b, 8), "max_fan_in": b["max_fan_in"],
+                   "max_fan_out": b["max_fan_out"]},
+        "chips": check(b),
     }
