@@ -108,22 +108,44 @@ def plain_divide(c, cohorts, rate, knots, weights, theta, steps):
     return torch.from_numpy(plus), torch.from_numpy(windows)
 
 
-def test_divide_by_timing_is_the_plain_loop():
+@pytest.mark.parametrize("kernel", st.NORM_KERNELS)
+def test_divide_by_timing_is_the_plain_loop(kernel):
     g = torch.Generator().manual_seed(3)
     c = torch.randn(3, 6, generator=g, dtype=torch.float64)
     cohorts = torch.tensor([[1, 0], [1, 0], [1, 0], [0, 1], [0, 1], [0, 1]], dtype=torch.float64)
     knots, weights = st.square_rungs(float(c.abs().max()), 0.3, 2.0)
     rate = 1.0 / float(c.abs().max())
     theta = torch.tensor([20.0, 35.0], dtype=torch.float64)
-    plus, windows, _ = st.divide_by_timing(c, cohorts, rate, knots, weights, theta, 200)
+    plus, windows, _ = st.divide_by_timing(c, cohorts, rate, knots, weights, theta, 200, kernel)
     ref_plus, ref_windows = plain_divide(c, cohorts, rate, knots, weights, theta, 200)
     assert (windows > 0).all()  # the check is not vacuous: every window closed
     assert torch.equal(windows, ref_windows) and torch.equal(plus, ref_plus)
     # a phase shorter than a window clips it (reported as 0) and stops its counts there
     short = int(windows.min()) - 1
-    p2, w2, _ = st.divide_by_timing(c, cohorts, rate, knots, weights, theta, short)
+    p2, w2, _ = st.divide_by_timing(c, cohorts, rate, knots, weights, theta, short, kernel)
     assert (w2 == 0).all()
     assert torch.equal(p2, plain_divide(c, cohorts, rate, knots, weights, theta, short)[0])
+
+
+def test_division_kernels_agree_spike_for_spike():
+    g = torch.Generator().manual_seed(11)
+    c = torch.randn(9, 60, generator=g, dtype=torch.float64)
+    c[4] = 0.0  # a blank frame: no window closes
+    cohorts = torch.zeros(60, 3, dtype=torch.float64)
+    cohorts[torch.arange(60), torch.arange(60) % 3] = 1.0
+    knots, weights = st.square_rungs(float(c.abs().max()), 0.25, 2.0)
+    theta = torch.tensor([100.0, 150.0, 200.0], dtype=torch.float64)
+    rate = 1.0 / float(c.abs().max())
+    for steps in (400, 25):  # windows closing at different steps per frame; all clipped
+        a = st.divide_by_timing(c, cohorts, rate, knots, weights, theta, steps, "torch")
+        b = st.divide_by_timing(c, cohorts, rate, knots, weights, theta, steps, "numba")
+        assert all(torch.equal(x, y) for x, y in zip(a, b))
+    assert len(set(a[1][a[1] > 0].tolist())) > 3 and (a[1][4] == 0).all()
+    with pytest.raises(SpikingError, match="division kernel"):
+        st.divide_by_timing(c, cohorts, rate, knots, weights, theta, 10, "fast")
+    with pytest.raises(SpikingError, match="one cohort per unit"):
+        st.divide_by_timing(c, torch.ones(60, 3, dtype=torch.float64), rate, knots, weights,
+                            theta, 10, "numba")
 
 
 def test_divide_by_timing_divides_by_the_spread():
@@ -186,18 +208,21 @@ def test_ring_drive_is_on_its_grid_and_clamped():
     assert torch.equal(d / st.DRIVE_GRID, torch.round(d / st.DRIVE_GRID))
 
 
-@pytest.mark.parametrize("kernel", st.RING_KERNELS)
-def test_the_chosen_ring_kernel_runs(demo, kernel, monkeypatch):
+@pytest.mark.parametrize("ring,norm", [("closed", "numba"), ("stepped", "torch")])
+def test_the_chosen_kernels_run(demo, ring, norm, monkeypatch):
     d, model = demo
     ran = []
-    for name in ("_ring_closed", "_ring_stepped"):
+    for name in ("_ring_closed", "_ring_stepped", "_divide_torch", "_divide_numba"):
         real = getattr(st, name)
         monkeypatch.setattr(st, name, lambda *a, _r=real, _n=name: ran.append(_n) or _r(*a))
-    cfg = TimedConfig(l2_steps=16, norm_steps=16, ring_steps=64, ring_kernel=kernel)
+    cfg = TimedConfig(l2_steps=16, norm_steps=16, ring_steps=64, ring_kernel=ring,
+                      norm_kernel=norm)
     net = TimedSpikingSeqSLAM.convert(model, d.reference[:40], cfg)
-    assert net.ring_kernel == kernel
+    assert net.ring_kernel == ring and net.norm_kernel == norm
+    ran.clear()
     net.run(d.query[:3])
-    assert ran == [f"_ring_{kernel}"] * 3
+    assert ran == [f"_divide_{norm}"] + [f"_ring_{ring}"] * 3
+    assert TimedConfig().norm_kernel == "numba" and TimedConfig().ring_kernel == "closed"
 
 
 # ---------------------------------------------------------------- the model
@@ -265,7 +290,8 @@ def test_budget_counts(net):
     ({"l2_steps": 0}, "l2_steps"), ({"ring_steps": 1.5}, "ring_steps"),
     ({"norm_max_steps": 10}, "norm_max_steps"), ({"ratio": 1.0}, "ratio"),
     ({"first": 0.0}, "first"), ({"widen": -1.0}, "widen"), ({"weight_bits": 1}, "weight_bits"),
-    ({"ring_kernel": "numba"}, "ring_kernel"), ({"chunk": True}, "chunk")])
+    ({"ring_kernel": "numba"}, "ring_kernel"), ({"norm_kernel": "closed"}, "norm_kernel"),
+    ({"chunk": True}, "chunk")])
 def test_bad_config(demo, kw, match):
     d, model = demo
     with pytest.raises(SpikingError, match=match):

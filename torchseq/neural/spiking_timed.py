@@ -56,6 +56,7 @@ import math
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -64,6 +65,7 @@ from torchseq.neural.spiking import SpikingError, check_convertible, quantise_ro
 
 INHIBIT = 1e9  # the inhibitory current of a fired L2 unit on itself and of the counter
 RING_KERNELS = ("closed", "stepped")
+NORM_KERNELS = ("torch", "numba")
 SPIKING_POPULATIONS = ("l2", "counter", "rate", "window", "ring")  # IF; the rest integrate
 DRIVE_GRID = 2.0 ** -32  # phase C's currents are multiples of this (exact sums in float64)
 DRIVE_MAX = 2.0 ** 16  # and clamped here (>= 2 fires every step, <= 0 never)
@@ -87,6 +89,8 @@ class TimedConfig:
             matrices on signed ``b``-bit grids, one power-of-two scale per row.
         ring_kernel: phase C's kernel, ``"closed"`` (its spike count in closed form) or
             ``"stepped"`` (step by step): the same counts (:func:`ring_by_rate`).
+        norm_kernel: phase B's kernel, ``"numba"`` (compiled, frame by frame) or
+            ``"torch"`` (frames stepped together): the same spikes (:func:`divide_by_timing`).
     """
 
     l2_steps: int = 256
@@ -98,6 +102,7 @@ class TimedConfig:
     ratio: float = 2.0
     chunk: int = 64
     ring_kernel: str = "closed"
+    norm_kernel: str = "numba"
     weight_bits: int | None = None
 
     def validate(self) -> None:
@@ -109,6 +114,9 @@ class TimedConfig:
         b = self.weight_bits
         if b is not None and (isinstance(b, bool) or not isinstance(b, int) or not 2 <= b <= 16):
             raise SpikingError(f"weight_bits must be None or an int in 2..16, got {b!r}")
+        if self.norm_kernel not in NORM_KERNELS:
+            raise SpikingError(f"norm_kernel must be one of {NORM_KERNELS}, got "
+                               f"{self.norm_kernel!r}")
         if self.ring_kernel not in RING_KERNELS:
             raise SpikingError(f"ring_kernel must be one of {RING_KERNELS}, got "
                                f"{self.ring_kernel!r}")
@@ -218,20 +226,42 @@ def kwta_by_inhibition(first: torch.Tensor, k: int,
 
 
 def divide_by_timing(c: torch.Tensor, cohorts: torch.Tensor, rate: float, knots: torch.Tensor,
-                     weights: torch.Tensor, theta: torch.Tensor,
-                     steps: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                     weights: torch.Tensor, theta: torch.Tensor, steps: int,
+                     kernel: str = "torch") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Phase B stepped: ``+`` counts ``(F, N)``, windows ``(F, C)`` (0: clipped), spikes ``(F,)``.
+
+    Per step: every rate unit ``v <- v + x`` (``+ 1/2`` at step 1), ``z = v > 1``,
+    ``v <- v - z``; a ``+`` unit of rung 0 counts while its cohort's window is open (it is
+    inhibited from the step after the window fires); per cohort the increment
+    ``sum_r n_r w_r / n_c`` (``n_r`` the rung's spikes, added rung by rung from 0),
+    ``acc += increment``, ``window_v += acc``; the window fires once, at the first step
+    ``window_v > theta``. ``spikes`` counts the rate units' (less the inhibited ``+``
+    units') and windows' spikes up to the step the frame's last window closes.
+
+    Kernels: ``"torch"`` (the definition, any batch of frames stepped together) and
+    ``"numba"`` (compiled, frame by frame, firing units only: :mod:`._timed_numba`); the
+    same float64 operations in the same order, so the same spikes.
 
     Args:
         c: ``(F, N)`` cohort-centred evidence (the L3 integrators' membranes).
-        cohorts: ``(N, C)`` 0/1 membership.
+        cohorts: ``(N, C)`` 0/1 membership, one cohort per unit.
         rate: spikes per step per unit of ``c``.
         knots: ``(R,)`` the rungs' thresholds (:func:`square_rungs`).
         weights: ``(R,)`` their weights.
         theta: ``(C,)`` the window units' thresholds.
         steps: the phase's length.
+        kernel: ``"torch"`` or ``"numba"``.
     """
+    if kernel == "torch":
+        return _divide_torch(c, cohorts, rate, knots, weights, theta, steps)
+    if kernel == "numba":
+        return _divide_numba(c, cohorts, rate, knots, weights, theta, steps)
+    raise SpikingError(f"division kernel must be one of {NORM_KERNELS}, got {kernel!r}")
+
+
+def _divide_torch(c, cohorts, rate, knots, weights, theta, steps):
     n_c = cohorts.sum(0).clamp_min(1.0)
+    wn = weights[None, :] / n_c[:, None]  # (C, R)
     sign = c.new_tensor([1.0, -1.0])
     x = rate * (sign[:, None, None] * c[:, None, :, None] - knots)  # (F, 2, N, R)
     v = torch.zeros_like(x)
@@ -242,20 +272,45 @@ def divide_by_timing(c: torch.Tensor, cohorts: torch.Tensor, rate: float, knots:
     open_ = torch.ones_like(c)  # the + units not yet inhibited by their window
     spikes = c.new_zeros(c.shape[0])
     for t in range(1, steps + 1):
+        running = (windows == 0).any(1).to(c.dtype)  # frames with a window still open
         v = v + x + (0.5 if t == 1 else 0.0)  # the phase's start pulse: counts round
         z = (v > 1.0).to(c.dtype)
         v = v - z
         plus = plus + z[:, 0, :, 0] * open_
-        acc = acc + ((z * weights).sum((1, 3)) @ cohorts) / n_c
+        counts = z.sum(1).transpose(1, 2) @ cohorts  # (F, R, C) integer spike counts
+        inc = torch.zeros_like(acc)
+        for r in range(knots.numel()):
+            inc = inc + counts[:, r, :] * wn[:, r]
+        acc = acc + inc
         window_v = window_v + acc
         fire = (window_v > theta) & (windows == 0)
         windows = torch.where(fire, torch.full_like(windows, float(t)), windows)
         # spikes that exist: a + unit of rung 0 is silent once its window inhibits it
-        spikes = spikes + z.sum((1, 2, 3)) - (z[:, 0, :, 0] * (1.0 - open_)).sum(1) + fire.sum(1)
+        spikes = spikes + running * (z.sum((1, 2, 3)) - (z[:, 0, :, 0] * (1.0 - open_)).sum(1)
+                                     + fire.sum(1))
         open_ = ((windows == 0).to(c.dtype) @ cohorts.T).clamp(max=1.0)
         if bool((windows > 0).all()):  # every + unit inhibited: the counts are final
             break
     return plus, windows, spikes
+
+
+def _divide_numba(c, cohorts, rate, knots, weights, theta, steps):
+    from torchseq.neural import _timed_numba
+
+    g = cohorts.detach().cpu().double()
+    if not bool((g.sum(1) == 1).all()):
+        raise SpikingError("the numba division kernel needs one cohort per unit")
+    n_c = g.sum(0).clamp_min(1.0)
+    wn = (weights.detach().cpu().double()[None, :] / n_c[:, None]).numpy()
+    cd = c.detach().cpu().double().contiguous().numpy()
+    plus = np.zeros(cd.shape)
+    windows = np.zeros((cd.shape[0], g.shape[1]))
+    spikes = np.zeros(cd.shape[0])
+    _timed_numba.divide(cd, g.argmax(1).numpy().astype(np.int64), float(rate),
+                        knots.detach().cpu().double().numpy(), np.ascontiguousarray(wn),
+                        theta.detach().cpu().double().numpy(), int(steps), plus, windows, spikes)
+    return (torch.from_numpy(plus).to(c), torch.from_numpy(windows).to(c),
+            torch.from_numpy(spikes).to(c))
 
 
 def ring_drive(current: torch.Tensor) -> torch.Tensor:
@@ -325,9 +380,11 @@ class TimedSpikingSeqSLAM(nn.Module):
                      "ring_weight", "shift"):
             self.register_buffer(name, tensors[name].detach().to(torch.float64).contiguous())
         self.register_buffer("unit_centre", tensors["unit_centre"].detach().clone())
+        self._fans()
         self.calibration = dict(calibration)
         self.config = config
         self.ring_kernel = config.ring_kernel  # chosen here: "closed" (fast) or "stepped"
+        self.norm_kernel = config.norm_kernel  # and "numba" (fast) or "torch"
         self.k = int(k)
         self.window = int(window)
         self._encode = encode
@@ -336,6 +393,12 @@ class TimedSpikingSeqSLAM(nn.Module):
     def n_units(self) -> int:
         """Output units ``N``."""
         return self.w3.shape[0]
+
+    def _fans(self) -> None:
+        """Synapse counts for :meth:`synaptic_ops` (derived from the weights, not state)."""
+        self.register_buffer("_fan_l2", (self.w3 != 0).sum(0).double() + 2.0, persistent=False)
+        self._synapses_l1 = float((self.w1 != 0).sum())
+        self._synapses_shift = float((self.shift != 0).sum())
 
     # ------------------------------------------------------------------ conversion
     @classmethod
@@ -433,7 +496,7 @@ class TimedSpikingSeqSLAM(nn.Module):
         """
         return divide_by_timing(z2 @ self.w3.T, self.cohorts, self.calibration["rate"],
                                 self.knots, self.rung_weights, self.theta,
-                                self.config.phase_b_steps)
+                                self.config.phase_b_steps, self.norm_kernel)
 
     def ring(self, plus: torch.Tensor, previous: torch.Tensor) -> torch.Tensor:
         """Phase C: ring counts ``(B, N)`` from phase B's counts and the previous ring counts."""
@@ -504,15 +567,14 @@ class TimedSpikingSeqSLAM(nn.Module):
             counts: ``(B, N)`` phase C's ring counts.
         """
         n, c, r = self.n_units, self.cohorts.shape[1], self.knots.numel()
-        fan_l2 = (self.w3 != 0).sum(0).to(z2.dtype) + 2.0
         counter = (z2.sum(1) >= self.k).to(z2.dtype)
-        a = float((self.w1 != 0).sum()) + z2 @ fan_l2 + counter * self.w1.shape[0]
+        a = self._synapses_l1 + z2 @ self._fan_l2 + counter * self.w1.shape[0]
         steps_b = torch.where((windows > 0).all(1), windows.max(1).values,
                               torch.full_like(windows[:, 0], float(self.config.phase_b_steps)))
         fired_windows = (windows > 0).to(windows.dtype) @ self.cohorts.sum(0)
         b = steps_b * (2 * n * r + c) + norm_spikes + plus.sum(1) + fired_windows
         t = self.config.ring_steps
-        cc = t * (n + float((self.shift != 0).sum())) + counts.sum(1)
+        cc = t * (n + self._synapses_shift) + counts.sum(1)
         return {"a": a, "b": b, "c": cc}
 
     step = forward
