@@ -270,8 +270,9 @@ def test_weights_on_the_chip_grid(demo):
     fits = check(b)
     assert fits["loihi2"]["fits"], fits["loihi2"]
     assert not fits["xylo_audio2"]["fits"]
-    assert any("weight precision" in r for r in check(TimedSpikingSeqSLAM.convert(
-        model, d.reference, SMALL).budget())["loihi2"]["exceeds"])
+    float_reasons = check(TimedSpikingSeqSLAM.convert(model, d.reference, SMALL).budget())
+    assert any("TimedConfig(weight_bits=8)" in r for r in float_reasons["loihi2"]["exceeds"])
+    assert any("timed model has no event input" in r for r in fits["speck"]["exceeds"])
 
 
 def test_budget_counts(net):
@@ -334,18 +335,19 @@ def route(name):
 @pytest.mark.parametrize("name", ["corridor", "lens"])
 def test_agreement_goal_over_eight_seeds(name):
     # issue 26's goal: >= 0.95 of the rate model's decisions on every seed 0-7, calibrated on
-    # the reference only (measured: corridor 0.964..1.000, LENS 0.970..1.000; the one-step
-    # model 0.685..0.874)
+    # the reference only. Measured worst (float / 8-bit weights): corridor 0.991 / 0.964,
+    # LENS 0.970 / 0.970; the one-step model 0.685 / 0.790 (docs/results/nir.md)
     ref, qry = route(name)
     torch.set_num_threads(1)
-    worst = 1.0
+    worst = {None: 1.0, 8: 1.0}
     for seed in range(8):
         model = NeuralSeqSLAM(NeuralConfig(seed=seed))
         model.fit(ref, log=False)
         rate = model.run(qry).matches.reference
-        out = TimedSpikingSeqSLAM.convert(model, ref).run(qry)
-        worst = min(worst, float((out["reference"] == rate).double().mean()))
-    assert worst >= 0.95, worst
+        for bits in worst:
+            out = TimedSpikingSeqSLAM.convert(model, ref, TimedConfig(weight_bits=bits)).run(qry)
+            worst[bits] = min(worst[bits], float((out["reference"] == rate).double().mean()))
+    assert min(worst.values()) >= 0.95, worst
 
 
 def test_synaptic_ops_count_spikes_and_graded_steps(demo, net):

@@ -441,15 +441,17 @@ def check(b: dict) -> dict:
         if lim.weight_bits is not None:
             bits = b.get("weight_bits")
             if bits is None:
-                bad.append(f"weight precision float32 > {lim.weight_bits} bits (export with "
-                           f"SpikingConfig(weight_bits={lim.weight_bits}))")
+                bad.append(f"weight precision float32 > {lim.weight_bits} bits ("
+                           f"{b.get('config', 'export with SpikingConfig')}"
+                           f"(weight_bits={lim.weight_bits}))")
             else:
                 over("weight bits", bits, lim.weight_bits)
         if not lim.recurrent and b.get("recurrent_synapses", 0):
             bad.append(f"recurrent synapses {b['recurrent_synapses']} > 0 (no recurrence)")
         if not lim.analog_input and b.get("input_kind", "analog") != "spikes":
             bad.append("input is an analog current (the encoded frame); the chip takes events "
-                       "only (convert with SpikingConfig(input_threshold=...))")
+                       "only " + b.get("event_input", "(convert with "
+                                       "SpikingConfig(input_threshold=...))"))
         if lim.layers is not None:
             over("spiking layers", b["spiking_layers"], lim.layers)
             for p, n in b["populations"].items():

@@ -675,6 +675,9 @@ class TimedSpikingSeqSLAM(nn.Module):
                 "population_input_channels": {b: int(sum(sizes[a] for a in v))
                                               for b, v in sources.items()},
                 "weight_bits": self.calibration.get("weight_bits"), "input_kind": "analog",
+                # check()'s hints for this model
+                "config": "convert with TimedConfig",
+                "event_input": "(the timed model has no event input)",
                 "memory_bytes_8bit": syn + 2 * neurons,
                 "spiking_layers": sum(1 for p in pops if p in SPIKING_POPULATIONS),
                 "steps_per_frame": self.config.steps_per_frame}
