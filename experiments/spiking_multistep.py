@@ -104,6 +104,7 @@ from torchseq.export.hardware_budget import memory_bytes  # noqa: E402
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
 from torchseq.neural.readout import decide  # noqa: E402
 from torchseq.neural.spiking import SpikingSeqSLAM  # noqa: E402
+from torchseq.neural.spiking_timed import rung_squares, square_rungs  # noqa: E402
 
 SQ_FIRST, SQ_RATIO = 0.25, 2.0  # sq<T>: first rung at 1/4 of the reference's median std
 VARIANTS = [
@@ -194,28 +195,6 @@ def ring_bounds(h: torch.Tensor, k: int, widen: float = 0.25) -> tuple[float, fl
     kth = h.topk(k, dim=1).values[:, -1]
     lo, hi = float(kth.min()), float(kth.max())
     return lo - widen * (hi - lo), hi + widen * (hi - lo)
-
-
-def square_rungs(top: float, first: float, ratio: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Thresholds ``k_0 = 0 < k_1 < ...`` and weights of the rungs that square by parts.
-
-    ``sum_r w_r max(x - k_r, 0)`` is the chord interpolant of ``x ** 2`` between the knots
-    ``0, first, first * ratio, first * ratio ** 2, ...`` (``w_0 = k_1``,
-    ``w_r = k_{r+1} - k_{r-1}``), up to the first knot at or above ``top``; past the last rung
-    it continues linearly. Returns ``(knots (R,), weights (R,))`` float64.
-    """
-    if not (0.0 < first and ratio > 1.0 and top > 0.0):
-        raise ValueError(f"need first > 0, ratio > 1, top > 0, got {first}, {ratio}, {top}")
-    k = [0.0, first]
-    while k[-1] < top:
-        k.append(k[-1] * ratio)
-    w = [k[1]] + [k[i + 1] - k[i - 1] for i in range(1, len(k) - 1)]
-    return torch.tensor(k[:-1], dtype=torch.float64), torch.tensor(w, dtype=torch.float64)
-
-
-def rung_squares(c: torch.Tensor, knots: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """``sum_r w_r max(|c| - k_r, 0)`` elementwise: the rungs' piecewise-linear ``c ** 2``."""
-    return ((c.abs()[..., None] - knots).clamp_min(0.0) * weights).sum(-1)
 
 
 def square_window(c: torch.Tensor, g: torch.Tensor, rate: float, knots: torch.Tensor,

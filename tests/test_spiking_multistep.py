@@ -105,7 +105,7 @@ def test_rungs_square_by_parts(ms):
                                knots.numpy() ** 2, rtol=0, atol=1e-12)
     assert float(ms.rung_squares(torch.tensor([6.4], dtype=torch.float64), knots,
                                  weights)) == pytest.approx(3.2 ** 2 + (1.6 + 3.2) * 3.2)
-    with pytest.raises(ValueError, match="first > 0"):
+    with pytest.raises(ValueError, match="0 < first"):
         ms.square_rungs(top=1.0, first=0.0)
 
 

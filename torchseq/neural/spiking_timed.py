@@ -171,7 +171,8 @@ class TimedStep(NamedTuple):
     ops: dict
 
 
-def square_rungs(top: float, first: float, ratio: float) -> tuple[torch.Tensor, torch.Tensor]:
+def square_rungs(top: float, first: float,
+                 ratio: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Knots ``k_0 = 0 < k_1 < ...`` and weights of the rungs that square by parts.
 
     ``sum_r w_r max(x - k_r, 0)`` is the chord interpolant of ``x ** 2`` through the knots
