@@ -23,10 +23,12 @@ Loihi's published energy per synaptic operation (``spiking_chips.PJ_PER_SOP``) b
 rate model's multiply-accumulates per frame (``spiking_chips.rate_macs``) at
 ``spiking_chips.PJ_PER_MAC``. Latency is reported in steps per frame only: no published
 wall-clock time per step of Loihi 2 was found (``docs/results/nir.md``, "Energy and latency
-per decision"). ``--nordland-seeds`` can limit the seeds run on nordland500: its model has
-500 units and a seed takes 55-75 s there (5-10 s on the corridor or LENS), about 80% of
-the script's time. Writes ``spiking_timed.json`` under ``--out``;
-prints markdown tables.
+per decision"). ``--nordland-seeds`` limits the seeds run on nordland500 and nordland.
+``--data nordland``: all 1,788 places of nordland-b with one output unit per place
+(``n_output=1788``: the default 555 units would make the rate model decide by its unit
+search, which no spiking form has); one seed takes several minutes. Writes
+``spiking_timed.json`` under ``--out`` (``spiking_timed_<routes>.json`` for other
+``--data``); prints markdown tables.
 """
 
 from __future__ import annotations
@@ -56,16 +58,17 @@ from torchseq.neural.spiking_timed import TimedConfig, TimedSpikingSeqSLAM  # no
 
 MODELS = {"timed 8-bit": TimedConfig(weight_bits=8), "timed float": TimedConfig()}
 ROUTES = ("corridor", "lens", "nordland500")
+PLACES_ALL = 1788  # nordland-b's places: route "nordland", one output unit per place
 
 
 def routes(names) -> dict:
     """``route -> (ref, query, {gt name: (R, Q) bool})``: lens carries lens and lens+-2."""
-    data = datasets(tuple(n for n in names if n != "nordland500"))
+    data = datasets(tuple(n for n in names if not n.startswith("nordland")))
     out = {}
     for name in names:
-        if name == "nordland500":
+        if name.startswith("nordland"):
             if NORDLAND.exists():
-                ref, qry, gt = nordland()
+                ref, qry, gt = nordland(500 if name == "nordland500" else PLACES_ALL)
                 out[name] = (ref, qry, {name: gt})
         elif name in data:
             ref, qry, gt = data[name]
@@ -112,7 +115,9 @@ def chip_summary(net: TimedSpikingSeqSLAM, out: dict, model) -> dict:
 
 def run_seed(seed: int, ref, qry, gts: dict, chips: bool) -> dict:
     t0 = time.perf_counter()
-    model = NeuralSeqSLAM(NeuralConfig(seed=seed))
+    # one unit per place: a route longer than the default 555 units would take the unit
+    # search, which no spiking form has (nordland: n_output = 1,788)
+    model = NeuralSeqSLAM(NeuralConfig(seed=seed, n_output=max(555, len(ref))))
     model.fit(ref, log=False)
     rate = model.run(qry).matches.reference
     decisions, res = {"rate": rate}, {"seconds": {}}
@@ -150,19 +155,20 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="0-7")
     ap.add_argument("--nordland-seeds", default="0-7",
-                    help="seeds on nordland500 (a subset of --seeds)")
+                    help="seeds on nordland500 and nordland (a subset of --seeds)")
     ap.add_argument("--data", default=",".join(ROUTES))
     ap.add_argument("--out", default=str(ROOT / "experiments" / "results"))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     seeds = seeds_arg(args.seeds)
+    names = args.data.split(",")
     nl_seeds = [s for s in seeds_arg(args.nordland_seeds) if s in seeds]
     results = {}
-    for name, (ref, qry, gts) in routes(args.data.split(",")).items():
+    for name, (ref, qry, gts) in routes(names).items():
         seqslam = {g: (run_seqslam(ref, qry, gt) or {}).get("recall_at_1")
                    for g, gt in gts.items()}
         per_seed = {}
-        run = nl_seeds if name == "nordland500" else seeds
+        run = nl_seeds if name.startswith("nordland") else seeds
         for seed in run:
             r = run_seed(seed, ref, qry, gts, chips=seed == run[0])
             per_seed[str(seed)] = r
@@ -170,7 +176,9 @@ def main(argv=None) -> dict:
                 f"{k} {v:.3f}" for k, v in r["agreement"].items()) + f" {r['seconds']}",
                 flush=True)
         results[name] = {"seqslam_recall_at_1": seqslam, "per_seed": per_seed}
-    write_json(Path(args.out) / "spiking_timed.json",
+    json_name = ("spiking_timed.json" if tuple(names) == ROUTES
+                 else f"spiking_timed_{'_'.join(names)}.json")
+    write_json(Path(args.out) / json_name,
                {"seeds": seeds, "nordland_seeds": nl_seeds, "models": {
                    k: vars(v) for k, v in MODELS.items()}, "results": results,
                 "pj_per_sop": PJ_PER_SOP, "pj_per_mac": PJ_PER_MAC})
