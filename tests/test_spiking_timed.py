@@ -236,6 +236,7 @@ def test_agrees_with_the_rate_model_on_the_demo(demo, net):
     k = model.config.k
     assert (out["winners"] >= k).all() and (out["winners"] <= k + 5).all()
     assert (out["windows"] > 0).all()  # no window clipped on the demo
+    assert net.calibration["reference_clipped"] == 0
     assert set(out["spikes"]) == {"l2", "norm", "ring"}
     assert torch.equal(out["spikes"]["ring"], out["counts"].sum(1))
 

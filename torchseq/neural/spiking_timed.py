@@ -425,7 +425,8 @@ class TimedSpikingSeqSLAM(nn.Module):
 
         Raises:
             SpikingError: as :meth:`SpikingSeqSLAM.convert`, or a degenerate calibration
-                (a blank reference, a window that does not close on the reference).
+                (a blank reference, a ring that never becomes active). The reference's
+                clipped phase-B windows are recorded (``calibration["reference_clipped"]``).
         """
         cfg = config or TimedConfig()
         cfg.validate()
@@ -474,8 +475,10 @@ class TimedSpikingSeqSLAM(nn.Module):
                        "weight_bits": bits, "reference_frames": int(reference.shape[0]),
                        "config": vars(cfg)}
         net = cls(tensors, calibration, cfg, mc.k, mc.uniqueness_window, model.encode)
-        e = torch.cat([net.divide(z2[i:i + cfg.chunk])[0] * scale
-                       for i in range(0, z2.shape[0], cfg.chunk)])
+        parts = [net.divide(z2[i:i + cfg.chunk]) for i in range(0, z2.shape[0], cfg.chunk)]
+        e = torch.cat([p[0] for p in parts]) * scale
+        windows = torch.cat([p[1] for p in parts])
+        net.calibration["reference_clipped"] = int((windows == 0).sum())
         a, top = torch.zeros(e.shape[1], dtype=torch.float64), 0.0
         for t in range(e.shape[0]):  # the exact ring on the reference's evidence
             a = (e[t] + shift @ a).clamp_min(0.0)
