@@ -10,8 +10,9 @@ from torchseq.cli.runs import run_main
 METRICS = ["recall_at_1", "auc", "recall_at_100_precision", "coverage", "correct_coverage",
            "n_queries", "n_matched", "n_positive_queries", "recall_at_5", "recall_at_10",
            "recall", "operating_point"]
-# metrics.json of `eval.py --demo-frames 60` on main before the move (the dicts' keys)
-KEYS = {"seqslam": [*METRICS, "seconds", "parameters", "versus_single_frame"],
+# metrics.json of `eval.py --demo-frames 60` on main before the move (the dicts' keys), with
+# SeqSLAM's "kernels" (the kernel that ran per stage) added after "parameters"
+KEYS = {"seqslam": [*METRICS, "seconds", "parameters", "kernels", "versus_single_frame"],
         "neural": [*METRICS, "seconds", "fit_seconds", "model_bytes", "seqslam_template_bytes",
                    "frames_per_unit",
                    "self_check", "preset", "parameters", "versus_single_frame"]}
@@ -41,6 +42,9 @@ def test_metrics_json_keeps_its_keys_and_the_report_gets_an_outcome(tmp_path, mo
     assert isinstance(outcome.engines["seqslam"], SeqSLAMRun)
     assert isinstance(outcome.engines["neural"], NeuralRun)
     assert outcome.metrics == written  # the report keeps what it wrote
+    # the difference kernel l1_choice's size rule picks for 40 x 40 demo frames
+    assert written["seqslam"]["kernels"]["difference"] == "thermometer"
+    assert written["seqslam"]["kernels"]["matrices"] == "full"
     assert outcome.engines["neural"].reported()["model_bytes"] == written["neural"]["model_bytes"]
 
 

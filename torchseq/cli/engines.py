@@ -111,7 +111,8 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes) -> SeqSLAMRun:
                       ranked_score=result.ranked_score, matrix=matrix,
                       matrix_shape=(len(ref), len(query)), matrix_reduced=result.enhanced is None,
                       seconds=result.seconds["total"], parameters=to_jsonable(config),
-                      difference=difference)
+                      difference=difference,
+                      kernels=to_jsonable(getattr(result, "kernels", None) or {}) or None)
 
 
 def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:

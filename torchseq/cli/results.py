@@ -57,12 +57,23 @@ class SeqSLAMRun(EngineRun):
         difference: the raw ``(R, Q)`` difference matrix of the run's own descriptors, which
             the single-frame baseline ranks instead of computing it again; None for an
             ensemble or a map run, and dropped (set to None) once the baseline has it.
+        kernels: which kernel ran per stage (``SeqSLAMResult.kernels``: ``"difference"``
+            ``"sad"``, ``"thermometer"``, ``"cdist"`` ..., ``"threads"``, ``"matrices"``),
+            reported in ``metrics.json``; None where the run does not say (ensemble, map).
     """
 
     matrix: torch.Tensor | None
     matrix_shape: tuple[int, int]
     matrix_reduced: bool
     difference: torch.Tensor | None = None
+    kernels: dict | None = None
+
+    def reported(self) -> dict:
+        """The engine's own entries of ``metrics.json``, after its metrics, in the file's order."""
+        out = super().reported()
+        if self.kernels:
+            out["kernels"] = self.kernels
+        return out
 
 
 @dataclass

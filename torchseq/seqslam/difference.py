@@ -31,7 +31,13 @@ On this project's AMD EPYC (Zen 5, AVX-512 VNNI) the thermometer product at 3,57
 thread took 0.56 s against 1.31-1.53 s for a direct uint8 sum of absolute differences
 compiled by numba (an earlier form of ``"sad"``, without its 2 x 2 register blocking and
 int32 sums; ``benchmarks/bench_seqslam.py --kernels``), so it stays the kernel there in spite
-of doing 16x the arithmetic (the present ``"sad"`` is not measured there yet).
+of doing 16x the arithmetic (the present ``"sad"`` is not measured there yet). On an AMD
+EPYC Zen 4 (AVX-512 VNNI, 2 cores), one thread, the two tie on ``bench_seqslam.py``'s
+synthetic descriptors (3,576^2: thermometer 0.96-0.97 s, ``"sad"`` 1.01-1.04 s; 1,024^2:
+0.12 / 0.09 s, numba's start-up 0.45 s), but on nordland-b's own descriptors (1,788^2, the
+same 17 distinct values) the thermometer took 0.72 s against 0.30 s for ``"sad"`` (start-up
+excluded; a throwaway script forcing ``kernel=``): why the int8 product is slower on the real
+data is not understood, and the rule (thermometer on AVX-512) is not changed.
 
 The thermometer product itself has two forms (:func:`thermometer_product`), both exact: the
 int8 GEMM (``torch._int_mm``) on CUDA and on CPUs with AVX-512, and a float32 product
