@@ -112,7 +112,7 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes) -> SeqSLAMRun:
                       matrix_shape=(len(ref), len(query)), matrix_reduced=result.enhanced is None,
                       seconds=result.seconds["total"], parameters=to_jsonable(config),
                       difference=difference,
-                      kernels=to_jsonable(getattr(result, "kernels", None) or {}) or None)
+                      kernels=to_jsonable(result.kernels) or None)
 
 
 def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:

@@ -207,26 +207,35 @@ def kwta_by_inhibition(first: torch.Tensor, k: int,
         k: the counter's threshold is ``k - 1/2``.
         steps: ``T_A``; every step adds ``1 / T_A``.
     """
-    h = first
-    v = torch.zeros_like(h)
-    fired = torch.zeros_like(h)
-    counter = h.new_zeros(h.shape[0], 1)
-    stop = h.new_zeros(h.shape[0], 1)  # the counter has fired (inhibits from the next step)
-    counter_spikes = h.new_zeros(h.shape[0])
+    v = torch.zeros_like(first)
+    fired = torch.zeros_like(first)
+    counter = first.new_zeros(first.shape[0], 1)
+    stop = first.new_zeros(first.shape[0], 1)  # the counter has fired (inhibits next step)
+    counter_spikes = first.new_zeros(first.shape[0])
     for t in range(1, steps + 1):
         current = (first if t == 1 else 0.0) + 1.0 / steps
         v = v + current - INHIBIT * (stop + fired)
-        z = (v > 1.0).to(h.dtype)
+        z = (v > 1.0).to(first.dtype)
         v = v * (1.0 - z)
         fired = fired + z
         counter = counter + z.sum(1, keepdim=True)
-        zc = (counter > k - 0.5).to(h.dtype)
+        zc = (counter > k - 0.5).to(first.dtype)
         counter = counter * (1.0 - zc)
         counter_spikes = counter_spikes + zc[:, 0]
         stop = torch.maximum(stop, zc)
         if bool(stop.all()):  # every layer inhibited: nothing fires any more
             break
     return fired, counter_spikes
+
+
+def l2_winners(x: torch.Tensor, w1: torch.Tensor, lo: float, hi: float, k: int,
+               steps: int) -> torch.Tensor:
+    """Phase A of encoded frames ``(F, D)``: their L2 winners ``(F, M)`` 0/1.
+
+    :func:`kwta_by_inhibition` fed the step-1 current ``(x @ w1.T - hi) / (hi - lo) + 1``
+    (``w1`` ``(M, D)``, ``[lo, hi]`` the ramp's range).
+    """
+    return kwta_by_inhibition((x @ w1.T - hi) / (hi - lo) + 1.0, k, steps)[0]
 
 
 def divide_by_timing(c: torch.Tensor, cohorts: torch.Tensor, rate: float, knots: torch.Tensor,
@@ -451,8 +460,7 @@ class TimedSpikingSeqSLAM(nn.Module):
         lo, hi = lo - cfg.widen * spread, hi + cfg.widen * spread
         w1g = quantise_rows(w1, bits).double()  # the rate model's L1 integers fit 8 bits
         w3 = quantise_rows(w3f - g @ ((g / n_c).T @ w3f), bits).double()  # minus cohort means
-        first = (x @ w1g.T - hi) / (hi - lo) + 1.0
-        z2 = torch.cat([kwta_by_inhibition(first[i:i + cfg.chunk], mc.k, cfg.l2_steps)[0]
+        z2 = torch.cat([l2_winners(x[i:i + cfg.chunk], w1g, lo, hi, mc.k, cfg.l2_steps)
                         for i in range(0, x.shape[0], cfg.chunk)])
         c = z2 @ w3.T
         sd = (((c ** 2) @ g) / n_c).sqrt()  # (R, C)
@@ -492,9 +500,8 @@ class TimedSpikingSeqSLAM(nn.Module):
     # ------------------------------------------------------------------ the phases
     def winners(self, x: torch.Tensor) -> torch.Tensor:
         """Phase A: L2 winners ``(F, M)`` 0/1 of encoded frames ``(F, D)``."""
-        lo, hi = self.calibration["lo"], self.calibration["hi"]
-        first = (x.to(self.w1.dtype) @ self.w1.T - hi) / (hi - lo) + 1.0
-        return kwta_by_inhibition(first, self.k, self.config.l2_steps)[0]
+        return l2_winners(x.to(self.w1.dtype), self.w1, self.calibration["lo"],
+                          self.calibration["hi"], self.k, self.config.l2_steps)
 
     def divide(self, z2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Phase B: ``(+ counts (F, N), windows (F, C), spikes (F,))`` of L2 winners ``(F, M)``.
