@@ -104,7 +104,12 @@ from torchseq.export.hardware_budget import memory_bytes  # noqa: E402
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM  # noqa: E402
 from torchseq.neural.readout import decide  # noqa: E402
 from torchseq.neural.spiking import SpikingSeqSLAM  # noqa: E402
-from torchseq.neural.spiking_timed import rung_squares, square_rungs  # noqa: E402
+from torchseq.neural.spiking_timed import (  # noqa: E402
+    divide_by_timing,
+    kwta_by_inhibition,
+    rung_squares,
+    square_rungs,
+)
 
 SQ_FIRST, SQ_RATIO = 0.25, 2.0  # sq<T>: first rung at 1/4 of the reference's median std
 VARIANTS = [
@@ -165,8 +170,13 @@ def inhibition_kwta(h: torch.Tensor, k: int, steps: int, lo: float, hi: float,
 
     ``h`` ``(F, M)``: the frames' L1 sums. Non-leaky IF L2 units (threshold 1, reset to 0,
     a self-inhibition once fired), one counter IF unit (weight 1 from every L2 unit,
-    threshold ``k - 1/2``) whose spike inhibits the layer from the next step on.
+    threshold ``k - 1/2``) whose spike inhibits the layer from the next step on. The ramp
+    schedule is the timed model's phase A (:func:`kwta_by_inhibition`).
     """
+    if schedule == "ramp":  # the frame at step 1, a ramp 1/T every step
+        return kwta_by_inhibition((h - hi) / (hi - lo) + 1.0, k, steps)[0]
+    if schedule != "const":
+        raise ValueError(f"unknown schedule {schedule!r}")
     f, m = h.shape
     v = torch.zeros_like(h)
     fired = torch.zeros_like(h)
@@ -174,13 +184,8 @@ def inhibition_kwta(h: torch.Tensor, k: int, steps: int, lo: float, hi: float,
     stop = torch.zeros(f, 1, dtype=h.dtype)  # the counter's spike, delivered next step
     big = 1e9
     span = hi - lo
-    for t in range(1, steps + 1):
-        if schedule == "ramp":  # the frame at step 1, a ramp 1/T every step
-            cur = ((h - hi) / span + 1.0 if t == 1 else 0.0) + 1.0 / steps
-        elif schedule == "const":  # the frame's current every step
-            cur = (h - lo) / span
-        else:
-            raise ValueError(f"unknown schedule {schedule!r}")
+    cur = (h - lo) / span  # the frame's current every step
+    for _ in range(steps):
         v = v + cur - big * stop - big * fired  # layer inhibition, self-inhibition
         z = (v > 1.0).to(h.dtype)
         v = v * (1.0 - z)
@@ -229,29 +234,10 @@ def square_window_steps(c: torch.Tensor, g: torch.Tensor, rate: float, knots: to
     ``2 N R`` IF units (``+c_j`` and ``-c_j`` for each rung ``r``; rung 0 is the evidence
     pair), one integrator (its membrane is the weighted spike count so far) and one window
     IF unit per cohort fed that membrane, which fires once and inhibits its cohort's ``+``
-    units from the next step on. Windows still closed after ``max_steps`` are 0.
+    units from the next step on. Windows still closed after ``max_steps`` are 0. The timed
+    model's phase B (:func:`divide_by_timing`, its compiled kernel).
     """
-    n_c = g.sum(0).clamp_min(1.0)
-    sign = torch.tensor([1.0, -1.0], dtype=c.dtype)
-    x = rate * (sign[:, None, None] * c[:, None, :, None] - knots)  # (F, 2, N, R)
-    v = torch.zeros_like(x)
-    plus = torch.zeros_like(c)
-    acc = torch.zeros(c.shape[0], g.shape[1], dtype=c.dtype)
-    window_v = torch.zeros_like(acc)
-    windows = torch.zeros_like(acc)
-    open_ = torch.ones_like(c)  # the + units not yet inhibited by their window
-    for t in range(1, max_steps + 1):
-        v = v + x + (0.5 if t == 1 else 0.0)  # the phase's start channel: a one-off 1/2
-        z = (v > 1.0).to(c.dtype)
-        v = v - z
-        plus = plus + z[:, 0, :, 0] * open_
-        acc = acc + ((z * weights).sum((1, 3)) @ g) / n_c  # integrator: membrane = count
-        window_v = window_v + acc
-        fire = (window_v > theta) & (windows == 0)
-        windows = torch.where(fire, torch.full_like(windows, float(t)), windows)
-        open_ = ((windows == 0).to(c.dtype) @ g.T).clamp(max=1.0)  # inhibited from t + 1
-        if bool((windows > 0).all()):
-            break
+    plus, windows, _ = divide_by_timing(c, g, rate, knots, weights, theta, max_steps, "numba")
     return plus, windows
 
 
