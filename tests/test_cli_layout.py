@@ -53,3 +53,23 @@ def test_the_console_script_and_python_m_dispatch_to_the_package(capsys):
             main([command, "--help"] if command != "map" else [command, "build", "--help"])
         assert stop.value.code == 0
         assert capsys.readouterr().out.startswith("usage: torchseq " + command)
+
+
+
+@pytest.mark.parametrize("argv", ["None", "['eval', '--help']"])
+def test_only_the_process_command_line_freezes_the_collector(argv):
+    # main() with no argv is the process's own command (console script, python -m torchseq):
+    # the objects of the command's imports are frozen (gc.freeze), so the cycle collector skips
+    # them in its full passes and at exit; a list (tests, scripts in process) freezes nothing
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    code = ("import gc, sys\nfrom torchseq.cli import main\n"
+            "sys.argv = ['torchseq', 'eval', '--help']\n"
+            f"try:\n    main({argv})\nexcept SystemExit:\n    pass\n"
+            "print('frozen', gc.get_freeze_count())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=root, env={"PYTHONPATH": str(root)}, check=True).stdout
+    frozen = int(out.split("frozen")[-1])
+    assert (frozen > 10_000) if argv == "None" else frozen == 0
