@@ -134,3 +134,53 @@ def test_a_sparse_difference_matrix_is_refused():
     with pytest.raises(ValueError, match="sparse"):
         single_frame_from_difference(dense.to_sparse())
     assert single_frame_from_difference(dense).matches.reference.shape == (4,)
+
+
+def test_smallest_is_the_stable_argsort_to_the_index():
+    # the baseline's top-k selection ranks as a whole stable sort (ties: lower index first):
+    # ties inside the selection (fast path), ties reaching its edge, NaN, inf, few columns
+    from torchseq.seqslam.single import smallest
+
+    g = torch.Generator().manual_seed(0)
+    seen_fast = seen_whole = 0
+    for trial in range(400):
+        rows, cols = int(torch.randint(1, 30, (1,), generator=g)), int(
+            torch.randint(1, 300, (1,), generator=g))
+        k = int(torch.randint(1, min(cols, 25) + 1, (1,), generator=g))
+        span = (2, 8, 60, 10**6)[trial % 4]
+        d = torch.randint(0, span, (rows, cols), generator=g).float()
+        if trial % 5 == 0:
+            d[torch.rand(rows, cols, generator=g) < 0.05] = float("nan")
+        if trial % 7 == 0:
+            d[torch.rand(rows, cols, generator=g) < 0.05] = float("inf")
+        if trial % 3 == 0:
+            d = d.T.contiguous().T  # a transposed view, as the engine's blocks may be
+        expect = torch.argsort(d, dim=1, stable=True)[:, :k]
+        assert torch.equal(smallest(d, k), expect), (trial, rows, cols, k, span)
+        if 2 * k < cols:
+            v, _ = torch.topk(d, 2 * k, dim=1, largest=False)
+            fast = v[:, -1] > v[:, k - 1]
+            seen_fast += int(fast.sum())
+            seen_whole += int((~fast).sum())
+    assert seen_fast > 1000 and seen_whole > 100  # both paths were taken, many times
+
+
+@pytest.mark.slow  # 1,788 x 1,788 places: descriptors and the whole difference matrix
+def test_single_frame_ranks_nordland_as_a_whole_stable_sort():
+    # real distances (integer L1 of patch-normalised frames: many ties): the top-k selection
+    # ranks exactly as the full stable argsort it replaced
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+    from torchseq.sources import load_traverse
+
+    root = shared_data("nordland-b")
+    s = SeqSLAM(SeqSLAMConfig.openseqslam(threads=1))
+    ref = s.descriptors(load_traverse(root / "summer", progress=False))
+    query = s.descriptors(load_traverse(root / "winter", progress=False))
+    d = difference_matrix(ref, query, "l1")
+    got = single_frame_from_difference(d, top_k=21)
+    expect = torch.argsort(d.T, dim=1, stable=True)[:, :21]
+    assert torch.equal(got.ranked, expect)
+    assert torch.equal(got.ranked_score, d.T.gather(1, expect))
+    # the distances do tie at the 21st place, so the tie rule is exercised
+    kth = d.T.gather(1, expect[:, -1:])
+    assert int(((d.T == kth).sum(1) > 1).sum()) > 0

@@ -86,13 +86,43 @@ def single_frame_from_difference(difference: torch.Tensor, top_k: int = 21,
     return _ranked(blocks, difference.shape[0], top_k)
 
 
+def smallest(d: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices of the ``k`` smallest of each row, ascending, ties: lower index first.
+
+    ``torch.argsort(d, dim=1, stable=True)[:, :k]``, to the index, without sorting whole rows:
+    a top-k selection of ``2k`` per row holds every entry up to the k-th value (the k smallest
+    and each tie of the k-th) when its largest value is above the k-th; then only the
+    selection is sorted, by index and then by value (stable). Rows where it may not (ties of
+    the k-th reaching the selection's edge, NaN) are sorted whole.
+
+    Args:
+        d: ``(B, R)`` values.
+        k: ``1 <= k <= R``.
+
+    Returns:
+        ``(B, k)`` int64 column indices.
+    """
+    wide = 2 * k
+    if wide >= d.shape[1] or d.shape[0] == 0:
+        return torch.argsort(d, dim=1, stable=True)[:, :k]
+    values, index = torch.topk(d, wide, dim=1, largest=False, sorted=False)  # (B, wide)
+    kth = torch.kthvalue(values, k, dim=1, keepdim=True).values
+    by_index = torch.argsort(index, dim=1)
+    index, values = index.gather(1, by_index), values.gather(1, by_index)
+    out = index.gather(1, torch.argsort(values, dim=1, stable=True)[:, :k])
+    whole = ~(values.amax(1) > kth[:, 0])  # a tie of the k-th may be left outside
+    if bool(whole.any()):
+        out[whole] = torch.argsort(d[whole], dim=1, stable=True)[:, :k]
+    return out
+
+
 def _ranked(blocks, n_ref: int, top_k: int) -> SingleFrameResult:
     """Rank the references of each query from ``(R, block)`` difference blocks."""
     k = min(top_k, n_ref)
     ranked, scores = [], []
     for block in blocks:
         d_t = block.T  # (block, R)
-        order = torch.argsort(d_t, dim=1, stable=True)[:, :k]  # ties: lower index first
+        order = smallest(d_t, k)  # ties: lower index first
         ranked.append(order)
         scores.append(d_t.gather(1, order))
     ranked_t, score_t = torch.cat(ranked).cpu(), torch.cat(scores).cpu()
