@@ -1,15 +1,17 @@
 """Where the compiled ``"sad"`` L1 kernel starts to pay, numba's start-up included.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/bench_l1_size_rule.py [--places 600 1000 1400 1788]
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_l1_size_rule.py [--places 1000 1788 3576]
         [--rounds 2]
 
 Each run is a fresh process (so numba's import and the load of its cached compiled loop count,
 as they do for a user's ``torchseq eval``) that matches the first ``n`` places of nordland-b
-(summer against winter, SeqSLAM's default descriptors: D = 2,048, OpenSeqSLAM's patch
-normalisation) with ``SeqSLAM().match_descriptors`` on one thread, once with the difference
-kernel forced to the thermometer product (``SAD_MIN_WORK`` above every size) and once to
-``"sad"`` (``SAD_MIN_WORK = 1``), interleaved, ``--rounds`` times. Prints wall and CPU seconds
-of the match and the kernel that ran. The descriptors are computed once, up front, and saved
+(summer against winter, then each season again backwards: up to 3,576 places; SeqSLAM's
+default descriptors: D = 2,048, OpenSeqSLAM's patch normalisation, 16 thresholds) with
+``SeqSLAM().match_descriptors`` on one thread, once with the difference kernel forced to the
+thermometer product (``SAD_MIN_WORK`` and ``SAD_INT8_MIN_SAVING`` above every size) and once
+to ``"sad"`` (both below), interleaved, ``--rounds`` times. Prints the CPU kind (torch's CPU
+capability and the thermometer's product), wall and CPU seconds of the match, the ratio, and
+the kernel the rule picks unforced. The descriptors are computed once, up front, and saved
 to a temporary folder. The compiled loop's cache must exist (run any ``"sad"`` once before;
 a first-ever compile costs about 1.5 s more, once per install).
 """
@@ -33,7 +35,7 @@ torch.set_num_threads(1)
 import torchseq.seqslam.difference as d
 from torchseq.seqslam import SeqSLAM
 mode, n, folder = sys.argv[1], int(sys.argv[2]), sys.argv[3]
-d.SAD_MIN_WORK = 1 if mode == "sad" else 2**62
+d.SAD_MIN_WORK = d.SAD_INT8_MIN_SAVING = -2**62 if mode == "sad" else 2**62
 ref = torch.from_numpy(np.load(folder + "/ref.npy"))[:n]
 qry = torch.from_numpy(np.load(folder + "/qry.npy"))[:n]
 t, c = time.perf_counter(), time.process_time()
@@ -45,22 +47,28 @@ print(json.dumps({"wall": time.perf_counter() - t, "cpu": time.process_time() - 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--places", type=int, nargs="+", default=[600, 1000, 1400, 1788])
+    ap.add_argument("--places", type=int, nargs="+", default=[1000, 1788, 3576])
     ap.add_argument("--rounds", type=int, default=2)
     args = ap.parse_args(argv)
     import numpy as np
+    import torch
 
     from torchseq.seqslam import SeqSLAM
+    from torchseq.seqslam.difference import l1_kernel, thermometer_levels, thermometer_product
     from torchseq.sources import load_traverse
 
     with tempfile.TemporaryDirectory() as tmp:
         s = SeqSLAM()
         for name, season in (("ref", "summer"), ("qry", "winter")):
-            frames = load_traverse(DATA / season, progress=False)
-            np.save(Path(tmp) / f"{name}.npy", s.descriptors(frames).numpy())
+            x = s.descriptors(load_traverse(DATA / season, progress=False)).numpy()
+            np.save(Path(tmp) / f"{name}.npy", np.concatenate([x, x[::-1]]))  # up to 3,576
+        ref, qry = (torch.from_numpy(np.load(Path(tmp) / f"{n}.npy")) for n in ("ref", "qry"))
+        levels = thermometer_levels(ref, qry)
+        print(f"CPU: torch capability {torch.backends.cpu.get_cpu_capability()}, thermometer "
+              f"product {thermometer_product('cpu')}, {levels[0].numel()} thresholds\n")
         print("| places | R Q D | thermometer wall / CPU s | sad wall / CPU s (numba start-up "
-              "included) | sad / thermometer (CPU, best of rounds) |")
-        print("|---:|---:|---|---|---:|")
+              "included) | sad / thermometer (CPU, best of rounds) | the rule picks |")
+        print("|---:|---:|---|---|---:|---|")
         for n in args.places:
             best = {}
             for _ in range(args.rounds):
@@ -74,7 +82,8 @@ def main(argv=None) -> None:
                         best[mode] = r
             t, s_ = best["thermometer"], best["sad"]
             print(f"| {n} | {n * n * 2048:.2e} | {t['wall']:.2f} / {t['cpu']:.2f} | "
-                  f"{s_['wall']:.2f} / {s_['cpu']:.2f} | {s_['cpu'] / t['cpu']:.2f} |", flush=True)
+                  f"{s_['wall']:.2f} / {s_['cpu']:.2f} | {s_['cpu'] / t['cpu']:.2f} | "
+                  f"{l1_kernel(ref[:n], qry[:n], levels)} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -146,8 +146,25 @@ def test_l1_kernel_rule(monkeypatch, product):
     assert l1_kernel(many, many_q, None) == "cdist"
 
 
-@pytest.mark.parametrize("product, kernel", [("float32", "sad"), ("int8", "thermometer")])
-def test_the_chosen_kernel_is_the_one_that_ran(monkeypatch, product, kernel):
+def test_the_int8_rule_switches_where_the_saving_pays_numbas_start_up(monkeypatch):
+    """Against the int8 thermometer product (AVX-512) "sad" from R Q D (k - 6) >= 6e10:
+    1,712 places at nordland-b's 16 thresholds, 3,828 at the demo's 8, never at 6 or fewer."""
+    monkeypatch.setattr(difference_module, "thermometer_product", lambda device: "int8")
+    assert (difference_module.SAD_INT8_TIE_LEVELS, difference_module.SAD_INT8_MIN_SAVING) == \
+        (6, 6 * 10**10)
+    for k, n in ((16, 1712), (8, 3828)):
+        levels = (119 + torch.arange(k, dtype=torch.float64), None)
+        x = torch.full((1, 2048), 119.0)
+        assert l1_kernel(x.expand(n, -1), x.expand(n, -1), levels) == "sad"
+        assert l1_kernel(x.expand(n - 1, -1), x.expand(n - 1, -1), levels) == "thermometer"
+    levels = (119 + torch.arange(6, dtype=torch.float64), None)
+    x = torch.full((1, 2048), 119.0).expand(10**5, -1)
+    assert l1_kernel(x, x, levels) == "thermometer"
+
+
+@pytest.mark.parametrize("product, kernel, saving", [
+    ("float32", "sad", None), ("int8", "thermometer", None), ("int8", "sad", 40 * 30 * 64)])
+def test_the_chosen_kernel_is_the_one_that_ran(monkeypatch, product, kernel, saving):
     ran = []
     for name in ("_l1_sad", "_l1_thermometer"):
         real = getattr(difference_module, name)
@@ -155,6 +172,10 @@ def test_the_chosen_kernel_is_the_one_that_ran(monkeypatch, product, kernel):
                             lambda *a, real=real, name=name: ran.append(name) or real(*a))
     monkeypatch.setattr(difference_module, "thermometer_product", lambda device: product)
     monkeypatch.setattr(difference_module, "SAD_MIN_WORK", 40 * 30 * 64)
+    if saving is not None:  # the int8 rule's size made this run's: R Q D (k - 6)
+        ref, query = _pair("openseqslam", 40, 30, 64)
+        k = thermometer_levels(ref, query)[0].numel()
+        monkeypatch.setattr(difference_module, "SAD_INT8_MIN_SAVING", saving * (k - 6))
     ref, query = _pair("openseqslam", 40, 30, 64)
     d, got = difference_with_kernel(ref, query)
     assert got == kernel and ran == [f"_l1_{kernel}"]
@@ -233,3 +254,23 @@ def test_sad_and_thermometer_give_the_same_matches_on_nordland(monkeypatch):
     assert torch.equal(sad.ranked, therm.ranked)
     recall = evaluate(sad.matches, gt)["recall_at_1"]
     assert recall == evaluate(therm.matches, gt)["recall_at_1"] and recall > 0.2
+
+
+@pytest.mark.slow  # decodes nordland-b's 2 x 1,788 frames
+def test_this_cpu_picks_sad_for_the_whole_of_nordland(monkeypatch):
+    # no rule patched: the rule of this machine's CPU kind (float32 product: from 2**31; int8:
+    # from R Q D (k - 6) >= 6e10, k = 16 here) picks "sad" for 1,788 places, and it ran
+    from torchseq.sources import load_traverse
+
+    pytest.importorskip("numba")
+    root = shared_data("nordland-b")
+    s = SeqSLAM(SeqSLAMConfig(threads=1))
+    ref = s.descriptors(load_traverse(root / "summer", progress=False))
+    query = s.descriptors(load_traverse(root / "winter", progress=False))
+    assert thermometer_levels(ref, query)[0].numel() == 16
+    ran = []
+    real = difference_module._l1_sad
+    monkeypatch.setattr(difference_module, "_l1_sad", lambda *a: ran.append(1) or real(*a))
+    assert difference_with_kernel(ref, query)[1] == "sad" and ran == [1]
+    assert l1_kernel(ref[:1000], query[:1000], thermometer_levels(ref, query)) == (
+        "sad" if difference_module.thermometer_product("cpu") == "float32" else "thermometer")

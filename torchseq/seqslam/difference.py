@@ -17,30 +17,28 @@ one for tests and benchmarks):
 - ``"sad"``: the sum of absolute differences itself, a loop compiled by numba
   (``_l1_numba.py``) over the values minus their minimum as uint8, for integer-valued
   descriptors spanning at most 255 (:func:`sad_offset`); wider data keep the thermometer or
-  cdist kernel. Chosen on CPU where the alternative is slow: the thermometer's float32 product
-  (no AVX-512, below) or cdist, from ``R * Q * D >= SAD_MIN_WORK`` (2**31: 1,024^2 x 2,048),
-  since importing numba and loading the compiled loop from its cache cost 0.4-2 s once per
-  process (by the host's load; compiling it the first time about 1.5 s more) and would cost
-  small runs more than they save: on nordland-b, numba's start-up included, quiet host, it
+  cdist kernel. Chosen on CPU where the time it saves pays numba's start-up (importing numba
+  and loading the compiled loop from its cache cost 0.4-2 s once per process, by the host's
+  load; compiling it the first time about 1.5 s more; a run below the size never imports
+  numba). Against cdist or the thermometer's float32 product (no AVX-512, below) from
+  ``R * Q * D >= SAD_MIN_WORK`` (2**31: 1,024^2 x 2,048): on nordland-b on an AVX2 host it
   broke even at 800 places (1.3e9) and took 0.71x the thermometer's CPU at 1,000 places,
-  0.42x at 1,788 (``benchmarks/bench_l1_size_rule.py``). A run below the size never imports
-  numba.
+  0.42x at 1,788 (``benchmarks/bench_l1_size_rule.py``). Against the int8 product (AVX-512),
+  whose time grows with the thresholds ``k`` while ``"sad"``'s does not, from
+  ``R * Q * D * (k - SAD_INT8_TIE_LEVELS) >= SAD_INT8_MIN_SAVING`` (6 and 6e10).
 - ``"cdist"``: ``torch.cdist(p=1)`` for everything else (exact summation, slower).
 
-On this project's AMD EPYC (Zen 5, AVX-512 VNNI) the thermometer product at 3,576^2 and one
-thread took 0.56 s against 1.31-1.53 s for a direct uint8 sum of absolute differences
-compiled by numba (an earlier form of ``"sad"``, without its 2 x 2 register blocking and
-int32 sums; ``benchmarks/bench_seqslam.py --kernels``), so it stays the kernel there in spite
-of doing 16x the arithmetic (the present ``"sad"`` is not measured there yet). On an AMD
-EPYC Zen 4 (AVX-512 VNNI, 2 cores), one thread, the two tie on ``bench_seqslam.py``'s
-synthetic descriptors (3,576^2: thermometer 0.96-0.97 s, ``"sad"`` 1.01-1.04 s; 1,024^2:
-0.12 / 0.09 s, numba's start-up 0.45 s), but those take 7 distinct values; nordland-b's own
-descriptors take 17 (codes 16 instead of 6 thresholds wide), and at 1,788^2 the thermometer
-took 0.72 s against 0.30 s for ``"sad"`` (start-up excluded; a throwaway script forcing
-``kernel=``; the same 1,788^2 synthetic: 0.30 / 0.27 s). The thermometer's cost grows with
-the distinct values and ``"sad"``'s does not, so on such hosts the rule (thermometer where
-the product is int8) leaves time on real data from a few thousand places (at 1,788 the
-saving is about numba's start-up); it is not changed here.
+The int8 rule's figures, on this project's 2-core AMD EPYC with AVX-512 VNNI (the Zen 4/5
+kind), one thread, a host shared with other jobs: at 2,000^2 x 2,048 values 127 +- k/2 the
+thermometer took 0.31, 0.46, 0.71, 0.87 s at 4, 8, 12, 16 thresholds against 0.38-0.40 s for
+``"sad"`` (start-up excluded; they tie near 6 thresholds); on nordland-b (16 thresholds) the
+whole match, numba's start-up included, took with ``"sad"`` 2.04x the thermometer's CPU at
+1,000 places, 1.27x at 1,400, 0.91x at 1,788, 0.87x at 2,400 and 0.71x at 3,576
+(``bench_l1_size_rule.py --places 1000 1400 1788 2400 3576``). The rule switches at 1,712
+places on nordland-b's 16 thresholds and at 3,828 on the synthetic demo's 8 (on a Zen 4 the
+two tied at 3,576^2 on 7 distinct values, start-up excluded, and at 1,788^2 on nordland-b's
+descriptors the thermometer took 0.72 s against 0.30 s). An earlier Zen 5 measurement with
+an older ``"sad"`` (no register blocking) had the thermometer ahead, 0.56 s against 1.31 s.
 
 The thermometer product itself has two forms (:func:`thermometer_product`), both exact: the
 int8 GEMM (``torch._int_mm``) on CUDA and on CPUs with AVX-512, and a float32 product
@@ -71,6 +69,11 @@ THERMOMETER_BLOCK_ROWS = 1024
 # the minimum), the R * Q * D from which it is chosen, and rows per block of work.
 SAD_MAX_RANGE = 255
 SAD_MIN_WORK = 2**31
+# Where the thermometer's product is int8 (AVX-512): "sad" from R * Q * D * (thresholds -
+# SAD_INT8_TIE_LEVELS) >= SAD_INT8_MIN_SAVING (the two kernels tie at about 6 thresholds; the
+# saving must pay numba's start-up; module docstring).
+SAD_INT8_TIE_LEVELS = 6
+SAD_INT8_MIN_SAVING = 6 * 10**10
 SAD_BLOCK_ROWS = 256
 L1_KERNELS = ("thermometer", "sad", "cdist")
 
@@ -217,11 +220,12 @@ def l1_choice(reference: torch.Tensor, query: torch.Tensor,
               max_chunk_elements: int = 2**26) -> tuple[str, float | None]:
     """The exact L1 kernel for ``(R, D)`` references and ``(Q, D)`` queries (module docstring).
 
-    ``"sad"`` on CPU from ``R * Q * D >= SAD_MIN_WORK`` (below it numba's start-up costs more
-    than the kernel saves) where numba is installed, the data qualify (:func:`sad_offset`)
-    and the alternative is slower: ``cdist`` (``levels`` None) or the thermometer kernel's
-    float32 product (:func:`thermometer_product`; its int8 GEMM on AVX-512 is faster).
-    Else ``"thermometer"`` when ``levels`` is not None, else ``"cdist"``.
+    ``"sad"`` on CPU where numba is installed, the data qualify (:func:`sad_offset`) and
+    the run is large enough for the time saved to pay numba's start-up: against ``cdist``
+    (``levels`` None) or the thermometer's float32 product, from ``R * Q * D >=
+    SAD_MIN_WORK``; against its int8 GEMM (AVX-512; :func:`thermometer_product`), whose cost
+    grows with the thresholds ``k``, from ``R * Q * D * (k - SAD_INT8_TIE_LEVELS) >=
+    SAD_INT8_MIN_SAVING``. Else ``"thermometer"`` when ``levels`` is not None, else ``"cdist"``.
 
     Args:
         reference: ``(R, D)``.
@@ -235,10 +239,11 @@ def l1_choice(reference: torch.Tensor, query: torch.Tensor,
     """
     fallback = "thermometer" if levels is not None else "cdist"
     device = reference.device
-    if (device.type != "cpu" or reference.shape[0] * query.shape[0] * reference.shape[1]
-            < SAD_MIN_WORK or not sad_available()):
-        return fallback, None
-    if levels is not None and thermometer_product(device) != "float32":
+    work, needed = reference.shape[0] * query.shape[0] * reference.shape[1], SAD_MIN_WORK
+    if levels is not None and thermometer_product(device) == "int8":
+        work *= levels[0].numel() - SAD_INT8_TIE_LEVELS
+        needed = SAD_INT8_MIN_SAVING
+    if device.type != "cpu" or work < needed or not sad_available():
         return fallback, None
     lo = sad_offset(reference, query, levels, max_chunk_elements)
     return ("sad", lo) if lo is not None else (fallback, None)
