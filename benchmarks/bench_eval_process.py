@@ -4,6 +4,7 @@
     .venv/bin/python benchmarks/bench_eval_process.py --baseline ../main  # side by side with main
     .venv/bin/python benchmarks/bench_eval_process.py --busy 1            # one core held busy
     .venv/bin/python benchmarks/bench_eval_process.py --places 1788 --rounds 1   # a quick look
+    .venv/bin/python benchmarks/bench_eval_process.py --stages --rounds 3   # engine stages
 
 The route is ``../shared/data/nordland-b`` (1,788 places, 64x32, summer and winter). With
 ``--places 3576`` (the default, the issue's size) the reference is summer followed by summer
@@ -176,7 +177,10 @@ def run_once(root: Path, route: Path, out: Path) -> dict:
     return {"wall": wall, "cpu": usage.ru_utime + usage.ru_stime,
             "rss_mb": usage.ru_maxrss / 1024, "exit": t + wall - phases["end"],
             "exit_cpu": usage.ru_utime + usage.ru_stime - phases["end_cpu"],
-            "phases": phases, "recall_at_1": metrics["recall_at_1"], "auc": metrics["auc"]}
+            "phases": phases, "recall_at_1": metrics["recall_at_1"], "auc": metrics["auc"],
+            "matches": (out / "matches.csv").read_bytes(), "kernel": metrics.get("kernels"),
+            "single": json.dumps(json.loads((out / "metrics.json").read_text())
+                                 .get("single_frame"), sort_keys=True)}
 
 
 def table(best: dict) -> str:
@@ -239,6 +243,54 @@ def descriptor_step(route: Path, rounds: int) -> str:
     return "\n".join(lines)
 
 
+def stages(route: Path, rounds: int) -> str:
+    """The engine's stages at one thread: the kernel the rule picks and each L1 kernel forced.
+
+    One process; descriptors computed once; ``SeqSLAM(threads=1).match_descriptors`` with
+    the difference kernel the rule picks on this CPU, then forced to each L1 kernel that
+    qualifies, interleaved, fastest of ``rounds`` (numba's start-up is outside: it is loaded
+    before the first round). A markdown table: seconds per stage, the ratio of each row's
+    difference stage to the rule's.
+    """
+    sys.path.insert(0, str(ROOT))
+    import torch
+
+    from torchseq import load_traverse
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+    from torchseq.seqslam import difference as diff
+
+    torch.set_num_threads(1)
+    engine = SeqSLAM(SeqSLAMConfig(threads=1))
+    ref, query = (engine.descriptors(load_traverse(route / n, progress=False))
+                  for n in ("reference", "query"))
+    levels = diff.thermometer_levels(ref, query)
+    rule = diff.l1_kernel(ref, query, levels)
+    diff.difference_with_kernel(ref[:8], query[:8], kernel="sad")  # numba loaded up front
+    saved = diff.SAD_MIN_WORK, diff.SAD_INT8_MIN_SAVING
+    forced = {"sad": (-2**62, -2**62), "thermometer": (2**62, 2**62)}
+    best: dict = {}
+    for _ in range(rounds):
+        for name in ("rule", "thermometer", "sad"):
+            diff.SAD_MIN_WORK, diff.SAD_INT8_MIN_SAVING = forced.get(name, saved)
+            r = engine.match_descriptors(ref, query)
+            diff.SAD_MIN_WORK, diff.SAD_INT8_MIN_SAVING = saved
+            row = {k: r.seconds[k] for k in ("difference", "enhance", "search", "total")}
+            row["kernel"] = r.kernels["difference"]
+            if name not in best or row["total"] < best[name]["total"]:
+                best[name] = row
+    lines = [f"{len(ref)} x {len(query)} places, one thread, CPU capability "
+             f"{torch.backends.cpu.get_cpu_capability()}, thermometer product "
+             f"{diff.thermometer_product('cpu')}, {levels[0].numel()} thresholds: the rule "
+             f"picks {rule!r}; fastest of {rounds}\n",
+             "| run | kernel | difference s | enhance s | search s | total s | "
+             "difference / the rule's |", "|---|---|---:|---:|---:|---:|---:|"]
+    for name, r in best.items():
+        lines.append(f"| {name} | {r['kernel']} | {r['difference']:.2f} | {r['enhance']:.2f} | "
+                     f"{r['search']:.2f} | {r['total']:.2f} | "
+                     f"{r['difference'] / best['rule']['difference']:.2f} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     if len(sys.argv) > 2 and sys.argv[1] == "--child":
         run_child(sys.argv[4:], Path(sys.argv[2]))
@@ -252,6 +304,9 @@ def main() -> None:
                         help="busy-loop processes held beside the runs")
     parser.add_argument("--descriptor-step", action="store_true",
                         help="time only the descriptor step (default threads vs the rule)")
+    parser.add_argument("--stages", action="store_true",
+                        help="the engine's stages at one thread, the rule's kernel and each "
+                             "L1 kernel forced")
     parser.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir())
                         / "torchseq-bench-eval-process")
     args = parser.parse_args()
@@ -262,6 +317,9 @@ def main() -> None:
     busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
             for _ in range(args.busy)]
     try:
+        if args.stages:
+            print(stages(route, args.rounds))
+            return
         if args.descriptor_step:
             print(descriptor_step(route, args.rounds))
             print(f"\n{args.busy} busy-loop process(es) beside, load average "
@@ -287,8 +345,11 @@ def main() -> None:
           f"seconds include waiting for a core)\n")
     print(table(best))
     for label, r in best.items():
-        print(f"\n- {label}: recall@1 {r['recall_at_1']:.4f}, AUC {r['auc']:.4f}")
+        print(f"\n- {label}: recall@1 {r['recall_at_1']:.4f}, AUC {r['auc']:.4f}, kernels "
+              f"{r['kernel']}")
     if len(walls) == 2:
+        print(f"- matches.csv identical: {len({r['matches'] for r in best.values()}) == 1}, "
+              f"single-frame metrics identical: {len({r['single'] for r in best.values()}) == 1}")
         ratios = sorted(b / a for a, b in zip(*walls.values()))
         print(f"- whole-process wall this / baseline, median of {len(ratios)} round(s): "
               f"{ratios[len(ratios) // 2]:.2f}x (each: "
