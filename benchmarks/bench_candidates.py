@@ -343,7 +343,11 @@ def torch_equal(a, b) -> bool:
 
 
 def crossover_table(sizes, n_query: int, k: int, ds: int) -> list[str]:
-    """CPU ms per query of both modes on synthetic routes of growing length."""
+    """Both modes on synthetic routes of growing length: CPU per query, index build, recall.
+
+    Recall@1: the match within 2 frames of the truth. "candidates, whole" adds the index's
+    build (CPU) to the queries: the cost of one run of ``n_query`` queries from scratch.
+    """
     import torch
 
     from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
@@ -351,20 +355,25 @@ def crossover_table(sizes, n_query: int, k: int, ds: int) -> list[str]:
 
     one_thread()
     lines = [f"Synthetic routes, {n_query} queries, ds = {ds}, K = {k}, one thread", "",
-             "| references | exact CPU ms / query | candidates CPU ms / query (index built "
-             "outside) | exact / candidates |", "|---:|---:|---:|---:|"]
+             "| references | index | exact CPU ms / query | candidates CPU ms / query (index "
+             "built outside) | exact / candidates | index build CPU s | exact / candidates, "
+             "whole (build + queries) | recall@1 exact / candidates |",
+             "|---:|---|---:|---:|---:|---:|---:|---|"]
     for n in sizes:
-        ref, query, _ = synthetic(n, n_query)
+        ref, query, pos = synthetic(n, n_query)
         ref_t, query_t = torch.from_numpy(ref), torch.from_numpy(query)
-        _, _, ce = timed(lambda: SeqSLAM(SeqSLAMConfig(ds=ds, candidates=0))
-                         .match_descriptors(ref_t.float(), query_t))
-        engine = CandidateSeqSLAM(ref_t, SeqSLAMConfig(ds=ds, candidates=k))
-        _, _, cc = timed(lambda: engine.match_descriptors(query_t))
-        lines.append(f"| {n} | {1e3 * ce / n_query:.2f} | {1e3 * cc / n_query:.2f} | "
-                     f"{ce / cc:.2f} |")
+        exact, _, ce = timed(lambda: SeqSLAM(SeqSLAMConfig(ds=ds, candidates=0))
+                             .match_descriptors(ref_t.float(), query_t))
+        engine, _, cb = timed(lambda: CandidateSeqSLAM(ref_t, SeqSLAMConfig(ds=ds,
+                                                                             candidates=k)))
+        cand, _, cc = timed(lambda: engine.match_descriptors(query_t))
+        recall = [float((np.abs(r.matches.reference.numpy() - pos) <= 2).mean())
+                  for r in (exact, cand)]
+        lines.append(f"| {n} | {engine.index.kind} | {1e3 * ce / n_query:.2f} | "
+                     f"{1e3 * cc / n_query:.2f} | {ce / cc:.2f} | {cb:.2f} | "
+                     f"{ce / (cb + cc):.2f} | {recall[0]:.3f} / {recall[1]:.3f} |")
         print(lines[-1], flush=True)
     return lines
-
 
 
 def layouts_table(n_ref: int, n_query: int, k: int, repeats: int = 2) -> list[str]:
