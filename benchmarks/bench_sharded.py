@@ -32,14 +32,24 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def route(n_ref: int, n_query: int, dim: int, seed: int = 0):
+def route(n_ref: int, n_query: int, dim: int, seed: int = 0, block: int = 4096):
+    """uint8 AR(1) route ``(n_ref, dim)``, float32 queries along it, the first query's place.
+
+    Drawn ``block`` rows at a time: besides the uint8 route, memory is ``O(block x dim)`` (the
+    whole float64 noise of 10^6 x 2,048 places was 16 GB).
+    """
     rng = np.random.default_rng(seed)
-    z = np.empty((n_ref, dim), np.float32)
-    z[0] = rng.normal(0, 2.5, dim)
-    noise = rng.normal(0, 2.5 * math.sqrt(1 - 0.81), (n_ref, dim)).astype(np.float32)
-    for i in range(1, n_ref):
-        z[i] = 0.9 * z[i - 1] + noise[i]
-    ref = (127 + np.clip(np.round(z), -8, 8)).astype(np.uint8)
+    ref = np.empty((n_ref, dim), np.uint8)
+    z = rng.normal(0, 2.5, dim).astype(np.float32)
+    for r0 in range(0, n_ref, block):
+        noise = rng.normal(0, 2.5 * math.sqrt(1 - 0.81),
+                           (min(block, n_ref - r0), dim)).astype(np.float32)
+        rows = np.empty_like(noise)
+        for i in range(len(noise)):
+            if r0 + i:  # the first place is z itself
+                z = 0.9 * z + noise[i]
+            rows[i] = z
+        ref[r0:r0 + len(rows)] = 127 + np.clip(np.round(rows), -8, 8)
     first = n_ref // 3
     query = np.clip(ref[first:first + n_query].astype(np.float32)
                     + np.round(rng.normal(0, 1.5, (n_query, dim))), 119, 135).astype(np.float32)
