@@ -196,3 +196,147 @@ def test_map_verify_checks_values(tmp_path, capsys):
         load_map(m.path).verify()
     assert cli(["verify", str(m.path)]) == 2
     assert "shard-00001.npy: holds NaN" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ descriptors (items 7-12)
+
+h5py = pytest.importorskip("h5py", reason="HDF5 descriptors need h5py (torchseq[hdf5])")
+
+from torchseq.descriptors import (  # noqa: E402
+    DescriptorError,
+    describe,
+    descriptor_kind,
+    load_descriptors,
+)
+
+X = np.random.default_rng(0).normal(0, 1, (6, 4))
+
+
+@pytest.mark.parametrize("dtype", [">f4", ">f8", ">i2"])
+def test_big_endian_descriptors_load(tmp_path, dtype):
+    np.save(tmp_path / "d.npy", X.astype(dtype))
+    got = load_descriptors(tmp_path / "d.npy")
+    np.testing.assert_array_equal(got.numpy(), X.astype(dtype).astype(got.numpy().dtype))
+
+
+def test_long_double_descriptors_are_refused(tmp_path):
+    np.save(tmp_path / "d.npy", X.astype(np.longdouble))
+    with pytest.raises(DescriptorError, match="d.npy: dtype float128 is not a number type"):
+        load_descriptors(tmp_path / "d.npy")
+
+
+def test_hdf5_declared_size_is_checked_before_reading(tmp_path):
+    with h5py.File(tmp_path / "d.h5", "w") as f:
+        f.create_dataset("descriptors", shape=(2 ** 20, 2 ** 16), dtype="f4")  # nothing stored
+    assert (tmp_path / "d.h5").stat().st_size < 4096
+    with pytest.raises(DescriptorError, match="d.h5: dataset /descriptors declares 274877906944 "
+                                              "bytes but the file stores 0"):
+        load_descriptors(tmp_path / "d.h5")
+
+
+@pytest.mark.parametrize("link", ["dangling", "external", "loop"])
+def test_hdf5_links_are_descriptor_errors(tmp_path, link):
+    with h5py.File(tmp_path / "d.h5", "w") as f:
+        if link == "dangling":
+            f["descriptors"] = h5py.SoftLink("/nowhere")
+        elif link == "external":
+            f["descriptors"] = h5py.ExternalLink("other.h5", "/x")
+        else:
+            f["a"], f["b"] = h5py.SoftLink("/b"), h5py.SoftLink("/a")
+            f["descriptors"] = h5py.SoftLink("/a")
+    with pytest.raises(DescriptorError, match="d.h5: 'descriptors' is a (Soft|External)Link"):
+        load_descriptors(tmp_path / "d.h5")
+
+
+def test_damaged_hdf5_heap_is_a_descriptor_error(tmp_path):
+    with h5py.File(tmp_path / "d.h5", "w") as f:
+        f["descriptors"] = X.astype("f4")
+    data = bytearray((tmp_path / "d.h5").read_bytes())
+    heap = data.find(b"HEAP")
+    assert heap > 0
+    data[heap + 4:heap + 40] = b"\xff" * 36
+    (tmp_path / "d.h5").write_bytes(bytes(data))
+    with pytest.raises(DescriptorError, match="d.h5"):
+        load_descriptors(tmp_path / "d.h5")
+
+
+def test_gfeat_symlink_loop_is_a_descriptor_error(tmp_path):
+    (tmp_path / "global_features.txt").write_text("x, float32, 4, L2\n")
+    X[0].astype("f4").tofile(tmp_path / "a.gfeat")
+    (tmp_path / "b.gfeat").symlink_to(tmp_path / "b.gfeat")
+    with pytest.raises(DescriptorError, match="b.gfeat: cannot read"):
+        load_descriptors(tmp_path)
+
+
+@pytest.mark.parametrize("metric", ["l1", "l2", "cosine"])
+def test_huge_descriptors_are_refused_not_matched(metric):
+    from torchseq.seqslam import SeqSLAM
+
+    ref = torch.tensor(X, dtype=torch.float32).repeat(4, 1) * 1e19
+    with pytest.raises(ValueError, match="reference descriptors hold values up to .*rescale"):
+        SeqSLAM(SeqSLAMConfig(metric=metric, ds=4)).match_descriptors(ref, ref)
+
+
+def test_only_member_layouts_are_descriptors_for_eval_too(tmp_path):
+    np.savez(tmp_path / "only.npz", feats=X.astype("f4"))
+    with h5py.File(tmp_path / "only.h5", "w") as f:
+        f["feats"] = X.astype("f4")
+    for name in ("only.npz", "only.h5"):
+        assert descriptor_kind(tmp_path / name) in ("npz", "hdf5")
+        assert load_descriptors(tmp_path / name).shape == (6, 4)
+    np.savez(tmp_path / "events.npz", events=X.astype("f4"))  # an event file's name: not taken
+    assert descriptor_kind(tmp_path / "events.npz") is None
+
+
+def test_eval_reads_an_only_member_npz_as_descriptors(tmp_path):
+    import torchseq.cli.eval as cli_eval
+
+    rng = np.random.default_rng(1)
+    ref = rng.normal(0, 1, (40, 16)).astype("f4")
+    np.savez(tmp_path / "ref.npz", feats=ref)
+    np.savez(tmp_path / "qry.npz", feats=ref + rng.normal(0, 0.01, ref.shape).astype("f4"))
+    assert cli_eval.main(["--reference", str(tmp_path / "ref.npz"), "--query",
+                          str(tmp_path / "qry.npz"), "--engine", "seqslam", "--ds", "4",
+                          "--out", str(tmp_path / "run"), "--no-progress",
+                          "--no-tensorboard"]) == 0
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["seqslam"]["parameters"]["metric"] == "l1"  # ran on the (40, 16) arrays
+    assert (tmp_path / "run" / "matches.csv").read_text().count("\n") == 41
+
+
+@pytest.mark.parametrize("out", [None, "abc", {"a": 1}, np.zeros((1, 3), np.longdouble)])
+def test_hook_output_of_the_wrong_kind_is_a_descriptor_error(out):
+    with pytest.raises(DescriptorError, match="descriptor hook"):
+        describe([np.zeros((4, 4))], lambda x: out)
+
+
+def test_hook_big_endian_output_is_read():
+    got = describe([np.zeros((4, 4))], lambda x: np.ones((1, 3), ">f4"))
+    assert got.tolist() == [[1.0, 1.0, 1.0]]
+
+
+# ------------------------------------------------------------------ arrays (items 19, 20)
+
+from torchseq.sources import TraverseError, load_traverse  # noqa: E402
+
+
+@pytest.mark.parametrize("dtype", [">f4", ">u2", np.longdouble])
+def test_frame_arrays_of_any_byte_order_or_refused_dtype(tmp_path, dtype):
+    frames = np.random.default_rng(0).integers(0, 255, (3, 8, 8)).astype(dtype)
+    np.save(tmp_path / "f.npy", frames)
+    if dtype == np.longdouble:
+        with pytest.raises(TraverseError, match="f.npy: dtype float128 is not a number type"):
+            load_traverse(tmp_path / "f.npy")
+    else:
+        got = load_traverse(tmp_path / "f.npy")
+        np.testing.assert_array_equal(got.numpy(), frames.astype(np.float32))
+
+
+def test_npz_zip_features_zipfile_lacks_are_refused(tmp_path):
+    np.savez(tmp_path / "d.npz", descriptors=X.astype("f4"))
+    data = bytearray((tmp_path / "d.npz").read_bytes())
+    central = data.find(b"PK\x01\x02")
+    data[central + 6] = 100  # "needs zip 10.0 to extract": NotImplementedError in zipfile
+    (tmp_path / "d.npz").write_bytes(bytes(data))
+    with pytest.raises(DescriptorError, match="d.npz: not a readable .npz archive .*version"):
+        load_descriptors(tmp_path / "d.npz")

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from torchseq._checks import torch_numbers
 from torchseq.npyfile import load_npy, load_npz_member, npy_header, npz_members
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
@@ -373,6 +374,8 @@ def frames_from_array(array: np.ndarray | torch.Tensor, name: str = "array") -> 
     """Check and convert a ``(T, H, W)`` or ``(T, H, W, 3)`` RGB array to grey float32 frames."""
     from torchseq.preprocess import to_grey
 
+    if isinstance(array, np.ndarray):
+        array = torch_numbers(array, name, TraverseError)
     x = torch.as_tensor(array)
     if x.dim() not in (3, 4) or (x.dim() == 4 and x.shape[-1] != 3):
         raise TraverseError(f"{name} must be (T, H, W) or (T, H, W, 3), got {tuple(x.shape)}")

@@ -54,6 +54,7 @@ against 7.9-10.4 s for the float32 thermometer product at 3,576^2, D = 2,048, on
 from __future__ import annotations
 
 import importlib.util
+import math
 
 import torch
 
@@ -344,6 +345,16 @@ def check_descriptors(reference: torch.Tensor, query: torch.Tensor) -> None:
     check_shape(query, ("Q", reference.shape[1]), "query descriptors")
     check_finite(reference, "reference descriptors")
     check_finite(query, "query descriptors")
+    dtype = reference.dtype if reference.is_floating_point() else torch.float32
+    # the largest difference (2 |x| D under l1) squared, summed over a contrast window,
+    # must stay finite: else l2 overflows and l1/cosine match every query to one place
+    limit = math.sqrt(torch.finfo(dtype).max) / (2 * reference.shape[1] * 2**10)
+    for x, name in ((reference, "reference descriptors"), (query, "query descriptors")):
+        top = float(x.abs().max()) if x.is_floating_point() else 0.0
+        if top > limit:
+            raise ValueError(f"{name} hold values up to {top:.3g}, beyond the {limit:.3g} "
+                             f"{str(dtype)[6:]} differences of {reference.shape[1]} values "
+                             f"stay finite in: rescale them")
 
 
 def difference_matrix(
