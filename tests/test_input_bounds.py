@@ -340,3 +340,120 @@ def test_npz_zip_features_zipfile_lacks_are_refused(tmp_path):
     (tmp_path / "d.npz").write_bytes(bytes(data))
     with pytest.raises(DescriptorError, match="d.npz: not a readable .npz archive .*version"):
         load_descriptors(tmp_path / "d.npz")
+
+
+# ------------------------------------------------------------------ datasets (item 13)
+
+@pytest.mark.parametrize("opener", ["nordland", "vpr_bench", "brisbane_event"])
+def test_split_names_longer_than_a_file_name_are_dataset_errors(tmp_path, opener):
+    import torchseq.datasets as datasets
+
+    with pytest.raises(datasets.DatasetError, match="split 's{40}\\.\\.\\.' is not a folder"):
+        getattr(datasets, opener)(tmp_path, "s" * 300)
+    with pytest.raises(datasets.DatasetError, match="is not a folder or file name"):
+        getattr(datasets, opener)(tmp_path, None, "../up")
+
+
+# ------------------------------------------------------------------ event frames (14, 15, 22)
+
+from torchseq.events import EventFormatError, load_event_frames  # noqa: E402
+from torchseq.sources import EventFrameOptions  # noqa: E402
+
+AEDAT = "alex_walking_again.aedat"
+
+
+@pytest.fixture(scope="module")
+def aedat():
+    from conftest import shared_data
+
+    return shared_data("events", AEDAT)
+
+
+def test_a_filter_that_drops_every_event_is_said(aedat):
+    with pytest.raises(EventFormatError, match="no events left: the hot_pixel \\(0.01\\)"):
+        load_event_frames(aedat, hot_pixel=0.01)
+    with pytest.raises(TraverseError, match=f"{AEDAT}: no events left"):
+        load_traverse(aedat, EventFrameOptions(hot_pixel=0.01), progress=False)
+
+
+@pytest.mark.parametrize("option, value, field", [
+    ("window_ms", float("inf"), "window_ms"), ("window_ms", 1e300, "window_ms"),
+    ("anchor", -10 ** 36, "anchor"), ("frame_size", (8,), "frame_size"),
+    ("start_ms", 1e300, "start_ms"), ("duration_ms", float("nan"), "duration_ms"),
+])
+def test_event_frame_options_are_bounded(aedat, option, value, field):
+    with pytest.raises(ValueError, match=f"{field} must be"):
+        load_event_frames(aedat, **{option: value})
+    with pytest.raises(TraverseError, match=f"{AEDAT}: {field} must be"):
+        load_traverse(aedat, EventFrameOptions(**{option: value}), progress=False)
+
+
+def _flipped_aedat(path, bits):
+    """A 4,000-event AEDAT 2.0 cut of the DVS128 recording with two time bits flipped."""
+    from conftest import shared_data
+
+    src = shared_data("events", AEDAT).read_bytes()
+    i = 0
+    while src[i:i + 1] == b"#":
+        i = src.index(b"\n", i) + 1
+    body = bytearray(src[i:i + 8 * 4000])
+    for ev, bit in zip((1333, 2666), bits):
+        at = 8 * ev + 4  # big-endian int32 address, then the int32 time stamp
+        body[at:at + 4] = (int.from_bytes(body[at:at + 4], "big") ^ (1 << bit)).to_bytes(4, "big")
+    path.write_bytes(src[:i] + bytes(body))
+    return path
+
+
+@pytest.mark.filterwarnings("ignore:.*backward time steps")
+def test_mostly_empty_event_frames_are_bounded_by_the_events(tmp_path):
+    path = _flipped_aedat(tmp_path / "cut.aedat", (27, 26))  # 13,475 windows, 82 with events
+    with pytest.raises(TraverseError, match="cut.aedat: 13,475 frames of which 13,393 are "
+                                            "empty windows"):
+        load_traverse(path, progress=False)  # at sensor size: 0.8 GiB, 1.1 GB peak before
+    small = load_traverse(path, progress=False, size=(32, 64))  # 110 MB: kept
+    assert small.shape == (13475, 32, 64) and float(small[100:1000].abs().sum()) == 0
+
+
+# ------------------------------------------------------------------ Event-LAB (item 16)
+
+from torchseq.integrations.eventlab import (  # noqa: E402
+    EventLabError,
+    TorchseqBaseline,
+    resolve_settings,  # noqa: E402
+)
+
+
+@pytest.mark.parametrize("settings, field", [
+    (dict(engines=5), "engines"), (dict(seqslam=[1]), "seqslam"),
+    (dict(frame_size=["a", "b"]), "frame_size"), (dict(seqslam={"ds": 10 ** 9}), "ds"),
+    (dict(seqslam={"image_size": [10 ** 6, 10 ** 6]}), "image_size"),
+    (dict(neural={"hidden": "x"}), "neural settings"), (dict(hot_pixel=float("inf")),
+                                                        "hot_pixel"),
+    (dict(event_mode=["count"]), "event_mode"), ("x", "mapping"),
+])
+def test_eventlab_settings_of_the_wrong_type_are_the_adapters_error(settings, field):
+    with pytest.raises(EventLabError, match=field):
+        resolve_settings(settings)
+
+
+class _Sequence:
+    def __init__(self, path):
+        self.path = path
+
+    def get_dataset_info(self):
+        return {"dataset_name": "d", "sequence_name": "s", "hdf5_path": str(self.path)}
+
+
+@pytest.mark.parametrize("dataset_config, field", [
+    ({"dataset": {"resolution": ["a", "b"]}}, "dataset.resolution"),
+    ({"other": {"offset": {"s": float("inf")}}}, "other.offset.s"),
+    ({"other": {"offset": {"s": "soon"}}}, "other.offset.s"),
+    ({"format": {"data": {"timestamp_val": 5}}}, "timestamp_val"),
+])
+def test_eventlab_dataset_config_fields_are_checked(tmp_path, aedat, dataset_config, field):
+    class Baseline(TorchseqBaseline):
+        pass
+
+    b = Baseline(settings={}, outdir=str(tmp_path / "out"))
+    with pytest.raises(EventLabError, match=field):
+        b.format_data({}, dataset_config, _Sequence(aedat), _Sequence(aedat), 10.0)
