@@ -457,3 +457,93 @@ def test_eventlab_dataset_config_fields_are_checked(tmp_path, aedat, dataset_con
     b = Baseline(settings={}, outdir=str(tmp_path / "out"))
     with pytest.raises(EventLabError, match=field):
         b.format_data({}, dataset_config, _Sequence(aedat), _Sequence(aedat), 10.0)
+
+
+# ------------------------------------------------------------------ checkpoints (17, 21)
+
+from torchseq.neural import NeuralConfig, NeuralError, NeuralSeqSLAM  # noqa: E402
+from torchseq.neural.checkpoint import FORMAT, checksum  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    from conftest import coarse_units_expected
+
+    from torchseq.demo import make_demo
+
+    demo = make_demo(n_reference=40, size=(48, 64), seed=3)
+    model = NeuralSeqSLAM(NeuralConfig(hidden=256, n_output=20))  # units of 2 frames: search
+    with coarse_units_expected():
+        model.fit(demo.reference, log=False)
+    assert model.search is not None
+    path = tmp_path_factory.mktemp("ckpt") / "model.pt"
+    model.save(path)
+    return torch.load(path, weights_only=True), demo.query[:8]
+
+
+def _resealed(blob, tmp_path, **tensors):
+    sd = dict(blob["state_dict"], **tensors)
+    mutant = dict(blob, state_dict=sd)
+    mutant["checksum"] = checksum(FORMAT, mutant["config"], sd, mutant["extra"])
+    torch.save(mutant, tmp_path / "mutant.pt")
+    return tmp_path / "mutant.pt"
+
+
+def test_resealed_checkpoint_with_huge_ring_shift_is_refused(checkpoint, tmp_path):
+    blob, query = checkpoint
+    path = _resealed(blob, tmp_path, **{"ring.shift": blob["state_dict"]["ring.shift"] * 1e30})
+    with pytest.raises(NeuralError, match="mutant.pt: ring.shift has negative entries or rows "
+                                          "summing to more than 1"):
+        NeuralSeqSLAM.load(path)
+
+
+@pytest.mark.parametrize("name, change", [
+    ("unit_to_reference", lambda t: t.flip(0)),  # the unit search's spans, reversed
+    ("unit_to_reference", lambda t: t + 1),
+    ("unit_centre", lambda t: t + 5),
+    ("l3.mask", lambda t: t * 2), ("cohorts", lambda t: t * 0),
+    ("l3.weight", lambda t: t * 1e9),
+])
+def test_resealed_checkpoint_with_values_fit_cannot_make_is_refused(checkpoint, tmp_path, name,
+                                                                   change):
+    blob, _ = checkpoint
+    path = _resealed(blob, tmp_path, **{name: change(blob["state_dict"][name])})
+    with pytest.raises(NeuralError, match=f"mutant.pt: {name} .*not a fitted model's values"):
+        NeuralSeqSLAM.load(path)
+
+
+def test_resealed_checkpoint_of_fit_values_still_loads(checkpoint, tmp_path):
+    blob, query = checkpoint
+    path = _resealed(blob, tmp_path)
+    res = NeuralSeqSLAM.load(path).run(query)
+    assert torch.isfinite(res.activity).all()
+
+
+# ------------------------------------------------------------------ NIR read bound (item 18)
+
+def test_read_nir_is_bounded_in_time_and_memory(tmp_path, monkeypatch):
+    pytest.importorskip("nir", reason="the 'nir' package is absent: pip install 'torchseq[nir]'")
+    import time
+
+    import torchseq.export.nir_export as nir_export
+
+    class Slow:  # a read that libhdf5 would hold for minutes on a damaged file
+        @staticmethod
+        def read(path):
+            time.sleep(30)
+
+    class Greedy:
+        @staticmethod
+        def read(path):
+            return bytearray(8 << 30)
+
+    (tmp_path / "model.nir").write_bytes(b"\x89HDF\r\n\x1a\n")
+    monkeypatch.setattr(nir_export, "READ_SECONDS", 1.0, raising=False)
+    monkeypatch.setattr(nir_export, "require_nir", lambda: Slow)
+    start = time.monotonic()
+    with pytest.raises(nir_export.NIRExportError, match="model.nir: .*took more than 1 s"):
+        nir_export.read_nir(tmp_path / "model.nir")
+    assert time.monotonic() - start < 10
+    monkeypatch.setattr(nir_export, "require_nir", lambda: Greedy)
+    with pytest.raises(nir_export.NIRExportError, match="model.nir: .*needs more than 2048 MiB"):
+        nir_export.read_nir(tmp_path / "model.nir")
