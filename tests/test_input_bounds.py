@@ -271,10 +271,21 @@ def test_gfeat_symlink_loop_is_a_descriptor_error(tmp_path):
 @pytest.mark.parametrize("metric", ["l1", "l2", "cosine"])
 def test_huge_descriptors_are_refused_not_matched(metric):
     from torchseq.seqslam import SeqSLAM
+    from torchseq.seqslam.candidates import CandidateSeqSLAM
+    from torchseq.seqslam.streaming import StreamingSeqSLAM
 
-    ref = torch.tensor(X, dtype=torch.float32).repeat(4, 1) * 1e19
+    ref = torch.tensor(X, dtype=torch.float32).repeat(4, 1)
+    config = SeqSLAMConfig(metric=metric, ds=4)
     with pytest.raises(ValueError, match="reference descriptors hold values up to .*rescale"):
-        SeqSLAM(SeqSLAMConfig(metric=metric, ds=4)).match_descriptors(ref, ref)
+        SeqSLAM(config).match_descriptors(ref * 1e19, ref)
+    with pytest.raises(ValueError, match="query descriptors hold values up to .*rescale"):
+        SeqSLAM(config).match_descriptors(ref, ref * 1e19)
+    with pytest.raises(ValueError, match="reference descriptors hold values up to"):
+        CandidateSeqSLAM(ref * 1e19, config, 4)
+    with pytest.raises(ValueError, match="query descriptors hold values up to"):
+        CandidateSeqSLAM(ref, config, 4).match_descriptors(ref * 1e19)
+    with pytest.raises(ValueError, match="reference descriptors hold values up to"):
+        StreamingSeqSLAM(ref * 1e19, config, descriptors=True)
 
 
 def test_only_member_layouts_are_descriptors_for_eval_too(tmp_path):

@@ -345,16 +345,25 @@ def check_descriptors(reference: torch.Tensor, query: torch.Tensor) -> None:
     check_shape(query, ("Q", reference.shape[1]), "query descriptors")
     check_finite(reference, "reference descriptors")
     check_finite(query, "query descriptors")
-    dtype = reference.dtype if reference.is_floating_point() else torch.float32
-    # the largest difference (2 |x| D under l1) squared, summed over a contrast window,
-    # must stay finite: else l2 overflows and l1/cosine match every query to one place
-    limit = math.sqrt(torch.finfo(dtype).max) / (2 * reference.shape[1] * 2**10)
-    for x, name in ((reference, "reference descriptors"), (query, "query descriptors")):
-        top = float(x.abs().max()) if x.is_floating_point() else 0.0
-        if top > limit:
-            raise ValueError(f"{name} hold values up to {top:.3g}, beyond the {limit:.3g} "
-                             f"{str(dtype)[6:]} differences of {reference.shape[1]} values "
-                             f"stay finite in: rescale them")
+    check_magnitude(reference, "reference descriptors")
+    check_magnitude(query, "query descriptors")
+
+
+def check_magnitude(x: torch.Tensor, name: str) -> None:
+    """Raise ``ValueError`` when ``(N, D)`` descriptors are too large to difference.
+
+    The largest difference (``2 |x| D`` under l1) squared and summed over a contrast window
+    must stay finite in ``x``'s dtype (float32 for integers): beyond it l2 overflows and l1
+    and cosine match every query to one place.
+    """
+    if not x.is_floating_point() or x.numel() == 0:
+        return
+    limit = math.sqrt(torch.finfo(x.dtype).max) / (2 * x.shape[-1] * 2**10)
+    top = float(x.abs().max())
+    if top > limit:
+        raise ValueError(f"{name} hold values up to {top:.3g}, beyond the {limit:.3g} "
+                         f"{str(x.dtype)[6:]} differences of {x.shape[-1]} values stay "
+                         f"finite in: rescale them")
 
 
 def difference_matrix(
