@@ -40,6 +40,21 @@ def check_not_empty(x: torch.Tensor, name: str = "input") -> None:
         raise ValueError(f"{name} is empty (shape {tuple(x.shape)})")
 
 
+def torch_numbers(x: np.ndarray, name: str, error: type[Exception] = TypeError) -> np.ndarray:
+    """``x`` in native byte order, refused unless its dtype is one torch holds.
+
+    Numbers and bools of at most 8 bytes (complex: 16) pass; a big-endian array is copied to
+    native order (torch refuses other byte orders); structured, text, date, object and
+    long-double arrays raise ``error`` naming ``name`` and the dtype.
+    """
+    kind, size = x.dtype.kind, x.dtype.itemsize
+    if x.dtype.names is not None or kind not in "biufc" or size > (16 if kind == "c" else 8):
+        raise error(f"{name}: dtype {x.dtype} is not a number type torch holds")
+    if not x.dtype.isnative:
+        x = x.astype(x.dtype.newbyteorder("="))
+    return x
+
+
 def as_frames(x: torch.Tensor | np.ndarray, name: str = "frames") -> torch.Tensor:
     """A traverse of frames as a tensor: a tensor as it is, a NumPy array as one.
 
@@ -52,6 +67,7 @@ def as_frames(x: torch.Tensor | np.ndarray, name: str = "frames") -> torch.Tenso
     if isinstance(x, np.ndarray):
         if not (np.issubdtype(x.dtype, np.number) or x.dtype == np.bool_):
             raise TypeError(f"{name} must hold numbers, got a NumPy array of {x.dtype}")
+        x = torch_numbers(x, name)
         if not (x.flags.c_contiguous and x.flags.writeable):
             x = np.array(x, order="C")  # torch cannot wrap negative strides or read-only memory
         return torch.from_numpy(x)

@@ -125,6 +125,21 @@ def _root(name: str, root, layout: str) -> Path:
     return root
 
 
+MAX_SPLIT_NAME = 200  # bytes: a split or traverse name plus the layout's suffixes fits a name
+
+
+def _splits(name: str, given: tuple, defaults: tuple[str, str]) -> tuple[str, str]:
+    """The two split (or traverse) names, each one plain file name component."""
+    splits = tuple(g or d for g, d in zip(given, defaults))
+    for s in splits:
+        if (not isinstance(s, str) or s in (".", "..") or "/" in s or "\0" in s
+                or len(s.encode("utf-8", "surrogateescape")) > MAX_SPLIT_NAME):
+            shown = s if not isinstance(s, str) or len(s) < 60 else s[:40] + "..."
+            raise DatasetError(f"{name}: split {shown!r} is not a folder or file name (one "
+                               f"name of at most {MAX_SPLIT_NAME} bytes)")
+    return splits
+
+
 def _folder(name: str, root: Path, split: str, layout: str) -> FrameFolder:
     path = root / split
     if not path.is_dir():
@@ -140,7 +155,7 @@ def _folder(name: str, root: Path, split: str, layout: str) -> FrameFolder:
 def _aligned(name: str, root, reference_split: str | None, query_split: str | None,
              tolerance: float | None, defaults: tuple[str, str], layout: str) -> PlaceDataset:
     root = _root(name, root, layout)
-    splits = (reference_split or defaults[0], query_split or defaults[1])
+    splits = _splits(name, (reference_split, query_split), defaults)
     ref, query = (_folder(name, root, s, layout) for s in splits)
     if len(ref) != len(query):
         raise DatasetError(f"{name}: {splits[0]} has {len(ref)} images and {splits[1]} "
@@ -179,7 +194,7 @@ def vpr_bench(root, reference_split: str | None = None, query_split: str | None 
     """A dataset in VPR-Bench's layout (``ref/``, ``query/``, its ground-truth file)."""
     name = "vpr-bench"
     root = _root(name, root, VPR_BENCH_LAYOUT)
-    splits = (reference_split or "ref", query_split or "query")
+    splits = _splits(name, (reference_split, query_split), ("ref", "query"))
     ref, query = (_folder(name, root, s, VPR_BENCH_LAYOUT) for s in splits)
     truth = next((root / f for f in VPR_BENCH_TRUTH if (root / f).is_file()), None)
     if truth is None:
@@ -311,7 +326,7 @@ def brisbane_event(root, reference_split: str | None = None, query_split: str | 
     """
     name = "brisbane-event"
     root = _root(name, root, BRISBANE_LAYOUT)
-    splits = (reference_split or "sunset1", query_split or "night")
+    splits = _splits(name, (reference_split, query_split), ("sunset1", "night"))
     events = events or EventFrameOptions()
     if events.event_count is not None or events.anchor != "first":
         raise DatasetError(f"{name}: GPS ground truth needs time windows from the first "

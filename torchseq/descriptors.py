@@ -33,12 +33,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchseq.npyfile import load_npy, load_npz_member, npy_header, npz_members
+from torchseq._checks import torch_numbers
+from torchseq.npyfile import (
+    load_npy,
+    load_npz_member,
+    npy_header,
+    npz_member_header,
+    npz_members,
+)
 from torchseq.sources import TraverseError, natural_key
 
 DESCRIPTOR_KEY = "descriptors"
 KAPTURE_HEADER = "global_features.txt"
 KAPTURE_SUFFIX = ".gfeat"
+EVENTS_KEY = "events"  # an event file's array: never taken as the only descriptor array
+H5_ERRORS = (OSError, KeyError, RuntimeError, ValueError, TypeError)  # links, heaps, filters
 LAYOUTS = ("a (T, D) .npy; an .npz or HDF5 file with a 'descriptors' array; or a folder of "
            "VPR-methods-evaluation .gfeat files under a global_features.txt")
 
@@ -52,7 +61,9 @@ def as_descriptors(array, name: str = "descriptors") -> torch.Tensor:
 
     float64 stays float64; every other numeric type becomes float32.
     """
-    x = torch.as_tensor(np.asarray(array) if not isinstance(array, torch.Tensor) else array)
+    if not isinstance(array, torch.Tensor):
+        array = torch_numbers(np.asarray(array), name, DescriptorError)
+    x = torch.as_tensor(array)
     if x.dim() != 2:
         raise DescriptorError(f"{name} must be (T, D), got {tuple(x.shape)}")
     if x.shape[0] == 0 or x.shape[1] == 0:
@@ -73,20 +84,48 @@ def _h5py():
     return h5py
 
 
+def _h5_dataset(f, h5py, path: Path):
+    """The ``descriptors`` dataset of an open HDF5 file (or its only 2-D one), or None.
+
+    ``descriptors`` must be stored in the file (a hard link): a soft or external link is
+    refused. Other datasets are found through hard links only.
+    """
+    link = f.get(DESCRIPTOR_KEY, getlink=True)
+    if link is not None:
+        if not isinstance(link, h5py.HardLink):
+            raise DescriptorError(f"{path}: '{DESCRIPTOR_KEY}' is a {type(link).__name__}, "
+                                  f"not a dataset stored in the file")
+        if isinstance(f[DESCRIPTOR_KEY], h5py.Dataset):
+            return f[DESCRIPTOR_KEY]
+    found = []
+    f.visititems(lambda n, o: found.append(o) if isinstance(o, h5py.Dataset) else None)
+    if (len(found) == 1 and found[0].ndim == 2 and found[0].dtype.names is None
+            and found[0].name != "/" + EVENTS_KEY):
+        return found[0]
+    return None
+
+
 def _h5_descriptors(path: Path) -> np.ndarray | None:
-    """The ``descriptors`` dataset (or the only dataset, when 2-D) of an HDF5 file, or None."""
+    """The ``descriptors`` dataset (or the only dataset, when 2-D) of an HDF5 file, or None.
+
+    The dataset's declared size is checked against the bytes the file stores before it is
+    read (``events.hdf5.check_storage``).
+    """
+    from torchseq.events.hdf5 import check_storage
+
     h5py = _h5py()
     try:
         with h5py.File(path, "r") as f:
-            if DESCRIPTOR_KEY in f and isinstance(f[DESCRIPTOR_KEY], h5py.Dataset):
-                return np.asarray(f[DESCRIPTOR_KEY][()])
-            found = []
-            f.visititems(lambda n, o: found.append(o) if isinstance(o, h5py.Dataset) else None)
-            if len(found) == 1 and found[0].ndim == 2:
-                return np.asarray(found[0][()])
-    except OSError as err:
-        raise DescriptorError(f"{path}: cannot read HDF5 ({err})") from None
-    return None
+            d = _h5_dataset(f, h5py, path)
+            if d is None:
+                return None
+            check_storage(d, str(path), DescriptorError)
+            return np.asarray(d[()])
+    except DescriptorError:
+        raise
+    except H5_ERRORS as err:
+        raise DescriptorError(f"{path}: cannot read HDF5 ({str(err).splitlines()[0][:200]})"
+                              ) from None
 
 
 def _kapture_folder(folder: Path) -> tuple[list[Path], np.dtype, int] | None:
@@ -132,14 +171,27 @@ def descriptor_kind(path: str | Path) -> str | None:
         shape, dtype = npy_header(path, DescriptorError)
         return "npy" if len(shape) == 2 and dtype.names is None else None
     if suffix == ".npz":
-        return "npz" if DESCRIPTOR_KEY in npz_members(path, DescriptorError) else None
+        return "npz" if _npz_key(path) is not None else None
     if suffix in (".h5", ".hdf5"):
         h5py = _h5py()
         try:
             with h5py.File(path, "r") as f:
-                return "hdf5" if DESCRIPTOR_KEY in f else None
-        except OSError:
-            return None
+                return "hdf5" if _h5_dataset(f, h5py, path) is not None else None
+        except H5_ERRORS:
+            return None  # not descriptors: the event readers say what the file is
+    return None
+
+
+def _npz_key(path: Path) -> str | None:
+    """The member descriptors are read from: ``descriptors``, or the only one when 2-D."""
+    members = npz_members(path, DescriptorError)
+    if DESCRIPTOR_KEY in members:
+        return DESCRIPTOR_KEY
+    if len(members) == 1 and EVENTS_KEY not in members:
+        key = next(iter(members))
+        header = npz_member_header(path, key, DescriptorError)
+        if len(header.shape) == 2 and header.dtype.names is None:
+            return key
     return None
 
 
@@ -158,24 +210,29 @@ def load_descriptors(path: str | Path) -> torch.Tensor:
         raise DescriptorError(f"no such file or folder: {path}")
     suffix = path.suffix.lower()
     if path.is_dir():
-        kapture = _kapture_folder(path)
+        try:
+            kapture = _kapture_folder(path)
+        except OSError as err:
+            raise DescriptorError(f"{path}: cannot read ({err})") from None
         if kapture is None:
             raise DescriptorError(f"{path}: no descriptors; expected {LAYOUTS}")
         files, dtype, dsize = kapture
         rows = []
         for f in files:
-            v = np.fromfile(f, dtype=dtype)
-            if v.size != dsize:
-                raise DescriptorError(f"{f}: {v.size} values, the header says {dsize}")
-            rows.append(v)
+            try:
+                if f.stat().st_size != dsize * dtype.itemsize:  # checked before it is read
+                    raise DescriptorError(f"{f}: {f.stat().st_size} bytes, the header says "
+                                          f"{dsize} values of {dtype}")
+                rows.append(np.fromfile(f, dtype=dtype))
+            except OSError as err:
+                raise DescriptorError(f"{f}: cannot read ({err.strerror or err})") from None
         return as_descriptors(np.stack(rows), str(path))
     if suffix == ".npy":
         array = load_npy(path, DescriptorError)
     elif suffix == ".npz":
-        members = npz_members(path, DescriptorError)
-        key = DESCRIPTOR_KEY if DESCRIPTOR_KEY in members else (
-            next(iter(members)) if len(members) == 1 else None)
+        key = _npz_key(path)
         if key is None:
+            members = npz_members(path, DescriptorError)
             raise DescriptorError(f"{path}: no '{DESCRIPTOR_KEY}' array among "
                                   f"{', '.join(sorted(members))}; expected {LAYOUTS}")
         array = load_npz_member(path, key, DescriptorError)
@@ -267,7 +324,13 @@ def describe(frames: Iterable, hook: Callable[[torch.Tensor], torch.Tensor],
     def flush() -> None:
         x = torch.stack(pending).to(device)
         with torch.inference_mode():
-            y = torch.as_tensor(hook(x))
+            y = hook(x)
+        if isinstance(y, np.ndarray):
+            y = torch.from_numpy(torch_numbers(y, "the descriptor hook's output",
+                                               DescriptorError))
+        if not isinstance(y, torch.Tensor):
+            raise DescriptorError(f"the descriptor hook must return a ({len(pending)}, D) "
+                                  f"tensor or array, got {type(y).__name__}")
         if y.dim() != 2 or y.shape[0] != len(pending):
             raise DescriptorError(f"the descriptor hook must map ({len(pending)}, H, W) "
                                   f"frames to ({len(pending)}, D), got {tuple(y.shape)}")

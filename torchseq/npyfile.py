@@ -214,7 +214,7 @@ def npz_members(path: str | Path, error: type[Exception]) -> dict[str, zipfile.Z
     try:
         with zipfile.ZipFile(path) as z:
             infos = z.infolist()
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError) as err:
+    except ZIP_ERRORS as err:  # also zip features zipfile does not implement
         raise error(f"{path}: not a readable .npz archive ({err})") from None
     return {i.filename[:-4] if i.filename.endswith(".npy") else i.filename: i for i in infos}
 
@@ -240,6 +240,20 @@ def read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, path, error: type[Ex
         header = read_header(f, path, error, where)
         nbytes = check_size(header, limit - header.size, path, error, where, f"member {name}")
         return read_data(f, header, nbytes, path, error, where)
+
+
+def npz_member_header(path: str | Path, name: str, error: type[Exception]) -> NpyHeader:
+    """The checked ``.npy`` header of one member of an ``.npz`` (its data is not read)."""
+    path = Path(path)
+    info = npz_members(path, error)[name]
+    try:
+        with zipfile.ZipFile(path) as z, z.open(info) as f:
+            return read_header(f, f"{path}[{name}]", error, info.header_offset)
+    except ZIP_ERRORS as err:
+        if isinstance(err, error):
+            raise
+        raise fail(error, f"{path}[{name}]", info.header_offset,
+                   f"damaged archive member ({err})") from None
 
 
 def load_npz_member(path: str | Path, name: str, error: type[Exception]) -> np.ndarray:

@@ -15,6 +15,7 @@ from torchseq.cli.presets import preset_help
 from torchseq.cli.runs import to_jsonable
 from torchseq.neural import NeuralConfig
 from torchseq.seqslam import SeqSLAMConfig
+from torchseq.seqslam.config import LIMITS as SEQSLAM_FIELD_LIMITS
 
 ENGINES = ("seqslam", "neural", "both")
 
@@ -130,12 +131,7 @@ LIMITS = {
 }
 
 
-SEQSLAM_LIMITS = {
-    "patch_size": (0, 4096), "enhance_window": (0, 10 ** 6), "ds": (2, 10 ** 5),
-    "vmin": (1e-3, 1e3), "vmax": (1e-3, 1e3), "speed_ratio": (1e-3, 1e3),
-    "speed_tolerance": (0.0, 1.0), "rwindow": (0, 10 ** 6), "top_k": (1, 1000),
-    "max_chunk_elements": (1, 2 ** 40), "candidates": (0, 10 ** 6),
-}
+SEQSLAM_LIMITS = SEQSLAM_FIELD_LIMITS  # SeqSLAMConfig.validate holds every path to them
 
 
 @dataclass

@@ -147,12 +147,12 @@ def run_build(cfg: MapBuildConfig) -> int:
 def run_verify(path: str) -> int:
     """``torchseq map verify MAP``: check every file; print what the map holds."""
     m = ReferenceMap(path)
-    m.verify()
+    checked = m.verify()
     src = m.reference.get("source", "?")
     print(f"{path}: map format {m.manifest['format']}/{m.manifest['version']}, "
           f"{m.n_places} places x {m.dim} ({m.dtype}), {len(m.shards)} shard(s), index "
-          f"{(m.manifest['index'] or {}).get('kind', 'none')}; reference {src}: all files "
-          f"intact")
+          f"{(m.manifest['index'] or {}).get('kind', 'none')}; reference {src}: intact "
+          f"({checked} checked)")
     return 0
 
 

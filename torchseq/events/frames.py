@@ -33,6 +33,7 @@ from torchseq.events.stream import (
 )
 
 MODES = ("signed", "two_channel", "binary", "count")
+MAX_TIME_US = 2**62  # an int anchor (sensor time, us) lies within +-this: int64 with room
 MAX_FRAME_ELEMENTS = 2**32  # bound on T * C * H * W of one accumulation (16 GiB float32)
 # bound on C * H * W of one frame as built (64 MiB float32): 16x the largest event sensors
 # made (1280x960, two channels); a header declaring a 32768x32768 sensor is refused
@@ -66,8 +67,10 @@ def window_origin(t: np.ndarray, anchor: str | int = "first") -> int:
         if anchor == "zero":
             return 0
         raise ValueError(f"anchor must be 'first', 'zero' or an int time in us, got {anchor!r}")
-    if isinstance(anchor, bool) or not isinstance(anchor, numbers.Integral):
-        raise ValueError(f"anchor must be 'first', 'zero' or an int time in us, got {anchor!r}")
+    if (isinstance(anchor, bool) or not isinstance(anchor, numbers.Integral)
+            or not -MAX_TIME_US <= anchor <= MAX_TIME_US):
+        raise ValueError(f"anchor must be 'first', 'zero' or an int time in us within "
+                         f"+-2**62, got {anchor!r}")
     return int(anchor)
 
 
@@ -214,6 +217,10 @@ def accumulate_windows(events, sensor_size, window_us, event_count, mode, hot_pi
         keep = mask if keep is None else keep & mask
     if keep is not None:
         events = events[keep]
+        if len(events) == 0:
+            raise EventFormatError(f"no events left: the hot_pixel ({hot_pixel}) and "
+                                   f"refractory_us ({refractory_us}) filters dropped all "
+                                   f"{len(keep):,}")
     channels = 2 if mode == "two_channel" else 1
     out_h, out_w, fh, fw = h, w, 1, 1
     if downsample is not None:

@@ -97,20 +97,21 @@ def _locate(f, group: str | None, h5py, columns=None):
 def _event_length(d, where: str) -> int:
     if d.ndim < 1 or (d.ndim == 2 and (d.dtype.names or d.shape[1] != 4)) or d.ndim > 2:
         raise EventFormatError(f"{where}: dataset {d.name} has shape {d.shape}")
-    _check_storage(d, where)
+    check_storage(d, where)
     return int(d.shape[0])
 
 
-def _check_storage(d, where: str) -> None:
+def check_storage(d, where: str, error: type[Exception] = EventFormatError) -> None:
+    """Refuse an HDF5 dataset declaring more bytes than the file stores (or can inflate to)."""
     declared = int(np.prod(d.shape, dtype=np.float64) * d.dtype.itemsize)
     stored = int(d.id.get_storage_size())
     filtered = d.chunks is not None and d.id.get_create_plist().get_nfilters() > 0
     if declared and not filtered and stored < declared:
-        raise EventFormatError(f"{where}: dataset {d.name} declares {declared} bytes but the file "
-                               f"stores {stored}")
+        raise error(f"{where}: dataset {d.name} declares {declared} bytes but the file "
+                    f"stores {stored}")
     if declared and filtered and declared > MAX_EXPANSION * stored + 4096:
-        raise EventFormatError(f"{where}: dataset {d.name} declares {declared} bytes from "
-                               f"{stored} stored (more than {MAX_EXPANSION}x)")
+        raise error(f"{where}: dataset {d.name} declares {declared} bytes from "
+                    f"{stored} stored (more than {MAX_EXPANSION}x)")
 
 
 def _size_from_attrs(*objs) -> tuple[int, int] | None:
@@ -269,7 +270,7 @@ def read_hdf5_positions(path: str | Path, group: str | None = None,
                     continue
                 pos, ts = g["positions"], g["timestamps"]
                 for d in (pos, ts):
-                    _check_storage(d, f"{path}:{g.name}")
+                    check_storage(d, f"{path}:{g.name}")
                 if pos.ndim != 2 or ts.ndim != 1 or pos.shape[0] != ts.shape[0]:
                     raise EventFormatError(f"{path}:{g.name}: positions {pos.shape} do not "
                                            f"match timestamps {ts.shape}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,13 @@ from torchseq.events.io import read_events
 from torchseq.events.stream import EventFormatError, EventStream
 
 TRAVERSE_MODES = ("count", "signed", "two_channel", "binary")
+MAX_TIME_MS = 2.0**52 / 1000  # windows, crops: at most 143 years, exact in int64 us
+
+
+def _time_ms(value, lo: float, closed: bool = False) -> bool:
+    """Whether ``value`` is a real number of ms in ``(lo, MAX_TIME_MS]`` (``[lo, ...]``)."""
+    return (isinstance(value, numbers.Real) and not isinstance(value, bool)
+            and (lo <= value if closed else lo < value) and value <= MAX_TIME_MS)
 
 
 def load_event_frames(path: str | Path, window_ms: float = 10.0, event_count: int | None = None,
@@ -133,12 +141,23 @@ def load_event_windows(path: str | Path, window_ms: float = 10.0,
     """
     if mode not in TRAVERSE_MODES:
         raise ValueError(f"mode must be one of {', '.join(TRAVERSE_MODES)}, got {mode!r}")
-    if event_count is None and not window_ms > 0:
-        raise ValueError(f"window_ms must be > 0, got {window_ms}")
-    if not (math.isfinite(start_ms) and start_ms >= 0):
-        raise ValueError(f"start_ms must be a finite time >= 0, got {start_ms}")
-    if duration_ms is not None and not (math.isfinite(duration_ms) and duration_ms > 0):
-        raise ValueError(f"duration_ms must be a finite time > 0, got {duration_ms}")
+    if event_count is None and not _time_ms(window_ms, 0):
+        raise ValueError(f"window_ms must be a time in (0, {MAX_TIME_MS:g}] ms, got "
+                         f"{window_ms!r}")
+    if event_count is not None and (isinstance(event_count, bool) or not isinstance(
+            event_count, numbers.Integral) or not 1 <= event_count <= MAX_TIME_MS):
+        raise ValueError(f"event_count must be an integer >= 1, got {event_count!r}")
+    if not _time_ms(start_ms, 0, True):
+        raise ValueError(f"start_ms must be a time in [0, {MAX_TIME_MS:g}] ms, got {start_ms!r}")
+    if duration_ms is not None and not _time_ms(duration_ms, 0):
+        raise ValueError(f"duration_ms must be a time in (0, {MAX_TIME_MS:g}] ms, got "
+                         f"{duration_ms!r}")
+    if frame_size is not None and (
+            not isinstance(frame_size, (tuple, list)) or len(frame_size) != 2
+            or not all(isinstance(v, numbers.Integral) and not isinstance(v, bool)
+                       and 1 <= v <= 2**16 for v in frame_size)):
+        raise ValueError(f"frame_size must be (H, W), two sizes of 1..65536, got "
+                         f"{frame_size!r}")
     if sensor_size is not None:
         sensor_size = sensor_wh(sensor_size)
     stream = read_events(path, sensor_size=sensor_size, sort=True, **options)

@@ -255,17 +255,75 @@ def graph_metadata(graph) -> dict:
     return {"units": units, "levels": levels, "dt": float(dt)}
 
 
+READ_SECONDS = 10.0  # a trial read's time; the largest ring's file reads in well under 1 s
+READ_BYTES = 2 << 30  # and the memory it may add
+
+
+def _trial_child(path: str, conn, limit: int) -> None:
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (limit, resource.getrlimit(resource.RLIMIT_AS)[1]))
+    try:
+        require_nir().read(path)
+        conn.send(None)
+    except MemoryError:
+        conn.send(f"reading it needs more than {READ_BYTES >> 20} MiB")
+    except Exception as err:  # noqa: BLE001 - reported by the parent's own read
+        conn.send(type(err).__name__)
+
+
+def _trial_read(path) -> str | None:
+    """Read ``path`` once in a child process bounded in time and memory; why it failed or None.
+
+    libhdf5 runs damaged files in C code no Python signal interrupts (one changed byte in a
+    variable-length string's heap address: 3 s and gigabytes inside ``nir.read``; the fuzz
+    found reads past 60 s), so the bound is a process: forked (nothing to import; spawned
+    where fork is missing), capped at ``READ_BYTES`` more address space, killed after
+    ``READ_SECONDS``. Only a file the child read is read here.
+    """
+    import multiprocessing as mp
+    import resource
+
+    method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+    ctx = mp.get_context(method)
+    used = int(open("/proc/self/statm").read().split()[0]) * resource.getpagesize() \
+        if Path("/proc/self/statm").is_file() else 0
+    hard = resource.getrlimit(resource.RLIMIT_AS)[1]
+    limit = used + READ_BYTES if hard == resource.RLIM_INFINITY else min(used + READ_BYTES, hard)
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_trial_child, args=(str(path), send, limit), daemon=True)
+    child.start()
+    send.close()
+    try:
+        if receive.poll(READ_SECONDS):
+            return receive.recv()
+        return f"reading it took more than {READ_SECONDS:g} s"
+    except EOFError:  # the child died without a word (killed for memory)
+        return f"reading it needs more than {READ_BYTES >> 20} MiB"
+    finally:
+        if child.is_alive():
+            child.kill()
+        child.join()
+        receive.close()
+
+
 def read_nir(path: str | Path):
     """``nir.read`` a file written by :func:`write_nir`, checking its format and metadata.
 
     The format tag must be this module's :data:`FORMAT`, and :func:`graph_metadata` must
     parse (units, levels, ``dt``, the ring's size).
 
+    The file is first read in a child process bounded in time and memory
+    (:func:`_trial_read`): a damaged HDF5 file can hold libhdf5 for minutes.
+
     Raises:
-        NIRExportError: not a readable NIR file, not one of ours, or metadata that cannot be
-            parsed.
+        NIRExportError: not a readable NIR file (or one whose read exceeds the bounds), not
+            one of ours, or metadata that cannot be parsed.
     """
     nir = require_nir()
+    failed = _trial_read(path)
+    if failed is not None:
+        raise NIRExportError(f"{path}: not a readable NIR file ({failed})")
     try:
         graph = nir.read(path)
     except Exception as err:  # noqa: BLE001 - h5py/nir raise many types on a bad file

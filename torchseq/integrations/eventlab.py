@@ -34,6 +34,8 @@ as Event-LAB's frame builder reads it) when the dataset gives one, else at the f
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 import os
 import sys
 from datetime import datetime, timezone
@@ -58,6 +60,15 @@ DEFAULTS = {
 UNITS = {"ns": "ns", "nanosecond": "ns", "nanoseconds": "ns", "us": "us", "microsecond": "us",
          "microseconds": "us", "ms": "ms", "millisecond": "ms", "milliseconds": "ms",
          "s": "s", "sec": "s", "second": "s", "seconds": "s"}
+EVENT_MODES = ("count", "signed", "binary")
+MAX_SIDE = 1 << 16  # resolution and frame_size sides
+MAX_OFFSET_S = 2.0**52 / 1e6  # other.offset: seconds that stay exact as int64 us
+
+
+class EventLabError(ValueError):
+    """Baseline settings or an Event-LAB dataset configuration this adapter cannot use."""
+
+
 BASELINE_FILE = '''"""torchseq (SeqSLAM, Neural SeqSLAM) as an Event-LAB baseline; written by
 torchseq.integrations.eventlab.write_baseline. Settings: baselines/torchseq.yaml."""
 from baselines.EventBaselineLab import EventBaseline
@@ -131,20 +142,25 @@ class TorchseqBaseline:
         s = self.baseline_config
         fmt = (dataset_config.get("format") or {}).get("data") or {}
         unit = fmt.get("timestamp_val")
-        if unit is not None and str(unit).strip().lower() not in UNITS:
-            raise ValueError(f"timestamp_val {unit!r}: torchseq reads ns, us, ms or s")
+        if unit is not None and (not isinstance(unit, str)
+                                 or unit.strip().lower() not in UNITS):
+            raise EventLabError(f"format.data.timestamp_val {unit!r}: torchseq reads ns, us, "
+                                f"ms or s")
         resolution = (dataset_config.get("dataset") or {}).get("resolution")
         offset = ((dataset_config.get("other") or {}).get("offset") or {}).get(
             info["sequence_name"])
         kwargs = {}
         if unit is not None:
-            kwargs["time_unit"] = UNITS[str(unit).strip().lower()]
+            kwargs["time_unit"] = UNITS[unit.strip().lower()]
         if resolution is not None:
-            kwargs["sensor_size"] = tuple(int(v) for v in resolution)
+            kwargs["sensor_size"] = _sides(resolution, "dataset.resolution")
         if s["frame_size"] is not None:
-            kwargs["frame_size"] = tuple(int(v) for v in s["frame_size"])
+            kwargs["frame_size"] = tuple(s["frame_size"])
         if s["hot_pixel"] is not None:
             kwargs["hot_pixel"] = float(s["hot_pixel"])
+        if offset is not None and not (_real(offset) and abs(offset) <= MAX_OFFSET_S):
+            raise EventLabError(f"other.offset.{info['sequence_name']} must be a time in "
+                                f"seconds within +-{MAX_OFFSET_S:g}, got {offset!r}")
         anchor = "first" if offset is None else int(round(float(offset) * 1e6))  # s -> us
         return load_event_frames(path, window_ms=float(timewindow), mode=s["event_mode"],
                                  anchor=anchor, **kwargs)
@@ -178,16 +194,55 @@ class TorchseqBaseline:
         """Nothing temporary is written outside the output folder."""
 
 
+def _real(v) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _sides(value, what: str) -> tuple[int, int]:
+    """Two sizes of 1..``MAX_SIDE`` (``[W, H]`` or ``[H, W]`` as the field says)."""
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(v, numbers.Integral) and not isinstance(v, bool)
+                       and 1 <= v <= MAX_SIDE for v in value)):
+        raise EventLabError(f"{what} must be two sizes of 1..{MAX_SIDE}, got {value!r}")
+    return int(value[0]), int(value[1])
+
+
 def resolve_settings(settings: dict) -> dict:
-    """:data:`DEFAULTS` with ``settings`` on top; unknown keys and engines are refused."""
+    """:data:`DEFAULTS` with ``settings`` on top, every field checked (types and bounds).
+
+    The engines' configs are built here too, so a bad ``seqslam`` or ``neural`` field is
+    refused before any recording is read.
+
+    Raises:
+        EventLabError: an unknown key or engine, or a field of the wrong type or range,
+            naming it.
+    """
+    if not isinstance(settings, dict):
+        raise EventLabError(f"torchseq baseline settings must be a mapping, got "
+                            f"{type(settings).__name__}")
     unknown = set(settings) - set(DEFAULTS)
     if unknown:
-        raise ValueError(f"unknown torchseq baseline settings {sorted(unknown)}; known: "
-                         f"{sorted(DEFAULTS)}")
+        raise EventLabError(f"unknown torchseq baseline settings {sorted(unknown)}; known: "
+                            f"{sorted(DEFAULTS)}")
     out = {**DEFAULTS, **settings}
-    bad = [e for e in out["engines"] if e not in ENGINES]
-    if bad or not out["engines"]:
-        raise ValueError(f"engines must be a non-empty list of {ENGINES}, got {out['engines']}")
+    engines = out["engines"]
+    if (not isinstance(engines, list) or not engines
+            or not all(isinstance(e, str) and e in ENGINES for e in engines)):
+        raise EventLabError(f"engines must be a non-empty list of {ENGINES}, got {engines!r}")
+    for key in ("seqslam", "neural"):
+        if out[key] is not None and not isinstance(out[key], dict):
+            raise EventLabError(f"{key} must be a mapping of config fields, got {out[key]!r}")
+    if out["event_mode"] not in EVENT_MODES:
+        raise EventLabError(f"event_mode must be one of {EVENT_MODES}, got "
+                            f"{out['event_mode']!r}")
+    if out["frame_size"] is not None:
+        out["frame_size"] = list(_sides(out["frame_size"], "frame_size"))
+    if out["hot_pixel"] is not None and not (_real(out["hot_pixel"]) and out["hot_pixel"] > 0):
+        raise EventLabError(f"hot_pixel must be a number > 0, got {out['hot_pixel']!r}")
+    if not isinstance(out["device"], str):
+        raise EventLabError(f"device must be a string such as 'cpu', got {out['device']!r}")
+    seqslam_config(out)
+    neural_config(out)
     return out
 
 
@@ -198,7 +253,22 @@ def seqslam_config(settings: dict):
     fields = {k: tuple(v) if isinstance(v, list) else v
               for k, v in (settings["seqslam"] or {}).items()}
     preset = settings["preset"] or "default"
-    return SeqSLAMConfig.preset(preset, **fields)
+    try:
+        return SeqSLAMConfig.preset(preset, **fields)
+    except (TypeError, ValueError) as err:
+        raise EventLabError(f"seqslam settings (preset {preset!r}): {err}") from None
+
+
+def neural_config(settings: dict):
+    """The run's :class:`~torchseq.neural.NeuralConfig`: the defaults, then ``neural`` fields."""
+    from torchseq.neural import NeuralConfig
+
+    fields = {k: tuple(v) if isinstance(v, list) else v
+              for k, v in (settings["neural"] or {}).items()}
+    try:
+        return dataclasses.replace(NeuralConfig(), **fields).validate()
+    except (TypeError, ValueError) as err:
+        raise EventLabError(f"neural settings: {err}") from None
 
 
 def torchseq_matrices(reference: torch.Tensor, query: torch.Tensor,
@@ -219,12 +289,10 @@ def torchseq_matrices(reference: torch.Tensor, query: torch.Tensor,
         out["seqslam"] = rank_similarity(result.matches.reference, result.matches.score,
                                          result.ranked, len(reference))
     if "neural" in settings["engines"]:
-        from torchseq.neural import NeuralConfig, NeuralSeqSLAM
+        from torchseq.neural import NeuralSeqSLAM
         from torchseq.preprocess import resize
 
-        fields = {k: tuple(v) if isinstance(v, list) else v
-                  for k, v in (settings["neural"] or {}).items()}
-        cfg = dataclasses.replace(NeuralConfig(), **fields).validate()
+        cfg = neural_config(settings)
         model = NeuralSeqSLAM(cfg, device=settings["device"])
         model.fit(resize(reference.float(), cfg.input_size), progress=False)
         result = model.run(resize(query.float(), cfg.input_size), progress=False)

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +38,14 @@ DTYPES = ("float32", "float64", "uint8")
 # SeqSLAMConfig fields that shape the descriptors (the map's; an eval may not change them)
 DESCRIPTOR_FIELDS = ("image_size", "patch_size", "preprocessing", "metric")
 MAX_MANIFEST_BYTES = 1 << 26  # 64 MiB: 10^8 places in shards of 10^4 is ~2 MB of JSON
+# bounds on what a manifest may declare, checked before anything is sized from it
+MAX_PLACES = 1 << 40
+MAX_DIM = 1 << 24
+MAX_NAME = 200  # file name characters
+MAX_FRAME_SIDE = 1 << 16  # reference.frame_size
+INDEX_OPTIONS = {"nprobe": (1, 1 << 20), "ef_search": (1, 1 << 20)}
 _HASH_PIECE = 1 << 22
+_VERIFY_ROWS = 1 << 14
 
 
 class MapError(ValueError):
@@ -90,9 +96,10 @@ def _int(x) -> bool:
 def _file_entry(entry, path: Path, what: str) -> None:
     _need(isinstance(entry, dict), path, f"{what} is not an object")
     _need(isinstance(entry.get("file"), str) and "/" not in entry["file"]
-          and "\\" not in entry["file"] and entry["file"] not in ("", ".", ".."), path,
+          and "\\" not in entry["file"] and entry["file"] not in ("", ".", "..")
+          and len(entry["file"]) <= MAX_NAME and "\0" not in entry["file"], path,
           f"{what} file name")
-    _need(_int(entry.get("bytes")) and entry["bytes"] > 0, path, f"{what} bytes")
+    _need(_int(entry.get("bytes")) and 0 < entry["bytes"] < 1 << 62, path, f"{what} bytes")
     sha = entry.get("sha256")
     _need(isinstance(sha, str) and sha.startswith("sha256:") and len(sha) == 71, path,
           f"{what} sha256")
@@ -113,8 +120,8 @@ def read_manifest(folder: str | Path) -> dict:
     if path.stat().st_size > MAX_MANIFEST_BYTES:
         raise MapError(f"{path}: manifest larger than {MAX_MANIFEST_BYTES} bytes: not a map")
     try:
-        m = json.loads(path.read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        m = json.loads(path.read_bytes().decode("utf-8"), parse_constant=_no_constant)
+    except (ValueError, RecursionError) as err:  # bad UTF-8/JSON, NaN, a 4,301-digit int
         raise MapError(f"{path}: not a readable map manifest ({err})") from None
     if not isinstance(m, dict) or m.get("format") != FORMAT:
         got = m.get("format") if isinstance(m, dict) else type(m).__name__
@@ -127,14 +134,17 @@ def read_manifest(folder: str | Path) -> dict:
                        f"reads ({', '.join(map(str, SUPPORTED_VERSIONS))}); upgrade torchseq")
     if m.get("checksum") != manifest_checksum(m):
         raise MapError(f"{path}: checksum mismatch: the manifest is corrupt")
-    for key in ("n_places", "dim", "shard_size"):
-        _need(_int(m.get(key)) and m[key] >= 1, path, key)
+    for key, most in (("n_places", MAX_PLACES), ("dim", MAX_DIM), ("shard_size", MAX_PLACES)):
+        _need(_int(m.get(key)) and 1 <= m[key] <= most, path, f"{key} not in 1..{most}")
     _need(m["n_places"] >= 2, path, "n_places < 2")
     _need(m.get("dtype") in DTYPES, path, f"dtype {m.get('dtype')!r}")
     _need(isinstance(m.get("config"), dict), path, "config")
     _need(isinstance(m.get("reference"), dict), path, "reference")
+    size = m["reference"].get("frame_size")
+    _need(size is None or (isinstance(size, list) and len(size) == 2 and all(
+        _int(v) and 1 <= v <= MAX_FRAME_SIDE for v in size)), path, "reference.frame_size")
     shards = m.get("shards")
-    _need(isinstance(shards, list) and len(shards) == math.ceil(m["n_places"] / m["shard_size"]),
+    _need(isinstance(shards, list) and len(shards) == -(-m["n_places"] // m["shard_size"]),
           path, "shard count")
     for i, s in enumerate(shards):
         _file_entry(s, path, f"shard {i}")
@@ -142,9 +152,17 @@ def read_manifest(folder: str | Path) -> dict:
         _need((s.get("start"), s.get("stop")) == want, path, f"shard {i} range")
     if m.get("index") is not None:
         _file_entry(m["index"], path, "index")
-        _need(isinstance(m["index"].get("kind"), str) and isinstance(
-            m["index"].get("options", {}), dict), path, "index kind")
+        options = m["index"].get("options", {})
+        _need(isinstance(m["index"].get("kind"), str) and isinstance(options, dict), path,
+              "index kind")
+        for key, value in options.items():
+            lo, hi = INDEX_OPTIONS.get(key, (1, 0))
+            _need(_int(value) and lo <= value <= hi, path, f"index option {key}={value!r}")
     return m
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a number a manifest may hold")
 
 
 def config_from_manifest(m: dict, path: Path) -> SeqSLAMConfig:
@@ -209,14 +227,17 @@ class ReferenceMap:
         path = self.path / name
         if name in self._checked:
             return path
-        if not path.is_file():
-            raise MapError(f"{path}: missing map file")
-        got = path.stat().st_size
-        if got != size:
-            raise MapError(f"{path}: {got} bytes, the manifest says {size}: truncated or "
-                           f"damaged")
-        if file_sha256(path) != sha:
-            raise MapError(f"{path}: checksum mismatch: the file is corrupt")
+        try:
+            if not path.is_file():
+                raise MapError(f"{path}: missing map file")
+            got = path.stat().st_size
+            if got != size:
+                raise MapError(f"{path}: {got} bytes, the manifest says {size}: truncated or "
+                               f"damaged")
+            if file_sha256(path) != sha:
+                raise MapError(f"{path}: checksum mismatch: the file is corrupt")
+        except OSError as err:
+            raise MapError(f"{path}: cannot read ({err.strerror or err})") from None
         self._checked.add(name)
         return path
 
@@ -240,12 +261,13 @@ class ReferenceMap:
         """
         if not 0 <= start < stop <= self.n_places:
             raise ValueError(f"rows {start}..{stop} outside the map's 0..{self.n_places}")
-        out = np.empty((stop - start, self.dim), dtype=self.dtype)
         size = self.shard_size
-        for i in range(start // size, (stop - 1) // size + 1):
-            s = self.shards[i]
+        parts = [(self.shards[i], self.shard_array(i))  # checked against the files first:
+                 for i in range(start // size, (stop - 1) // size + 1)]  # out is their size
+        out = np.empty((stop - start, self.dim), dtype=self.dtype)
+        for s, array in parts:
             a, b = max(start, s.start), min(stop, s.stop)
-            out[a - start:b - start] = self.shard_array(i)[a - s.start:b - s.start]
+            out[a - start:b - start] = array[a - s.start:b - s.start]
         if out.dtype.kind == "f" and not np.isfinite(out).all():
             raise MapError(f"{self.path}: places {start}..{stop - 1} hold NaN or infinite "
                            f"descriptors")
@@ -280,12 +302,27 @@ class ReferenceMap:
             raise MapError(f"{path}: unusable index ({str(err).splitlines()[0][:200]})") \
                 from None
 
-    def verify(self) -> None:
-        """Check every file of the map (sizes, headers, checksums) now."""
-        for i in range(len(self.shards)):
-            self.shard_array(i)
+    def verify(self) -> str:
+        """Check now what any use would refuse: every file and every value the map holds.
+
+        Sizes, ``.npy`` headers and SHA-256 of every file; finite descriptors in every shard;
+        the index's kind, size, dimension and ids (each place once).
+
+        Returns:
+            What was checked, one line.
+        """
+        for i, s in enumerate(self.shards):
+            array = self.shard_array(i)
+            if array.dtype.kind == "f":
+                for r0 in range(0, len(array), _VERIFY_ROWS):
+                    if not np.isfinite(array[r0:r0 + _VERIFY_ROWS]).all():
+                        raise MapError(f"{self.path / s.file}: holds NaN or infinite "
+                                       f"descriptors")
+        done = "sizes, headers, checksums, finite descriptors"
         if self.manifest.get("index") is not None:
             self.index()
+            done += ", index ids"
+        return done
 
 
 def load_map(path: str | Path) -> ReferenceMap:

@@ -7,8 +7,10 @@ and ``extra``. :func:`load_model` checks, in this order, before it builds anythi
 format; every tensor held densely in the file (no stride-0 giants); every config field by
 type and range (:meth:`NeuralConfig.validate`); the tensors against the shapes and dtypes
 that config implies (so the model it allocates is no larger than the file); finite float
-tensors; the checksum. Any failure is a :class:`NeuralError` naming the file. Version-1
-files (no checksum) still load, with a warning.
+tensors; the checksum; then values only ``fit`` makes (a resealed file: 0/1 masks, a ring
+shift whose rows sum to at most 1, contiguous unit spans; :func:`_check_values`). Any
+failure is a :class:`NeuralError` naming the file. Version-1 files (no checksum) still load,
+with a warning.
 """
 
 from __future__ import annotations
@@ -172,6 +174,41 @@ def _check_tensors(path: Path, config: NeuralConfig, sd: dict) -> None:
             raise NeuralError(f"{path}: {name} holds NaN or infinite values")
 
 
+MAX_WEIGHT = 2.0**8  # |l1.weight|, |l3.weight|: fit makes them at most ~1
+
+
+def _check_values(path: Path, sd: dict) -> None:
+    """Refuse values ``fit`` cannot make, whatever the checksum says (a resealed file).
+
+    Masks and cohorts are 0/1 (one cohort per unit); the ring's shift is non-negative with
+    rows summing to at most 1 (``learn_shift_matrix`` normalises them), so activity cannot
+    grow without bound; weights are bounded; the units' spans are contiguous stretches of the
+    route from frame 0 and each unit's centre is its span's middle, as the unit search and
+    the read-out assume.
+    """
+    def refuse(name: str, what: str) -> None:
+        raise NeuralError(f"{path}: {name} {what}: not a fitted model's values")
+
+    for name in ("l1.mask", "l3.mask", "cohorts"):
+        if not bool(((sd[name] == 0) | (sd[name] == 1)).all()):
+            refuse(name, "holds values other than 0 and 1")
+    if not bool((sd["cohorts"].sum(1) == 1).all()):
+        refuse("cohorts", "does not put each unit in one cohort")
+    shift = sd["ring.shift"]
+    if bool((shift < 0).any()) or float(shift.double().sum(1).max()) > 1 + 1e-4:
+        refuse("ring.shift", "has negative entries or rows summing to more than 1")
+    for name in ("l1.weight", "l3.weight"):
+        if float(sd[name].abs().max()) > MAX_WEIGHT:
+            refuse(name, f"holds values beyond +-{MAX_WEIGHT:g}")
+    spans = sd["unit_to_reference"]
+    start, stop = spans[:, 0], spans[:, 1]
+    if (int(start[0]) != 0 or bool((stop <= start).any()) or bool((start[1:] != stop[:-1]).any())
+            or int(stop[-1]) > 2**40):
+        refuse("unit_to_reference", "is not contiguous stretches of the route from frame 0")
+    if not torch.equal(sd["unit_centre"], (start + stop - 1) // 2):
+        refuse("unit_centre", "is not the middle of each unit's stretch")
+
+
 def load_model(cls, path: str | Path, map_location=None):
     """Read, check and build a model written by :func:`save_checkpoint` (see the module doc).
 
@@ -201,6 +238,7 @@ def load_model(cls, path: str | Path, map_location=None):
     else:
         warnings.warn(f"{path}: a {FORMAT_V1} checkpoint has no checksum, so corruption "
                       "cannot be detected; save it again to add one", stacklevel=3)
+    _check_values(path, {k: v.detach().cpu() for k, v in sd.items()})
     device = sd["l1.weight"].device if map_location is not None else None
     model = cls(config, device=device)
     try:

@@ -52,6 +52,21 @@ def _as_float32(x: torch.Tensor, unit: bool) -> np.ndarray:
     return a
 
 
+def _check_ivf_ids(inner, size: int) -> None:
+    """Refuse an IVF index whose stored ids are not each of ``0 .. size - 1`` once."""
+    faiss = import_faiss()
+    lists = inner.invlists
+    seen = np.zeros(size, dtype=bool)
+    for c in range(inner.nlist):
+        n = lists.list_size(c)
+        if n == 0:
+            continue
+        ids = faiss.rev_swig_ptr(lists.get_ids(c), n).astype(np.int64)
+        if ids.min() < 0 or ids.max() >= size or seen[ids].any() or len(np.unique(ids)) != n:
+            raise ValueError(f"the IVF index holds ids outside 0..{size - 1} or repeated")
+        seen[ids] = True
+
+
 class CandidateIndex:
     """Top-K reference candidates per query descriptor.
 
@@ -193,12 +208,19 @@ class CandidateIndex:
             want = faiss.IndexIVFFlat if kind == "ivf" else faiss.IndexHNSWFlat
             if not isinstance(inner, want):
                 raise ValueError(f"inner index is {type(inner).__name__}, not {want.__name__}")
-            if kind == "ivf" and nprobe is not None:
-                inner.nprobe = min(int(nprobe), inner.nlist)
+            if kind == "ivf":
+                _check_ivf_ids(inner, size)
+                if nprobe is not None:
+                    if int(nprobe) < 1:
+                        raise ValueError(f"nprobe must be >= 1, got {nprobe}")
+                    inner.nprobe = min(int(nprobe), inner.nlist)
             self._inner = inner
         else:
             want = {"l1": faiss.METRIC_L1, "l2": faiss.METRIC_L2,
                     "cosine": faiss.METRIC_INNER_PRODUCT}[metric]
+            if type(index).__name__ not in ("IndexFlat", "IndexFlatL2", "IndexFlatIP"):
+                raise ValueError(f"a flat index is a plain IndexFlat (ids 0..R-1), got "
+                                 f"{type(index).__name__}")
             if index.metric_type != want:
                 raise ValueError(f"flat index metric {index.metric_type} does not fit {metric}")
         self.index = index

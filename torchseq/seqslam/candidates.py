@@ -56,7 +56,13 @@ from torchseq._checks import check_finite, check_not_empty, check_shape
 from torchseq.matches import Matches
 from torchseq.seqslam.ann_index import CandidateIndex
 from torchseq.seqslam.config import SeqSLAMConfig
-from torchseq.seqslam.difference import _l1_sad, l1_choice, l1_kernel, thermometer_levels
+from torchseq.seqslam.difference import (
+    _l1_sad,
+    check_magnitude,
+    l1_choice,
+    l1_kernel,
+    thermometer_levels,
+)
 from torchseq.seqslam.enhance import enhance_contrast
 from torchseq.seqslam.result import SeqSLAMResult
 from torchseq.seqslam.search import rank_scores, trajectory_offsets, trajectory_scores, velocities
@@ -648,6 +654,7 @@ class CandidateSeqSLAM:
         check_not_empty(reference, "reference descriptors")
         check_shape(reference, ("R", "D"), "reference descriptors")
         check_finite(reference, "reference descriptors")
+        check_magnitude(reference, "reference descriptors")
         if reference.shape[0] < 2:
             raise ValueError(f"need at least 2 reference frames, got {reference.shape[0]}")
         self.device = torch.device(device) if device is not None else torch.device("cpu")
@@ -768,6 +775,7 @@ class CandidateSeqSLAM:
         check_not_empty(query, "query descriptors")
         check_shape(query, ("Q", self.reference.shape[1]), "query descriptors")
         check_finite(query, "query descriptors")
+        check_magnitude(query, "query descriptors")
         n_query = query.shape[0]
         if n_query < self.ds + 1:
             raise ValueError(f"need at least ds + 1 = {self.ds + 1} query frames for ds = "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from numbers import Integral, Real
 
 METRICS = ("l1", "l2", "cosine")
 MATCH_AT = ("start", "trajectory")
@@ -11,6 +12,16 @@ PREPROCESSING = ("torchseq", "openseqslam")
 PRESETS = ("default", "openseqslam", "events")
 EVENT_DS_REFERENCE = 100  # the event preset's sequence: this many reference windows long
 KEEP_MATRICES_MAX = 2**27  # R * Q above which the full matrices are not kept by default
+# Every path (flags, maps, Event-LAB settings, the API) is held to these by validate():
+# each field's closed range, before anything is sized or enumerated from it.
+LIMITS = {
+    "patch_size": (0, 4096), "enhance_window": (0, 10 ** 6), "ds": (2, 10 ** 5),
+    "vmin": (1e-3, 1e3), "vmax": (1e-3, 1e3), "speed_ratio": (1e-3, 1e3),
+    "speed_tolerance": (0.0, 1.0), "rwindow": (0, 10 ** 6), "top_k": (1, 1000),
+    "max_chunk_elements": (1, 2 ** 40), "candidates": (0, 10 ** 6), "threads": (1, 4096),
+}
+MAX_IMAGE_SIDE = 4096  # image_size: each side in 1 .. 4096 pixels
+MAX_IMAGE_PIXELS = 2 ** 22  # and at most 4 Mpixel per frame
 
 
 @dataclass
@@ -129,50 +140,49 @@ class SeqSLAMConfig:
 
     def validate(self) -> SeqSLAMConfig:
         """Raise ``ValueError`` on nonsense values; return ``self`` for chaining."""
-        h, w = self.image_size
-        if h <= 0 or w <= 0:
-            raise ValueError(f"image_size must be positive, got {self.image_size}")
+        size = self.image_size
+        if (not isinstance(size, (tuple, list)) or len(size) != 2
+                or not all(isinstance(v, Integral) and not isinstance(v, bool) for v in size)
+                or not all(1 <= v <= MAX_IMAGE_SIDE for v in size)
+                or size[0] * size[1] > MAX_IMAGE_PIXELS):
+            raise ValueError(f"image_size must be (height, width), each 1..{MAX_IMAGE_SIDE} and "
+                             f"at most {MAX_IMAGE_PIXELS} pixels, got {size!r}")
+        for name, (lo, hi) in LIMITS.items():
+            value = getattr(self, name)
+            if value is None and name in ("speed_ratio", "candidates", "threads"):
+                continue
+            whole = isinstance(lo, int)
+            if (isinstance(value, bool) or not isinstance(value, Integral if whole else Real)
+                    or not lo <= value <= hi):
+                kind = "an integer" if whole else "a number"
+                raise ValueError(f"{name} must be {kind} in [{lo}, {hi}], got {value!r}")
+        h, w = size
         p = self.patch_size
-        if p < 0 or (p and (h % p or w % p)):
+        if p and (h % p or w % p):
             raise ValueError(
                 f"patch_size {self.patch_size} must be 0 or divide image_size {self.image_size}")
         if self.metric not in METRICS:
             raise ValueError(f"metric must be one of {METRICS}, got {self.metric!r}")
-        if self.enhance_window == 1 or self.enhance_window < 0:
+        if self.enhance_window == 1:
             raise ValueError(f"enhance_window must be 0 (off) or >= 2, got {self.enhance_window}")
-        if self.ds < 2:
-            raise ValueError(f"ds must be >= 2, got {self.ds}")
-        if self.speed_ratio is not None:
-            if not math.isfinite(self.speed_ratio) or self.speed_ratio <= 0:
-                raise ValueError(f"speed_ratio must be > 0, got {self.speed_ratio}")
-            if not 0 <= self.speed_tolerance < 1:
-                raise ValueError(f"speed_tolerance must be in [0, 1), got {self.speed_tolerance}")
+        if self.speed_ratio is not None and not self.speed_tolerance < 1:
+            raise ValueError(f"speed_tolerance must be in [0, 1), got {self.speed_tolerance}")
         vmin, vmax = self.velocity_range
         if not (math.isfinite(vmin) and math.isfinite(vmax)) or vmin <= 0:
             raise ValueError(f"vmin must be > 0, got {vmin}")
         if vmin > vmax:
             raise ValueError(f"vmin {vmin} must not exceed vmax {vmax}")
-        if self.rwindow < 0:
-            raise ValueError(f"rwindow must be >= 0, got {self.rwindow}")
-        if self.top_k < 1:
-            raise ValueError(f"top_k must be >= 1, got {self.top_k}")
-        if self.max_chunk_elements < 1:
-            raise ValueError(f"max_chunk_elements must be >= 1, got {self.max_chunk_elements}")
         if self.match_at not in (None, *MATCH_AT):
             raise ValueError(f"match_at must be one of {MATCH_AT} or None, got {self.match_at!r}")
         if self.preprocessing not in PREPROCESSING:
             raise ValueError(
                 f"preprocessing must be one of {PREPROCESSING}, got {self.preprocessing!r}")
-        if self.threads is not None and self.threads < 1:
-            raise ValueError(f"threads must be >= 1 or None, got {self.threads}")
-        if self.candidates is not None and (isinstance(self.candidates, bool)
-                                            or not isinstance(self.candidates, int)
-                                            or self.candidates < 0):
-            raise ValueError(f"candidates must be None or an integer >= 0, got "
-                             f"{self.candidates!r}")
+        if not isinstance(self.edges, bool) or self.keep_matrices not in (None, True, False):
+            raise ValueError(f"edges and keep_matrices must be True or False, got "
+                             f"{self.edges!r}, {self.keep_matrices!r}")
         from torchseq.seqslam.search import velocities
 
-        velocities(self.sequence_length, vmin, vmax)  # raises when the range holds no step
+        velocities(self.sequence_length, vmin, vmax)  # raises on no step or too many
         return self
 
     @property

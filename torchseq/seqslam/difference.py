@@ -52,6 +52,7 @@ against 7.9-10.4 s for the float32 thermometer product at 3,576^2, D = 2,048, on
 from __future__ import annotations
 
 import importlib.util
+import math
 
 import torch
 
@@ -349,6 +350,25 @@ def check_descriptors(reference: torch.Tensor, query: torch.Tensor) -> None:
     check_shape(query, ("Q", reference.shape[1]), "query descriptors")
     check_finite(reference, "reference descriptors")
     check_finite(query, "query descriptors")
+    check_magnitude(reference, "reference descriptors")
+    check_magnitude(query, "query descriptors")
+
+
+def check_magnitude(x: torch.Tensor, name: str) -> None:
+    """Raise ``ValueError`` when ``(N, D)`` descriptors are too large to difference.
+
+    The largest difference (``2 |x| D`` under l1) squared and summed over a contrast window
+    must stay finite in ``x``'s dtype (float32 for integers): beyond it l2 overflows and l1
+    and cosine match every query to one place.
+    """
+    if not x.is_floating_point() or x.numel() == 0:
+        return
+    limit = math.sqrt(torch.finfo(x.dtype).max) / (2 * x.shape[-1] * 2**10)
+    top = float(x.abs().max())
+    if top > limit:
+        raise ValueError(f"{name} hold values up to {top:.3g}, beyond the {limit:.3g} "
+                         f"{str(x.dtype)[6:]} differences of {x.shape[-1]} values stay "
+                         f"finite in: rescale them")
 
 
 def difference_matrix(

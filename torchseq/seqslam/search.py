@@ -23,6 +23,7 @@ from torchseq.seqslam._parallel import run_blocks
 _EPS = 1e-9
 # Score blocks on CPU are kept about this size (elements) so they stay in the L2 cache.
 CPU_BLOCK_ELEMENTS = 2**18
+MAX_VELOCITIES = 4096  # trajectories per start: counted before any is enumerated
 
 
 def velocities(ds: int, vmin: float = 0.8, vmax: float = 1.2) -> list[float]:
@@ -35,12 +36,19 @@ def velocities(ds: int, vmin: float = 0.8, vmax: float = 1.2) -> list[float]:
 
     Returns:
         Increasing list of velocities (``0.8*10`` counts as 8 thanks to a small epsilon).
+
+    Raises:
+        ValueError: no velocity in the range, or more than ``MAX_VELOCITIES``.
     """
-    if ds < 1 or not vmin > 0 or not vmax >= vmin:
+    if (ds < 1 or not vmin > 0 or not vmax >= vmin
+            or not (math.isfinite(vmin) and math.isfinite(vmax))):
         raise ValueError(f"need ds >= 1 and 0 < vmin <= vmax, got ds={ds}, [{vmin}, {vmax}]")
     lo, hi = math.ceil(vmin * ds - _EPS), math.floor(vmax * ds + _EPS)
     if hi < lo:
         raise ValueError(f"no velocity m/{ds} lies in [{vmin}, {vmax}]: widen the range")
+    if hi - lo >= MAX_VELOCITIES:
+        raise ValueError(f"ds={ds} and velocities [{vmin}, {vmax}] make {hi - lo + 1} "
+                         f"trajectories per start, more than {MAX_VELOCITIES}: narrow them")
     return [m / ds for m in range(lo, hi + 1)]
 
 

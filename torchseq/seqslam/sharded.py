@@ -57,6 +57,7 @@ from torchseq.seqslam.candidates import (
     rank_bands,
 )
 from torchseq.seqslam.config import SeqSLAMConfig
+from torchseq.seqslam.difference import check_magnitude
 from torchseq.seqslam.result import SeqSLAMResult
 from torchseq.seqslam.search import (
     trajectory_offsets,
@@ -478,6 +479,7 @@ class ShardedSeqSLAM:
         check_not_empty(query, "query descriptors")
         check_shape(query, ("Q", self.map.dim), "query descriptors")
         check_finite(query, "query descriptors")
+        check_magnitude(query, "query descriptors")
         n_query, n_ref = query.shape[0], self.map.n_places
         if n_query < ds + 1:
             raise ValueError(f"need at least ds + 1 = {ds + 1} query frames for ds = {c.ds}, "
@@ -551,6 +553,7 @@ class ShardedSeqSLAM:
         check_shape(desc, ("B", self.map.dim), "query descriptors")
         check_not_empty(desc, "query descriptors")
         check_finite(desc, "query descriptors")
+        check_magnitude(desc, "query descriptors")
         b, ds = desc.shape[0], self.config.sequence_length
         state = self.initial_state(b) if state is None else state
         if (not isinstance(state, ShardedStreamState) or state.descriptors.shape[0] != b

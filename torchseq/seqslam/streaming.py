@@ -43,7 +43,7 @@ from torchseq.seqslam.candidates import (
     score_bands,
 )
 from torchseq.seqslam.config import SeqSLAMConfig
-from torchseq.seqslam.difference import difference_matrix
+from torchseq.seqslam.difference import check_magnitude, difference_matrix
 from torchseq.seqslam.engine import SeqSLAM
 from torchseq.seqslam.enhance import enhance_contrast
 from torchseq.seqslam.search import trajectory_offsets
@@ -125,6 +125,7 @@ class StreamingSeqSLAM(nn.Module):
         if descriptors:
             check_shape(reference, ("R", "D"), "reference descriptors")
             check_finite(reference, "reference descriptors")
+            check_magnitude(reference, "reference descriptors")
             ref = reference.to(self.engine.device, self.engine._working_dtype(reference))
         else:
             ref = self.engine.descriptors(reference)
@@ -174,6 +175,7 @@ class StreamingSeqSLAM(nn.Module):
         if desc.shape[0] == 0:
             raise ValueError("the batch holds no stream (B = 0)")
         check_finite(desc, "query descriptors")
+        check_magnitude(desc, "query descriptors")
         return desc
 
     def _exact_columns(self, desc: torch.Tensor) -> torch.Tensor:
