@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -220,21 +221,45 @@ def widen_ground_truth(gt: np.ndarray, tolerance: float) -> np.ndarray:
     return (count[hi] - count[lo]) > 0
 
 
+HEADER = ["query", "references"]
+
+
 def read_ground_truth_csv(path: Path, n_reference: int, n_query: int) -> np.ndarray:
-    """Read a ``query,references`` CSV with space-separated admissible reference indices."""
-    gt = np.zeros((n_reference, n_query), dtype=bool)
-    seen = set()
+    """Read a ground-truth CSV: the documented form, or a headerless pair table.
+
+    Accepted (a UTF-8 byte-order mark, as Excel's "CSV UTF-8" writes, is allowed):
+
+    - header ``query,references``, one row per query: its 0-based index, then its admissible
+      references separated by spaces (``5,3 4 5 6 7``);
+    - no header, every row ``query,reference`` or ``query,reference,N`` integers, one
+      admissible reference per row (Nordland's ``sample_ground_truth.csv``): 0-based when the
+      queries are exactly ``0..Q-1``, 1-based when they are ``1..Q``; a third column is not
+      read. How such a file was read is said in a warning.
+
+    Anything else is refused with the line and what was expected (a row ``5,3,4,5,6,7``
+    under the header would otherwise lose references).
+    """
     try:
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.reader(f))
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            rows = [_trim(row) for row in csv.reader(f)]
     except (UnicodeDecodeError, csv.Error) as err:
         raise GroundTruthError(f"{path}: not a readable UTF-8 CSV ({err})") from None
-    if not rows or [c.strip().lower() for c in rows[0][:2]] != ["query", "references"]:
-        raise GroundTruthError(f"{path}: expected a 'query,references' header")
+    if rows and _integers(rows[0]) is not None:
+        return _read_pairs(path, rows, n_reference, n_query)
+    if not rows or [c.strip().lower() for c in rows[0]] != HEADER:
+        got = ",".join(rows[0]) if rows else "an empty file"
+        raise GroundTruthError(f"{path}:1: expected the header 'query,references' (or "
+                               f"headerless integer 'query,reference' rows), got {got[:60]!r}")
+    gt = np.zeros((n_reference, n_query), dtype=bool)
+    seen = set()
     hint = _one_based_hint(rows[1:])
     for line, row in enumerate(rows[1:], start=2):
         if not row:
             continue
+        if len(row) > 2:
+            raise GroundTruthError(
+                f"{path}:{line}: {len(row)} fields, expected 2 (query, then its references "
+                f"separated by spaces: '{row[0]},{' '.join(row[1:])}')")
         try:
             q = int(row[0])
             refs = [int(r) for r in (row[1].split() if len(row) > 1 else [])]
@@ -251,6 +276,58 @@ def read_ground_truth_csv(path: Path, n_reference: int, n_query: int) -> np.ndar
     if len(seen) != n_query:
         raise GroundTruthError(f"{path}: covers {len(seen)} queries but the query has "
                                f"{n_query}{hint}")
+    return gt
+
+
+def _trim(row: list[str]) -> list[str]:
+    """A CSV row without the empty fields a spreadsheet leaves at its end."""
+    while row and not row[-1].strip():
+        row = row[:-1]
+    return row
+
+
+def _integers(row: list[str]) -> list[int] | None:
+    """The row's fields as integers, or None when one is not an integer."""
+    try:
+        return [int(c) for c in row]
+    except ValueError:
+        return None
+
+
+def _read_pairs(path: Path, rows: list, n_reference: int, n_query: int) -> np.ndarray:
+    """A headerless ``query,reference[,N]`` table (one admissible reference per row)."""
+    pairs = []
+    for line, row in enumerate(rows, start=1):
+        if not row:
+            continue
+        values = _integers(row)
+        if values is None or len(values) not in (2, 3):
+            raise GroundTruthError(f"{path}:{line}: expected integer 'query,reference' or "
+                                   f"'query,reference,N' like the lines above, got "
+                                   f"{','.join(row)[:60]!r}")
+        pairs.append(values[:2])
+    columns = {len(r) for r in rows if r}
+    q, r = np.asarray(pairs, dtype=np.int64).T
+    queries = np.unique(q)
+    if len(queries) == n_query and queries[0] == 0 and queries[-1] == n_query - 1:
+        base = 0
+    elif len(queries) == n_query and queries[0] == 1 and queries[-1] == n_query:
+        base = 1
+    else:
+        raise GroundTruthError(
+            f"{path}: a headerless table must list every query once or more, as 0..{n_query - 1} "
+            f"or 1..{n_query}; its queries run {queries[0]}..{queries[-1]} ({len(queries)} "
+            f"distinct)")
+    r = r - base
+    bad = r[(r < 0) | (r >= n_reference)]
+    if len(bad):
+        raise GroundTruthError(f"{path}: reference {int(bad[0]) + base} outside "
+                               f"{base}..{n_reference - 1 + base}")
+    gt = np.zeros((n_reference, n_query), dtype=bool)
+    gt[r, q - base] = True
+    warnings.warn(f"{path}: read as headerless {'1' if base else '0'}-based query,reference "
+                  f"pairs" + (" (third column not used)" if 3 in columns else ""),
+                  stacklevel=3)
     return gt
 
 
