@@ -1,11 +1,23 @@
 """A number a user reads is right, or the run says why not (issue 36)."""
 
+import json
 import warnings
 
 import numpy as np
 import pytest
+import torch
+from conftest import shared_data
 
-from torchseq.ground_truth import GroundTruthError, load_ground_truth
+import torchseq.cli.eval as cli_eval
+from torchseq.cli.runs import run_main
+from torchseq.ground_truth import (
+    GroundTruthError,
+    alignment_ground_truth,
+    alignment_ranges,
+    load_ground_truth,
+)
+from torchseq.matches import Matches
+from torchseq.metrics import match_line
 
 
 def read_csv(tmp_path, text: str, n_reference=3, n_query=3, encoding="utf-8"):
@@ -51,3 +63,69 @@ def test_nordland_headerless_one_based_table_is_read_and_said(tmp_path):
 def test_ambiguous_headerless_table_is_refused(tmp_path, text):
     with pytest.raises(GroundTruthError, match="gt.csv"):
         read_csv(tmp_path, text)
+
+
+def test_alignment_with_a_scale_admits_the_query_at_its_own_pace():
+    dense = alignment_ground_truth(20, 10, 1, offset=3, scale=1.0)
+    ranges = alignment_ranges(20, 10, 1, offset=3, scale=1.0)
+    assert (ranges.dense() == dense).all()
+    assert [np.nonzero(dense[:, j])[0].tolist() for j in (0, 9)] == [[2, 3, 4], [11, 12, 13]]
+    stretched = alignment_ground_truth(20, 10, 0)  # default: query j at reference j * 19/9
+    assert np.nonzero(stretched[:, 9])[0].tolist() == [19]
+    with pytest.raises(GroundTruthError, match="scale must be a finite number > 0"):
+        alignment_ranges(20, 10, 1, scale=0.0)
+
+
+def line_matches(n=300, scale=1.0, offset=0.0, outliers=0.2, seed=0) -> Matches:
+    rng = np.random.default_rng(seed)
+    ref = np.round(offset + scale * np.arange(n)).astype(np.int64)
+    bad = rng.random(n) < outliers
+    ref[bad] = rng.integers(0, int(offset + scale * n), bad.sum())
+    return Matches(torch.from_numpy(ref), torch.rand(n, dtype=torch.float64), True)
+
+
+def test_match_line_finds_the_line_the_matches_follow():
+    m = line_matches(scale=1.0, offset=40.0)  # a query covering a part of a longer reference
+    stretched = alignment_ranges(700, 300, 2)  # query j at reference 2.33 j: misaligned
+    line = match_line(m, stretched)
+    assert line.disagrees() and abs(line.scale - 1) < 0.01 and abs(line.offset - 40) < 1
+    assert line.share > 0.75 and line.correct < 0.05 and line.band == 1.5
+    right = match_line(m, alignment_ranges(700, 300, 2, offset=40, scale=1.0))
+    assert not right.disagrees() and right.correct == pytest.approx(right.share)
+    noise = match_line(line_matches(outliers=1.0), stretched)  # no route matched: no line
+    assert not noise.disagrees() and noise.share < 0.1
+
+
+def eval_run(tmp_path, capsys, *args):
+    code = run_main(cli_eval.main, "torchseq eval", [
+        "--engine", "seqslam", *args, "--no-progress", "--no-tensorboard",
+        "--out", str(tmp_path / "o"), "--overwrite"])
+    return code, capsys.readouterr()
+
+
+def test_tolerance_on_unequal_lengths_is_explained(tmp_path, capsys):
+    corridor = shared_data("corridor")
+    part = tmp_path / "query"  # the first half of the corridor's query traverse
+    part.mkdir()
+    for i in range(55):
+        (part / f"{i:07d}.jpg").symlink_to(corridor / "query" / f"{i:07d}.jpg")
+    base = ["--reference", str(corridor / "ref"), "--query", str(part), "--tolerance", "2"]
+    code, out = eval_run(tmp_path, capsys, *base)
+    said = [line for line in out.err.splitlines() if "warning" in line]
+    assert code == 0 and len(said) == 2, out.err
+    assert "query has 55 frames, reference 111: --tolerance stretches the query over the " \
+           "whole reference (2.037 reference frames per query frame)" in said[0]
+    assert "seqslam: 0.0% of matches are correct, yet" in said[1]
+    assert "the ground truth looks misaligned (try --gt-scale 1." in said[1]
+    assert all(len(line) < 240 for line in said)
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert len(metrics["warnings"]) == 2 and metrics["seqslam"]["recall_at_1"] == 0.0
+    code, out = eval_run(tmp_path, capsys, *base, "--gt-scale", "1")
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert code == 0 and "warning" not in out.err and metrics["seqslam"]["recall_at_1"] > 0.4
+    assert metrics["inputs"]["ground_truth"] == "index alignment, tolerance 2.0, scale 1"
+
+
+def test_alignment_flags_without_index_alignment_are_refused(tmp_path, capsys):
+    code, out = eval_run(tmp_path, capsys, "--gt-scale", "1")
+    assert code == 2 and "--gt-scale shapes index alignment (--tolerance alone)" in out.err

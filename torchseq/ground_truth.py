@@ -124,14 +124,26 @@ def positives(gt: np.ndarray | GroundTruthRanges) -> np.ndarray:
     return np.asarray(gt, dtype=bool).any(0)
 
 
+def alignment_scale(n_reference: int, n_query: int, offset: float = 0.0) -> float:
+    """Reference frames per query frame when the query is stretched over the reference.
+
+    ``(R - 1 - offset) / (Q - 1)``: the query starts at ``offset`` and ends with the
+    reference (index alignment's default, right when both traverses cover the same route).
+    """
+    return (n_reference - 1 - offset) / (n_query - 1) if n_query > 1 else 0.0
+
+
 def _alignment_centres(n_reference: int, n_query: int, tolerance: float,
-                       offset: float) -> np.ndarray:
+                       offset: float, scale: float | None) -> np.ndarray:
     if not (math.isfinite(tolerance) and tolerance >= 0):
         raise GroundTruthError(f"tolerance must be a finite number >= 0, got {tolerance}")
     if not (math.isfinite(offset) and 0 <= offset <= n_reference - 1):
         raise GroundTruthError(f"offset must be within the reference (0..{n_reference - 1}), "
                                f"got {offset}")
-    scale = (n_reference - 1 - offset) / (n_query - 1) if n_query > 1 else 0.0
+    if scale is None:
+        scale = alignment_scale(n_reference, n_query, offset)
+    elif not (math.isfinite(scale) and scale > 0):
+        raise GroundTruthError(f"scale must be a finite number > 0, got {scale}")
     return offset + np.arange(n_query) * scale
 
 
@@ -141,7 +153,7 @@ def _aligned(r, centre: np.ndarray, tolerance: float) -> np.ndarray:
 
 
 def alignment_ranges(n_reference: int, n_query: int, tolerance: float,
-                     offset: float = 0.0) -> GroundTruthRanges:
+                     offset: float = 0.0, scale: float | None = None) -> GroundTruthRanges:
     """:func:`alignment_ground_truth` as ranges: ``O(Q)`` memory, any route length.
 
     Each query's admissible references are the integers within ``tolerance`` of its centre,
@@ -153,6 +165,8 @@ def alignment_ranges(n_reference: int, n_query: int, tolerance: float,
         n_query: query frames ``Q``.
         tolerance: admissible distance in reference frames.
         offset: reference frame where the query starts, ``0 <= offset <= R - 1``.
+        scale: reference frames per query frame; None: :func:`alignment_scale` (the query
+            stretched over the reference).
 
     Returns:
         :class:`GroundTruthRanges` of shape ``(R, Q)``.
@@ -161,7 +175,7 @@ def alignment_ranges(n_reference: int, n_query: int, tolerance: float,
                for n in (n_reference, n_query)) or n_reference < 1 or n_query < 1:
         raise GroundTruthError(f"need at least one frame per traverse, got {n_reference} "
                                f"reference and {n_query} query frames")
-    centre = _alignment_centres(int(n_reference), int(n_query), tolerance, offset)
+    centre = _alignment_centres(int(n_reference), int(n_query), tolerance, offset, scale)
     steps = np.arange(-2, 3)[:, None]  # (5, 1): the run's ends lie among these candidates
     low = np.floor(centre - tolerance)[None, :] + steps  # (5, Q)
     high = np.floor(centre + tolerance)[None, :] + steps
@@ -177,11 +191,13 @@ def alignment_ranges(n_reference: int, n_query: int, tolerance: float,
 
 
 def alignment_ground_truth(n_reference: int, n_query: int, tolerance: float,
-                           offset: float = 0.0) -> np.ndarray:
+                           offset: float = 0.0, scale: float | None = None) -> np.ndarray:
     """Ground truth by index alignment: query ``j`` sits at reference ``offset + j * s``.
 
-    ``s = (R - 1 - offset) / (Q - 1)``: the query starts at reference frame ``offset`` (the
-    traverses start at different places) and ends with the reference. For long routes,
+    ``s = scale``, or by default ``(R - 1 - offset) / (Q - 1)``: the query starts at reference
+    frame ``offset`` (the traverses start at different places) and ends with the reference
+    (:func:`alignment_scale`). A query that covers a part of the reference at its speed
+    needs ``scale=1``. For long routes,
     :func:`alignment_ranges` gives the same ground truth without the dense matrix.
 
     Args:
@@ -189,12 +205,13 @@ def alignment_ground_truth(n_reference: int, n_query: int, tolerance: float,
         n_query: query frames ``Q``.
         tolerance: admissible distance in reference frames.
         offset: reference frame where the query starts, ``0 <= offset <= R - 1``.
+        scale: reference frames per query frame (default: stretched, as above).
 
     Returns:
         ``(R, Q)`` bool.
     """
     n_reference, n_query = _check_counts(n_reference, n_query)
-    centre = _alignment_centres(n_reference, n_query, tolerance, offset)
+    centre = _alignment_centres(n_reference, n_query, tolerance, offset, scale)
     return _aligned(np.arange(n_reference)[:, None], centre[None, :], tolerance)
 
 

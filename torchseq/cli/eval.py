@@ -179,6 +179,13 @@ def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[s
     if demo and cfg.dataset is not None:
         raise UsageError(f"{', '.join(demo)} shape the built-in demo route, not --dataset; "
                          f"drop {'it' if len(demo) == 1 else 'them'}")
+    alignment = [f"--{k.replace('_', '-')}" for k in ("gt_offset", "gt_scale")
+                 if getattr(cfg, k) != getattr(default, k)]
+    if alignment and (cfg.tolerance is None or cfg.ground_truth is not None
+                      or cfg.dataset is not None):
+        raise UsageError(f"{', '.join(alignment)} shape{'s' if len(alignment) == 1 else ''} "
+                         f"index alignment (--tolerance alone); drop "
+                         f"{'it' if len(alignment) == 1 else 'them'} or the ground-truth file")
     no_truth = (cfg.reference is not None and cfg.ground_truth is None and cfg.tolerance is None
                 and cfg.dataset is None)
     if no_truth and cfg.target_precision != default.target_precision:
