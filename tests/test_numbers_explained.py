@@ -129,3 +129,43 @@ def test_tolerance_on_unequal_lengths_is_explained(tmp_path, capsys):
 def test_alignment_flags_without_index_alignment_are_refused(tmp_path, capsys):
     code, out = eval_run(tmp_path, capsys, "--gt-scale", "1")
     assert code == 2 and "--gt-scale shapes index alignment (--tolerance alone)" in out.err
+
+
+@pytest.fixture(scope="module")
+def event_runs(tmp_path_factory):
+    """Simulated event runs of nordland-b's first 80 places: reference, and half the speed."""
+    from torchseq.events.plain import write_npz
+    from torchseq.events.runs import simulate_run
+    from torchseq.sources import FrameSelection, load_traverse
+
+    frames = load_traverse(shared_data("nordland-b", "summer"), progress=False,
+                           select=FrameSelection(stop=80)).numpy()
+    folder = tmp_path_factory.mktemp("events")
+    positions = np.arange(len(frames), dtype=np.float64)
+    for name, speed, seed in (("ref", 1.0, 1), ("query", 0.5, 2)):
+        run = simulate_run(frames, positions, speed, 100.0, seed=seed, contrast_threshold=0.2,
+                           threshold_noise=0.03, noise_rate_hz=1.0)
+        write_npz(folder / f"{name}.npz", run.stream)
+    return folder
+
+
+def test_events_preset_takes_the_speed_ratio_from_the_window_counts(tmp_path, capsys,
+                                                                    event_runs):
+    base = ["--reference", str(event_runs / "ref.npz"), "--query",
+            str(event_runs / "query.npz"), "--tolerance", "2", "--preset", "events",
+            "--ds", "20"]
+    code, out = eval_run(tmp_path, capsys, *base)
+    assert code == 0, out.err
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    config = json.loads((tmp_path / "o" / "config.json").read_text())
+    ratio = metrics["inputs"]["speed_ratio"]
+    assert ratio["value"] == pytest.approx(0.5, abs=0.01) and ratio["from"].startswith(
+        "window counts 79 / ")
+    assert config["seqslam"]["speed_ratio"] == ratio["value"] and config["seqslam"]["ds"] == 20
+    assert f"speed ratio {ratio['value']:.3f} reference per query window, from the window " \
+           f"counts" in out.err
+    estimated = metrics["seqslam"]["recall_at_1"]
+    code, out = eval_run(tmp_path, capsys, *base, "--speed-ratio", "1")  # the old default
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert code == 0 and "speed ratio" not in out.err and "speed_ratio" not in metrics["inputs"]
+    assert estimated >= 0.9 and estimated - metrics["seqslam"]["recall_at_1"] >= 0.3

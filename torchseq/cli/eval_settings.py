@@ -150,6 +150,8 @@ class Settings:
     seqslam: SeqSLAMConfig
     neural: NeuralConfig
     given: frozenset = frozenset()  # event fields the command line gave, whatever their value
+    # --preset events without --speed-ratio: the preset's overrides, the ratio from the data
+    speed_from_data: dict | None = None
 
 
 def config_dict(s: Settings) -> dict:
