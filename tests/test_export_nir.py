@@ -413,7 +413,8 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     np.save(tmp_path / "gt.npy", demo.ground_truth[:, :40].astype(np.int64))
     out = tmp_path / "export"
     code = main([str(tmp_path / "small.pt"), "--out", str(out), "--query",
-                 str(tmp_path / "query.npy"), "--ground-truth", str(tmp_path / "gt.npy")])
+                 str(tmp_path / "query.npy"), "--ground-truth", str(tmp_path / "gt.npy"),
+                 "--chip-report", "--timed-spiking"])
     assert code == 0
     report = json.loads((out / "validation.json").read_text())
     rep = report["nir"]

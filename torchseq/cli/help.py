@@ -63,13 +63,14 @@ TRAIN = (
      tuple(f"--{n}" for n in NEURAL_OTHER)),
     ("events", EVENT_COMMON, EVENT_OTHER),
     ("outputs", ("--out", "--overwrite", "--export", "--export-query", "--tensorboard"),
-     ("--export-ground-truth", "--export-frame-size", "--progress")),
+     ("--export-ground-truth", "--export-frame-size", "--export-chip-report",
+      "--export-timed-spiking", "--progress")),
     ("advanced", (), ("--device", "--eps", "--chunk")),
 )
 EXPORT = (
     ("inputs", ("checkpoint", "--query", "--ground-truth"), ()),
-    ("outputs", ("--out", "--frame-size", "--no-nir", "--nir-weight-bits", "--nir-levels"),
-     ("--no-progress",)),
+    ("outputs", ("--out", "--overwrite", "--frame-size", "--no-nir", "--nir-weight-bits",
+                 "--nir-levels", "--chip-report", "--timed-spiking"), ("--no-progress",)),
 )
 
 CHOICES = {  # flag -> the values it takes, shown as its metavar

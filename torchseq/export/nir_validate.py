@@ -75,7 +75,7 @@ def _roundtrip_equal(graph, back) -> bool:
 
 
 def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
-               progress=None, config=None) -> dict:
+               progress=None, config=None, chips: bool = False, timed: bool = False) -> dict:
     """Write ``model.nir`` and validate it; return the ``"nir"`` section of the report.
 
     Args:
@@ -88,13 +88,16 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
         calib_source: where they came from (reported).
         progress: an :class:`~torchseq.export.progress.ExportProgress`, or None.
         config: the :class:`~torchseq.neural.spiking.SpikingConfig` (None: defaults).
+        chips: also check the budget against each chip's published limits (``"chips"``).
+        timed: also run the timed spiking model on the query (``"timed"``,
+            :func:`timed_report`; as long as the rest of the export on a long query).
 
     Returns:
         ``{"file", "bytes", "round_trip_equal", "steps_per_frame", "time_steps", "levels",
         "calibration_source", "spiking": {agreement with the rate model, recall},
         "consumers": {name: agreement, recall, time steps, streams ..., skipped (not
-        installed) or failed (it raised: the check fails)}, "budget", "chips", "timed"
-        (:func:`timed_report`), "checks"}``,
+        installed) or failed (it raised: the check fails)}, "budget", "checks"}``, with
+        ``"chips"`` and ``"timed"`` where asked for,
         or ``{"skipped": reason}`` without the ``nir`` package or the learnt reference.
     """
     from torchseq.export.nir_export import NIRExportError, read_nir, require_nir, write_nir
@@ -130,8 +133,12 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
     ran = {k: v for k, v in consumers.items() if "skipped" not in v}
     with progress.step("NIR: hardware budget"):
         b = budget(graph)
-    timed = timed_report(model, calib, query, ground_truth, rate, progress,
-                         None if config is None else config.weight_bits)
+    extra = {}
+    if chips:
+        extra["chips"] = check(b)
+    if timed:
+        extra["timed"] = timed_report(model, calib, query, ground_truth, rate, progress,
+                                      None if config is None else config.weight_bits, chips)
     return {
         "file": NIR_FILE, "bytes": path.stat().st_size, "round_trip_equal": same,
         "steps_per_frame": 1, "time_steps": int(x.shape[0]), "levels": sp.levels,
@@ -154,8 +161,7 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
                              "torchseq_streams_recall_at_1":
                                  rep["torchseq"].get("streams_recall_at_1")},
         "budget": {k: v for k, v in b.items() if k != "effective_synapses_by_pair"},
-        "chips": check(b),
-        "timed": timed,
+        **extra,
         "checks": {"nir_round_trip": same,
                    "nir_consumers_agree": all(v.get("agreement", 0.0) >= MIN_CONSUMER_AGREEMENT
                                               for v in ran.values())},
@@ -163,13 +169,13 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
 
 
 def timed_report(model, calib, query, ground_truth, rate, progress,
-                 weight_bits: int | None) -> dict:
+                 weight_bits: int | None, chips: bool = True) -> dict:
     """The timed spiking model's figures on the query: it is not written to ``model.nir``.
 
     :class:`~torchseq.neural.spiking_timed.TimedSpikingSeqSLAM` (many steps per frame,
     calibrated on ``calib`` only, at ``weight_bits``): agreement with the rate model's
-    decisions ``rate`` ``(T,)``, recall@1, steps per frame, its budget and the chips it
-    fits. Its IF units reset by subtraction and its phases start from zero, which NIR's
+    decisions ``rate`` ``(T,)``, recall@1, steps per frame, its budget and (``chips``) the
+    chips it fits. Its IF units reset by subtraction and its phases start from zero, which NIR's
     nodes do not express (``docs/results/nir.md``, "The timed model").
     """
     from torchseq.export.hardware_budget import check, memory_bytes
@@ -196,5 +202,5 @@ def timed_report(model, calib, query, ground_truth, rate, progress,
         "budget": {"neurons": b["neurons"], "effective_synapses": b["effective_synapses"],
                    "memory_bytes_8bit": memory_bytes(b, 8), "max_fan_in": b["max_fan_in"],
                    "max_fan_out": b["max_fan_out"]},
-        "chips": check(b),
+        **({"chips": check(b)} if chips else {}),
     }
