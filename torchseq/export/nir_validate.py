@@ -17,6 +17,15 @@ import numpy as np
 import torch
 
 NIR_FILE = "model.nir"
+# model.nir holds two dense float32 matrices of N x N*K values (levels and shift): 8 N^2 K
+# bytes, held again by the read-back and each consumer's modules. Above this bound the NIR
+# step is skipped with the estimate (a 3,576-unit model at 128 levels: 13.1 GB, >13 GB seen).
+NIR_MAX_BYTES = 2 ** 31
+
+
+def nir_dense_bytes(n_units: int, levels: int) -> int:
+    """Bytes of ``model.nir``'s dense ``levels`` and ``shift`` matrices (float32, N x N*K each)."""
+    return 8 * int(n_units) ** 2 * int(levels)
 MIN_CONSUMER_AGREEMENT = 0.99
 # The consumers run the query cut into streams of this many frames, stepped together
 # (nir_consumers.compare): on a 500-frame route 32 streams of 16 steps instead of 500 steps.
@@ -110,13 +119,23 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
         return {"skipped": str(err)}
     if calib is None:
         return {"skipped": calib_source}
+    from torchseq.neural.spiking import SpikingConfig
+
+    levels = (config or SpikingConfig()).levels
+    need = nir_dense_bytes(model.n_units, levels)
+    if need > NIR_MAX_BYTES:
+        return {"skipped": f"model.nir would hold {need / 1e9:.1f} GB of dense weights "
+                           f"({model.n_units} units x {levels} levels; more again while it is "
+                           f"validated), above the {NIR_MAX_BYTES / 2 ** 30:g} GiB bound: "
+                           f"lower --nir-levels or give --no-nir"}
     from torchseq.export.hardware_budget import budget, check
     from torchseq.export.nir_consumers import compare
     from torchseq.metrics import recall_at_k
     from torchseq.neural.spiking import SpikingSeqSLAM
 
     query = torch.as_tensor(frames).to(torch.float32)
-    with progress.step("NIR: spiking conversion and model.nir"):
+    with progress.step(f"NIR: spiking conversion and model.nir ({need / 1e6:,.0f} MB of "
+                       f"dense weights)"):
         sp = SpikingSeqSLAM.convert(model, torch.as_tensor(calib).to(torch.float32), config)
         path = Path(out_dir) / NIR_FILE
         graph = write_nir(sp, path)
