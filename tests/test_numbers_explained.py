@@ -169,3 +169,50 @@ def test_events_preset_takes_the_speed_ratio_from_the_window_counts(tmp_path, ca
     metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
     assert code == 0 and "speed ratio" not in out.err and "speed_ratio" not in metrics["inputs"]
     assert estimated >= 0.9 and estimated - metrics["seqslam"]["recall_at_1"] >= 0.3
+
+
+def test_candidate_mode_that_loses_recall_is_warned_about(tmp_path, capsys):
+    nordland = shared_data("nordland-b")
+    base = ["--reference", str(nordland / "summer"), "--query", str(nordland / "winter"),
+            "--max-frames", "400", "--threads", "1"]
+
+    def run(*extra):
+        code, out = eval_run(tmp_path, capsys, *base, *extra)
+        assert code == 0, out.err
+        seqslam = json.loads((tmp_path / "o" / "metrics.json").read_text())["seqslam"]
+        return seqslam, [line for line in out.err.splitlines() if "warning" in line]
+
+    small, said = run("--tolerance", "2", "--candidates", "3")
+    check = small["candidate_agreement"]
+    assert check["candidates"] == 3 and check["queries"] == [72, 327]
+    assert check["candidates_recall_at_1"] < check["exact_recall_at_1"] - 0.2
+    assert len(said) == 1 and said[0].endswith(
+        f"--candidates 3: recall@1 {check['candidates_recall_at_1']:.3f} against the exact "
+        f"mode's {check['exact_recall_at_1']:.3f} on 256 sampled queries; raise K or give "
+        f"--candidates 0 (the exact mode)")
+    exact, said = run("--tolerance", "2", "--candidates", "0")
+    assert "candidate_agreement" not in exact and not said
+    assert exact["recall_at_1"] > small["recall_at_1"]
+    large, said = run("--tolerance", "2", "--candidates", "200")  # half the route: holds
+    assert not said and large["candidate_agreement"]["candidates_recall_at_1"] >= \
+        large["candidate_agreement"]["exact_recall_at_1"] - 0.02
+    blind, said = run("--candidates", "3")  # no ground truth: the exact mode's matches found
+    assert blind["candidate_agreement"]["exact_match_found"] < 0.75
+    assert len(said) == 1 and "--candidates 3: finds the exact mode's match for" in said[0]
+
+
+def test_no_progress_bars_in_a_redirected_log(tmp_path, capsys):
+    import torchseq
+    import torchseq.cli.map as cli_map
+    import torchseq.cli.train as cli_train
+
+    corridor = shared_data("corridor")
+    torchseq.load_traverse(corridor / "ref")  # the library's default: a bar on a terminal only
+    assert "reading" not in capsys.readouterr().err
+    assert run_main(cli_map.main, "torchseq map", [
+        "build", "--reference", str(corridor / "ref"), "--out", str(tmp_path / "map")]) == 0
+    assert run_main(cli_train.main, "torchseq train", [
+        "--reference", str(corridor / "ref"), "--out", str(tmp_path / "train"),
+        "--no-tensorboard"]) == 0
+    err = capsys.readouterr().err
+    assert "\r" not in err and "it/s" not in err and "frame/s" not in err, err[:300]

@@ -20,7 +20,7 @@ import torch
 
 import torchseq.cli.help as cli_help
 from torchseq.atomic import write_json, write_text
-from torchseq.cli.engines import run_engines, single_frame_baseline
+from torchseq.cli.engines import candidate_check, run_engines, single_frame_baseline
 from torchseq.cli.errors import UsageError
 from torchseq.cli.eval_settings import (
     ENGINES,
@@ -64,6 +64,7 @@ from torchseq.cli.runs import (
     config_text,
     mark_complete,
     mark_incomplete,
+    progress_wanted,
     run_folder,
     run_main,
     sweep_grid,
@@ -330,16 +331,6 @@ def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: 
     return 0
 
 
-def progress_wanted(argv: list[str] | None, stream=None) -> bool:
-    """Progress bars only on a terminal: redirected logs get no carriage-return lines.
-
-    ``--progress`` given on the command line keeps them anywhere.
-    """
-    argv = sys.argv[1:] if argv is None else argv
-    stream = sys.stderr if stream is None else stream
-    return "--progress" in argv or bool(getattr(stream, "isatty", lambda: False)())
-
-
 def quiet(s: Settings) -> Settings:
     """``s`` with progress bars off."""
     return dataclasses.replace(s, run=dataclasses.replace(s.run, progress=False))
@@ -406,6 +397,8 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
         mark_complete(out)
         return code
     results = run_engines(s, ref, query, device, notes, model)
+    if "seqslam" in results:
+        candidate_check(s, results["seqslam"], ref, query, gt, device, notes)
     # the baseline needs the reference's descriptors: a map run reads none (sharded maps)
     seqslam_run = results.get("seqslam")  # a SeqSLAMRun: its difference matrix, if kept
     difference = None if seqslam_run is None else seqslam_run.difference

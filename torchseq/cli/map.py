@@ -29,7 +29,7 @@ from torchseq.cli.flags import (
     frame_selection,
 )
 from torchseq.cli.results import SeqSLAMRun
-from torchseq.cli.runs import run_main, to_jsonable
+from torchseq.cli.runs import progress_wanted, run_main, to_jsonable
 from torchseq.maps import MapError, ReferenceMap, build_map
 from torchseq.maps.build import DEFAULT_SHARD_SIZE
 from torchseq.maps.format import DESCRIPTOR_FIELDS
@@ -162,7 +162,9 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     args = build_parser(prog or PROG).parse_args(argv)
     if args.command == "verify":
         return run_verify(args.map)
-    return run_build(config_from_args(MapBuildConfig, args))
+    cfg = config_from_args(MapBuildConfig, args)
+    cfg.progress = cfg.progress and progress_wanted(argv)  # no bars in a redirected log
+    return run_build(cfg)
 
 
 def cli(argv: list[str] | None = None, prog: str | None = None) -> int:
@@ -254,4 +256,5 @@ def run_seqslam_map(s, query, device, progress: bool) -> SeqSLAMRun:
     return SeqSLAMRun(matches=result.matches, ranked=result.ranked, ranked_score=None,
                       matrix=matrix, matrix_shape=(m.n_places, len(query)),
                       matrix_reduced=result.enhanced is None,
-                      seconds=result.seconds["total"], parameters=to_jsonable(scfg))
+                      seconds=result.seconds["total"], parameters=to_jsonable(scfg),
+                      kernels=to_jsonable(result.kernels) or None)

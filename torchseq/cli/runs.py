@@ -76,6 +76,16 @@ def warn(prog: str, message: str, sink=None) -> None:
         sink.append(message)
 
 
+def progress_wanted(argv: list[str] | None, stream=None) -> bool:
+    """Progress bars only on a terminal: redirected logs get no carriage-return lines.
+
+    ``--progress`` given on the command line keeps them anywhere (eval, train, map build).
+    """
+    argv = sys.argv[1:] if argv is None else argv
+    stream = sys.stderr if stream is None else stream
+    return "--progress" in argv or bool(getattr(stream, "isatty", lambda: False)())
+
+
 def run_folder(out: str | None, kind: str, overwrite: bool,
                own: tuple[str, ...] = ("config.json", "INCOMPLETE")) -> Path:
     """The output folder of one run, created empty.

@@ -42,7 +42,14 @@ from torchseq.cli.presets import apply_preset, preset_help, preset_name
 from torchseq.cli.report import log_training, write_train_json
 from torchseq.cli.results import TrainRun
 from torchseq.cli.run_warnings import WarningLog
-from torchseq.cli.runs import config_file_defaults, config_text, run_folder, run_main, to_jsonable
+from torchseq.cli.runs import (
+    config_file_defaults,
+    config_text,
+    progress_wanted,
+    run_folder,
+    run_main,
+    to_jsonable,
+)
 from torchseq.demo import make_demo
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.neural.memory import seqslam_template_bytes
@@ -172,6 +179,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     PROG = prog or PROG
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg, ncfg = parse_args(argv)
+    cfg.progress = cfg.progress and progress_wanted(argv)  # no bars in a redirected log
     given = given_flags(build_parser(), argv, EVENT_FIELDS)  # event flags typed, any value
     notes = WarningLog(PROG)  # the library's warnings, once each, also in train.json
     with notes.capture():
