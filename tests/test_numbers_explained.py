@@ -216,3 +216,16 @@ def test_no_progress_bars_in_a_redirected_log(tmp_path, capsys):
         "--no-tensorboard"]) == 0
     err = capsys.readouterr().err
     assert "\r" not in err and "it/s" not in err and "frame/s" not in err, err[:300]
+
+
+def test_summary_line_names_the_unmatched_ends():
+    from torchseq.cli.report import summary_line
+
+    m = {"recall_at_1": 0.952, "auc": 0.951, "n_queries": 249, "seconds": 0.1,
+         "versus_single_frame": {"single_frame_recall_at_1": 1.0, "made_worse": 0.048,
+                                 "made_better": 0.0, "n_without_sequence_match": 10,
+                                 "n_queries": 249}}
+    assert "made worse 4.8% / better 0.0% of queries (4.0% unmatched at the route's ends; " \
+           "--edges matches them), AUC" in summary_line("seqslam", m)
+    m["versus_single_frame"]["n_without_sequence_match"] = 0
+    assert "unmatched" not in summary_line("seqslam", m)

@@ -241,6 +241,9 @@ def summary_line(name: str, m: dict) -> str:
         text += (f", single frame {vs['single_frame_recall_at_1']:.3f}, made worse "
                  f"{100 * vs['made_worse']:.1f}% / better {100 * vs['made_better']:.1f}% "
                  f"of queries")
+        if vs["n_without_sequence_match"] and vs["n_queries"]:  # SeqSLAM's ends (ds/2 each)
+            text += (f" ({100 * vs['n_without_sequence_match'] / vs['n_queries']:.1f}% "
+                     f"unmatched at the route's ends; --edges matches them)")
     return (f"{text}, AUC {m['auc']:.3f} over {m['n_queries']} queries "
             f"({m['seconds']:.2f} s)")
 
