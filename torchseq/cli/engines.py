@@ -273,9 +273,7 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None) -> Neu
                "too coarse for the interpolating readout")
         warn(PROG, f"neural: {n_ref} reference frames on {model.n_units} output units, one "
              f"unit stands for about {per_unit:.1f} frames ({how}; raise --neural-n-output "
-             f"for a finer place resolution; measured on nordland-b, 1,788 frames: recall@1 "
-             f"0.25 at 3.2 frames per unit against 0.59 at one; "
-             f"docs/results/neural-long-routes.md)", notes)
+             f"for finer places; figures: docs/results/neural-long-routes.md)", notes)
     self_check = model.self_check  # fit's figure, or the one a trained checkpoint carries
     if self_check is None:
         self_check = (getattr(model, "extra", None) or {}).get("self_check")
