@@ -229,3 +229,17 @@ def test_summary_line_names_the_unmatched_ends():
            "--edges matches them), AUC" in summary_line("seqslam", m)
     m["versus_single_frame"]["n_without_sequence_match"] = 0
     assert "unmatched" not in summary_line("seqslam", m)
+
+
+def test_event_frame_defaults_agree_between_api_and_cli():
+    import inspect
+
+    from torchseq.cli.event_options import EventFlags
+    from torchseq.events.ensemble import accumulate_ensemble
+    from torchseq.events.frames import accumulate
+    from torchseq.sources import EventFrameOptions
+
+    modes = {inspect.signature(accumulate).parameters["mode"].default,
+             inspect.signature(accumulate_ensemble).parameters["mode"].default,
+             EventFrameOptions().mode, EventFlags().event_mode}
+    assert modes == {"count"}
