@@ -239,6 +239,7 @@ def run_seqslam_map(s, query, device, progress: bool) -> SeqSLAMRun:
     engine = SeqSLAM(scfg, device=device)
     q = engine.descriptors(query.at(scfg.image_size))
     k = resolve_candidates(scfg, m.n_places, len(q))
+    sharding = None
     if cfg.shards is not None:
         from torchseq.seqslam.sharded import ShardedSeqSLAM
 
@@ -246,6 +247,7 @@ def run_seqslam_map(s, query, device, progress: bool) -> SeqSLAMRun:
             raise UsageError("--shards runs candidate mode: give --candidates K (K >= 1)")
         with ShardedSeqSLAM(cfg.map, scfg, cfg.shards, address=cfg.ray_address) as sharded:
             result = sharded.match_descriptors(q)
+            sharding = {"shards": cfg.shards, "restarted_shards": sharded.restarted()}
     elif k:
         ref = m.descriptors()
         result = CandidateSeqSLAM(ref, scfg, k, index=m.index(), device=device).\
@@ -257,4 +259,4 @@ def run_seqslam_map(s, query, device, progress: bool) -> SeqSLAMRun:
                       matrix=matrix, matrix_shape=(m.n_places, len(query)),
                       matrix_reduced=result.enhanced is None,
                       seconds=result.seconds["total"], parameters=to_jsonable(scfg),
-                      kernels=to_jsonable(result.kernels) or None)
+                      kernels=to_jsonable(result.kernels) or None, sharding=sharding)

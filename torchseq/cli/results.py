@@ -62,6 +62,8 @@ class SeqSLAMRun(EngineRun):
             reported in ``metrics.json``; None where the run does not say (ensemble).
         candidate_agreement: a candidate-mode run against the exact mode on a sample of
             queries (``cli.engines.candidate_check``), reported in ``metrics.json``.
+        sharding: a ``--shards`` run's shard count and the shards whose Ray actor was
+            restarted during it (``ShardedSeqSLAM.restarted``), reported in ``metrics.json``.
     """
 
     matrix: torch.Tensor | None
@@ -70,6 +72,7 @@ class SeqSLAMRun(EngineRun):
     difference: torch.Tensor | None = None
     kernels: dict | None = None
     candidate_agreement: dict | None = None
+    sharding: dict | None = None
 
     def reported(self) -> dict:
         """The engine's own entries of ``metrics.json``, after its metrics, in the file's order."""
@@ -78,6 +81,8 @@ class SeqSLAMRun(EngineRun):
             out["kernels"] = self.kernels
         if self.candidate_agreement:
             out["candidate_agreement"] = self.candidate_agreement
+        if self.sharding:
+            out["sharding"] = self.sharding
         return out
 
 
