@@ -83,7 +83,7 @@ def route(places: int, start: int) -> dict[str, np.ndarray]:
 def members(run, windows_ms, n_windows: int, size) -> torch.Tensor:
     """``(M, T, h, w)`` count frames centred on the 10 ms steps, area-pooled to ``size``."""
     if tuple(windows_ms) == (10.0,):
-        f = accumulate(run.stream, window_us=WINDOW_US, anchor="zero")[:n_windows]
+        f = accumulate(run.stream, window_us=WINDOW_US, mode="signed", anchor="zero")[:n_windows]
         return torch.nn.functional.adaptive_avg_pool2d(f[:, None], tuple(size))[:, 0][None]
     m = accumulate_ensemble(run.stream, [int(round(ms * 1000)) for ms in windows_ms],
                             step_us=WINDOW_US, downsample=tuple(size), anchor="zero")

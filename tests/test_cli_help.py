@@ -16,7 +16,7 @@ from torchseq.cli.train import build_parser as train_parser
 
 PARSERS = {"eval": (eval_parser, cli_help.EVAL), "train": (train_parser, cli_help.TRAIN),
            "export": (export_parser, cli_help.EXPORT)}
-LIMIT = {"eval": 120, "train": 120, "export": 40}  # lines of --help at 80 columns
+LIMIT = {"eval": 150, "train": 120, "export": 45}  # lines of --help at 80 columns
 
 
 def help_text(parser, flag, capsys):

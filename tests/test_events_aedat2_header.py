@@ -62,3 +62,30 @@ def test_detect_chip_from_lines():
     assert detect_chip(["# AEChip: DAVIS346B", "# torchseq layout: davis sensor_size: 20x10"]) \
         == ("davis", (20, 10))
     assert detect_chip(["# something else", "#  AEChip  : no known fragment"]) is None
+
+
+def test_corrupt_records_are_counted_and_located(tmp_path):
+    """4,000 random bytes in the middle of a DVS128 file: the skipped records are said."""
+    import warnings
+
+    from conftest import shared_data
+
+    from torchseq.events.io import read_events
+
+    path = shared_data("events", "alex_walking_again.aedat")
+    src = path.read_bytes()
+    header, _ = read_header(io.BytesIO(src))
+    mid = header + (len(src) - header) // 16 * 8
+    noise = np.random.default_rng(0).integers(0, 256, 4000, dtype=np.uint8)
+    noise[::8] |= 1  # every record's top address byte non-zero: none a DVS128 word
+    (tmp_path / "bad.aedat").write_bytes(src[:mid] + noise.tobytes() + src[mid:])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        clean = read_events(path)  # the intact file reads without a word
+    with pytest.warns(UserWarning) as said:
+        bad = read_events(tmp_path / "bad.aedat")
+    assert len(bad) == len(clean)
+    assert [str(w.message) for w in said] == [
+        f"{tmp_path / 'bad.aedat'}: skipped 500 of {len(clean) + 500} records that are not "
+        f"DVS128 events (address bits 16-31 set), the first at byte {mid}: the file may be "
+        f"corrupt there"]

@@ -375,7 +375,7 @@ def test_frame_pixel_budget_boundary(monkeypatch):
     with pytest.raises(ValueError, match="2x8x12"):
         accumulate(ev, (12, 8), mode="two_channel")
     monkeypatch.setattr(frames_module, "MAX_FRAME_PIXELS", 4 * 6)  # pooled frame fits
-    np.testing.assert_allclose(accumulate(ev, (12, 8), downsample=(4, 6)).numpy(),
+    np.testing.assert_allclose(accumulate(ev, (12, 8), mode="signed", downsample=(4, 6)).numpy(),
                                loop_pool(loop_frames(ev, 12, 8, window_us=10_000), 4, 6),
                                rtol=0, atol=1e-6)
 

@@ -47,7 +47,25 @@ def test_cli_writes_everything_and_passes(checkpoint, tmp_path, capsys):
     assert set(report["recall_at_1"]) >= {"pytorch", "integer_numpy", "integer_onnx"}
     assert report["files_bytes"]["model_int.tsq"] == (out / "model_int.tsq").stat().st_size
     assert read_integer_model(out / "model_int.tsq").params["n_units"] == 40
-    assert capsys.readouterr().out.strip().endswith("PASS")
+    printed = capsys.readouterr().out
+    assert printed.strip().endswith("PASS")
+    # the chip report and the timed spiking model are opt-in (--chip-report, --timed-spiking)
+    assert "chip" not in printed and "timed" not in printed
+    assert {"chips", "timed"}.isdisjoint(report.get("nir", {}))
+    # an existing export is refused, as eval/train/map refuse an existing --out
+    again = [str(checkpoint / "small.pt"), "--out", str(out), "--query",
+             str(checkpoint / "query.npy"), "--no-nir"]
+    assert main(again) == 2
+    assert f"--out {out} already holds files; give a new folder or --overwrite" in \
+        capsys.readouterr().err
+    assert main([*again, "--overwrite"]) == 0  # a fresh folder: no stale model.nir beside it
+    assert "model.nir" not in {p.name for p in out.iterdir()}
+    assert json.loads((out / "validation.json").read_text())["nir"] == {"skipped": "--no-nir"}
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    assert main([str(checkpoint / "small.pt"), "--out", str(tmp_path / "other"),
+                 "--overwrite"]) == 2  # --overwrite replaces only a previous export
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
 
 
 @pytest.mark.slow
@@ -216,6 +234,7 @@ def test_summary_lines_report_the_nir_validation(tmp_path):
     from torchseq.cli.export import summary_lines
 
     report = {"query_source": "q", "device_frame_size": [4, 8], "device_frame_size_source": "s",
+              "camera_frame_size": [4, 8],
               "checks": {"nir_consumers_agree": False}, "passed": False,
               "nir": {"file": "model.nir",
                       "spiking": {"agreement_with_rate_model": 0.5, "recall_at_1": 0.25},
@@ -234,3 +253,16 @@ def test_summary_lines_report_the_nir_validation(tmp_path):
     report["nir"] = {"skipped": "--no-nir"}
     (tmp_path / "validation.json").write_text(json.dumps(report))
     assert "nir: skipped (--no-nir)" in summary_lines(tmp_path)
+
+
+def test_device_line_says_where_the_size_came_from_and_what_the_host_does():
+    from torchseq.cli.export import device_line
+
+    report = {"device_frame_size": [24, 32], "camera_frame_size": [32, 64],
+              "device_frame_size_source": "the checkpoint's reference frames"}
+    assert device_line(report) == (
+        "device input: uint8 24x32: camera frames 32x64 (from the checkpoint's reference "
+        "frames) resized on the host (not a multiple of the model's input)")
+    report["device_frame_size"] = [32, 64]  # pooled on the device: the camera's own size
+    assert device_line(report) == ("device input: uint8 32x64 (the camera frames' size, from "
+                                   "the checkpoint's reference frames)")

@@ -413,7 +413,8 @@ def test_export_command_writes_model_nir_and_its_validation(tmp_path):
     np.save(tmp_path / "gt.npy", demo.ground_truth[:, :40].astype(np.int64))
     out = tmp_path / "export"
     code = main([str(tmp_path / "small.pt"), "--out", str(out), "--query",
-                 str(tmp_path / "query.npy"), "--ground-truth", str(tmp_path / "gt.npy")])
+                 str(tmp_path / "query.npy"), "--ground-truth", str(tmp_path / "gt.npy"),
+                 "--chip-report", "--timed-spiking"])
     assert code == 0
     report = json.loads((out / "validation.json").read_text())
     rep = report["nir"]
@@ -455,6 +456,24 @@ def test_export_without_nir_is_reported_not_failed(monkeypatch, tmp_path):
     model, demo, sp = tiny()
     rep = export_nir(model, tmp_path, demo.query[:3], None, demo.reference, "test")
     assert "torchseq[nir]" in rep["skipped"] and not (tmp_path / "model.nir").exists()
+
+
+def test_nir_step_estimates_its_memory_and_refuses_above_the_bound(monkeypatch, tmp_path):
+    import torchseq.export.nir_validate as nv
+
+    pytest.importorskip("nir")
+    # the dense levels and shift matrices of model.nir: 8 N^2 K bytes (issue 36: a 3,576-unit
+    # model at 128 levels needs 13.1 GB; its NIR step passed 13 GB with no estimate)
+    assert nv.nir_dense_bytes(3576, 128) == 13_094_682_624
+    model, demo, sp = tiny()
+    need = nv.nir_dense_bytes(model.n_units, 128)
+    monkeypatch.setattr(nv, "NIR_MAX_BYTES", need - 1)
+    rep = nv.export_nir(model, tmp_path, demo.query[:3], None, demo.reference, "test")
+    assert rep == {"skipped": f"model.nir would hold {need / 1e9:.1f} GB of dense weights "
+                              f"({model.n_units} units x 128 levels; more again while it is "
+                              f"validated), above the {(need - 1) / 2 ** 30:g} GiB bound: "
+                              f"lower --nir-levels or give --no-nir"}
+    assert not (tmp_path / "model.nir").exists()
 
 
 def test_calibration_frames_follow_the_recorded_reference():

@@ -82,6 +82,14 @@ def test_approximate_index_refined_on_the_shards(tmp_path):
     assert_same(sharded.match_descriptors(query), one.match_descriptors(query))
 
 
+def test_restarted_names_the_shards_with_a_new_process(tmp_path):
+    ref, query, m = make_map(tmp_path, {}, n_ref=100)
+    sharded = sm.ShardedSeqSLAM(m, SeqSLAMConfig(candidates=3), 2, use_ray=False)
+    assert sharded.restarted() == []  # one process throughout
+    sharded.status[1] = {**sharded.status[1], "pid": -1}  # as a Ray actor restarted elsewhere
+    assert sharded.restarted() == [1]
+
+
 def robots(sharded, queries, steps=None):
     """Step every query traverse as one robot of a batch; per step the (B,) decisions."""
     state, out = None, []
@@ -183,6 +191,7 @@ def test_ray_actors_equal_one_machine_and_survive_killed_actors(tmp_path, ray_cl
             np.testing.assert_array_equal(g, w)
         after = ray_cluster.get([w.ready.remote() for w in sharded.workers])
         assert after[0]["pid"] != pids[0] and after[1]["pid"] != pids[1]  # restarted
+        assert sharded.restarted() == [0, 1]  # what eval --shards records in metrics.json
         assert after[0]["error"] is None and after[0]["rows"] > 0  # reloaded from the map
 
 

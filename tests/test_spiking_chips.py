@@ -305,7 +305,7 @@ def test_export_command_reports_each_chip_at_8_bits(tmp_path, capsys):
     out = tmp_path / "export"
     code = main([str(tmp_path / "small.pt"), "--out", str(out), "--query",
                  str(tmp_path / "query.npy"), "--nir-weight-bits", "8", "--nir-levels", "8",
-                 "--no-progress"])
+                 "--no-progress", "--chip-report", "--timed-spiking"])
     printed = capsys.readouterr().out
     report = json.loads((out / "validation.json").read_text())["nir"]
     assert code == 0 and report["weight_bits"] == 8 and report["levels"] == 8

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -123,14 +124,26 @@ def positives(gt: np.ndarray | GroundTruthRanges) -> np.ndarray:
     return np.asarray(gt, dtype=bool).any(0)
 
 
+def alignment_scale(n_reference: int, n_query: int, offset: float = 0.0) -> float:
+    """Reference frames per query frame when the query is stretched over the reference.
+
+    ``(R - 1 - offset) / (Q - 1)``: the query starts at ``offset`` and ends with the
+    reference (index alignment's default, right when both traverses cover the same route).
+    """
+    return (n_reference - 1 - offset) / (n_query - 1) if n_query > 1 else 0.0
+
+
 def _alignment_centres(n_reference: int, n_query: int, tolerance: float,
-                       offset: float) -> np.ndarray:
+                       offset: float, scale: float | None) -> np.ndarray:
     if not (math.isfinite(tolerance) and tolerance >= 0):
         raise GroundTruthError(f"tolerance must be a finite number >= 0, got {tolerance}")
     if not (math.isfinite(offset) and 0 <= offset <= n_reference - 1):
         raise GroundTruthError(f"offset must be within the reference (0..{n_reference - 1}), "
                                f"got {offset}")
-    scale = (n_reference - 1 - offset) / (n_query - 1) if n_query > 1 else 0.0
+    if scale is None:
+        scale = alignment_scale(n_reference, n_query, offset)
+    elif not (math.isfinite(scale) and scale > 0):
+        raise GroundTruthError(f"scale must be a finite number > 0, got {scale}")
     return offset + np.arange(n_query) * scale
 
 
@@ -140,7 +153,7 @@ def _aligned(r, centre: np.ndarray, tolerance: float) -> np.ndarray:
 
 
 def alignment_ranges(n_reference: int, n_query: int, tolerance: float,
-                     offset: float = 0.0) -> GroundTruthRanges:
+                     offset: float = 0.0, scale: float | None = None) -> GroundTruthRanges:
     """:func:`alignment_ground_truth` as ranges: ``O(Q)`` memory, any route length.
 
     Each query's admissible references are the integers within ``tolerance`` of its centre,
@@ -152,6 +165,8 @@ def alignment_ranges(n_reference: int, n_query: int, tolerance: float,
         n_query: query frames ``Q``.
         tolerance: admissible distance in reference frames.
         offset: reference frame where the query starts, ``0 <= offset <= R - 1``.
+        scale: reference frames per query frame; None: :func:`alignment_scale` (the query
+            stretched over the reference).
 
     Returns:
         :class:`GroundTruthRanges` of shape ``(R, Q)``.
@@ -160,7 +175,7 @@ def alignment_ranges(n_reference: int, n_query: int, tolerance: float,
                for n in (n_reference, n_query)) or n_reference < 1 or n_query < 1:
         raise GroundTruthError(f"need at least one frame per traverse, got {n_reference} "
                                f"reference and {n_query} query frames")
-    centre = _alignment_centres(int(n_reference), int(n_query), tolerance, offset)
+    centre = _alignment_centres(int(n_reference), int(n_query), tolerance, offset, scale)
     steps = np.arange(-2, 3)[:, None]  # (5, 1): the run's ends lie among these candidates
     low = np.floor(centre - tolerance)[None, :] + steps  # (5, Q)
     high = np.floor(centre + tolerance)[None, :] + steps
@@ -176,11 +191,13 @@ def alignment_ranges(n_reference: int, n_query: int, tolerance: float,
 
 
 def alignment_ground_truth(n_reference: int, n_query: int, tolerance: float,
-                           offset: float = 0.0) -> np.ndarray:
+                           offset: float = 0.0, scale: float | None = None) -> np.ndarray:
     """Ground truth by index alignment: query ``j`` sits at reference ``offset + j * s``.
 
-    ``s = (R - 1 - offset) / (Q - 1)``: the query starts at reference frame ``offset`` (the
-    traverses start at different places) and ends with the reference. For long routes,
+    ``s = scale``, or by default ``(R - 1 - offset) / (Q - 1)``: the query starts at reference
+    frame ``offset`` (the traverses start at different places) and ends with the reference
+    (:func:`alignment_scale`). A query that covers a part of the reference at its speed
+    needs ``scale=1``. For long routes,
     :func:`alignment_ranges` gives the same ground truth without the dense matrix.
 
     Args:
@@ -188,12 +205,13 @@ def alignment_ground_truth(n_reference: int, n_query: int, tolerance: float,
         n_query: query frames ``Q``.
         tolerance: admissible distance in reference frames.
         offset: reference frame where the query starts, ``0 <= offset <= R - 1``.
+        scale: reference frames per query frame (default: stretched, as above).
 
     Returns:
         ``(R, Q)`` bool.
     """
     n_reference, n_query = _check_counts(n_reference, n_query)
-    centre = _alignment_centres(n_reference, n_query, tolerance, offset)
+    centre = _alignment_centres(n_reference, n_query, tolerance, offset, scale)
     return _aligned(np.arange(n_reference)[:, None], centre[None, :], tolerance)
 
 
@@ -220,21 +238,45 @@ def widen_ground_truth(gt: np.ndarray, tolerance: float) -> np.ndarray:
     return (count[hi] - count[lo]) > 0
 
 
+HEADER = ["query", "references"]
+
+
 def read_ground_truth_csv(path: Path, n_reference: int, n_query: int) -> np.ndarray:
-    """Read a ``query,references`` CSV with space-separated admissible reference indices."""
-    gt = np.zeros((n_reference, n_query), dtype=bool)
-    seen = set()
+    """Read a ground-truth CSV: the documented form, or a headerless pair table.
+
+    Accepted (a UTF-8 byte-order mark, as Excel's "CSV UTF-8" writes, is allowed):
+
+    - header ``query,references``, one row per query: its 0-based index, then its admissible
+      references separated by spaces (``5,3 4 5 6 7``);
+    - no header, every row ``query,reference`` or ``query,reference,N`` integers, one
+      admissible reference per row (Nordland's ``sample_ground_truth.csv``): 0-based when the
+      queries are exactly ``0..Q-1``, 1-based when they are ``1..Q``; a third column is not
+      read. How such a file was read is said in a warning.
+
+    Anything else is refused with the line and what was expected (a row ``5,3,4,5,6,7``
+    under the header would otherwise lose references).
+    """
     try:
-        with open(path, newline="", encoding="utf-8") as f:
-            rows = list(csv.reader(f))
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            rows = [_trim(row) for row in csv.reader(f)]
     except (UnicodeDecodeError, csv.Error) as err:
         raise GroundTruthError(f"{path}: not a readable UTF-8 CSV ({err})") from None
-    if not rows or [c.strip().lower() for c in rows[0][:2]] != ["query", "references"]:
-        raise GroundTruthError(f"{path}: expected a 'query,references' header")
+    if rows and _integers(rows[0]) is not None:
+        return _read_pairs(path, rows, n_reference, n_query)
+    if not rows or [c.strip().lower() for c in rows[0]] != HEADER:
+        got = ",".join(rows[0]) if rows else "an empty file"
+        raise GroundTruthError(f"{path}:1: expected the header 'query,references' (or "
+                               f"headerless integer 'query,reference' rows), got {got[:60]!r}")
+    gt = np.zeros((n_reference, n_query), dtype=bool)
+    seen = set()
     hint = _one_based_hint(rows[1:])
     for line, row in enumerate(rows[1:], start=2):
         if not row:
             continue
+        if len(row) > 2:
+            raise GroundTruthError(
+                f"{path}:{line}: {len(row)} fields, expected 2 (query, then its references "
+                f"separated by spaces: '{row[0]},{' '.join(row[1:])}')")
         try:
             q = int(row[0])
             refs = [int(r) for r in (row[1].split() if len(row) > 1 else [])]
@@ -251,6 +293,58 @@ def read_ground_truth_csv(path: Path, n_reference: int, n_query: int) -> np.ndar
     if len(seen) != n_query:
         raise GroundTruthError(f"{path}: covers {len(seen)} queries but the query has "
                                f"{n_query}{hint}")
+    return gt
+
+
+def _trim(row: list[str]) -> list[str]:
+    """A CSV row without the empty fields a spreadsheet leaves at its end."""
+    while row and not row[-1].strip():
+        row = row[:-1]
+    return row
+
+
+def _integers(row: list[str]) -> list[int] | None:
+    """The row's fields as integers, or None when one is not an integer."""
+    try:
+        return [int(c) for c in row]
+    except ValueError:
+        return None
+
+
+def _read_pairs(path: Path, rows: list, n_reference: int, n_query: int) -> np.ndarray:
+    """A headerless ``query,reference[,N]`` table (one admissible reference per row)."""
+    pairs = []
+    for line, row in enumerate(rows, start=1):
+        if not row:
+            continue
+        values = _integers(row)
+        if values is None or len(values) not in (2, 3):
+            raise GroundTruthError(f"{path}:{line}: expected integer 'query,reference' or "
+                                   f"'query,reference,N' like the lines above, got "
+                                   f"{','.join(row)[:60]!r}")
+        pairs.append(values[:2])
+    columns = {len(r) for r in rows if r}
+    q, r = np.asarray(pairs, dtype=np.int64).T
+    queries = np.unique(q)
+    if len(queries) == n_query and queries[0] == 0 and queries[-1] == n_query - 1:
+        base = 0
+    elif len(queries) == n_query and queries[0] == 1 and queries[-1] == n_query:
+        base = 1
+    else:
+        raise GroundTruthError(
+            f"{path}: a headerless table must list every query once or more, as 0..{n_query - 1} "
+            f"or 1..{n_query}; its queries run {queries[0]}..{queries[-1]} ({len(queries)} "
+            f"distinct)")
+    r = r - base
+    bad = r[(r < 0) | (r >= n_reference)]
+    if len(bad):
+        raise GroundTruthError(f"{path}: reference {int(bad[0]) + base} outside "
+                               f"{base}..{n_reference - 1 + base}")
+    gt = np.zeros((n_reference, n_query), dtype=bool)
+    gt[r, q - base] = True
+    warnings.warn(f"{path}: read as headerless {'1' if base else '0'}-based query,reference "
+                  f"pairs" + (" (third column not used)" if 3 in columns else ""),
+                  stacklevel=3)
     return gt
 
 

@@ -370,3 +370,71 @@ def evaluate(matches: Matches, gt: GroundTruth, ranked: np.ndarray | None = None
         if ranked_score is not None:
             out["recall"] = recall_table(ranked, ranked_score, gt, matches.lower_is_better)
     return out
+
+
+@dataclass
+class MatchLine:
+    """The straight line ``reference = offset + scale * query`` most matches lie near.
+
+    Attributes:
+        offset: reference index of query 0 on the line.
+        scale: reference frames per query frame.
+        band: how far (reference frames) a match may lie from the line and count.
+        share: the share of matched queries within ``band`` of the line.
+        correct: the share of matched queries the ground truth admits.
+    """
+
+    offset: float
+    scale: float
+    band: float
+    share: float
+    correct: float
+
+    def disagrees(self) -> bool:
+        """Most matches follow a line the ground truth does not admit (it looks misaligned)."""
+        return self.share >= 0.5 and self.share - self.correct >= 0.25
+
+
+def match_line(matches: Matches, gt: GroundTruth, tries: int = 256,
+               seed: int = 0) -> MatchLine | None:
+    """What an engine's own matches suggest, against the ground truth's verdict on them.
+
+    A line through two random matches, ``tries`` times (RANSAC); the one most matches lie
+    within ``band`` of wins, ``band`` half the median number of admissible references per
+    query (at least 1). A route matched well lies on such a line (any speed ratio, any
+    start), so ``share`` far above ``correct`` says the ground truth is misaligned (a query
+    stretched over a longer reference, a shifted or mis-based file), not the matching.
+
+    Returns:
+        :class:`MatchLine`, or None with fewer than 10 matched queries.
+    """
+    gt = _check_gt(gt, len(matches))
+    ref, _ = _as_numpy(matches)
+    q = np.nonzero(ref >= 0)[0]
+    if len(q) < 10:
+        return None
+    r = ref[q].astype(np.float64)
+    width = (gt.hi - gt.lo) if isinstance(gt, GroundTruthRanges) else gt.sum(0)
+    width = width[width > 0]
+    band = max(1.0, (float(np.median(width)) - 1) / 2) if len(width) else 1.0
+    rng = np.random.default_rng(seed)
+    i, j = rng.integers(0, len(q), (2, tries))
+    keep = np.abs(q[i] - q[j]) >= max(1, (q[-1] - q[0]) // 10)  # far apart: a steady slope
+    i, j = i[keep], j[keep]
+    if not len(i):
+        return None
+    scale = (r[j] - r[i]) / (q[j] - q[i])
+    offset = r[i] - scale * q[i]
+    best, hits = 0, -1
+    for k in range(len(i)):  # (tries,) lines over (M,) matches: O(tries M), no (tries, M)
+        n = int((np.abs(r - (offset[k] + scale[k] * q)) <= band).sum())
+        if n > hits:
+            best, hits = k, n
+    a, b = float(offset[best]), float(scale[best])
+    inside = np.abs(r - (a + b * q)) <= band
+    b2, a2 = np.polyfit(q[inside], r[inside], 1)  # least squares on the line's matches
+    if (np.abs(r - (a2 + b2 * q)) <= band).sum() >= hits:
+        a, b = float(a2), float(b2)
+        hits = int((np.abs(r - (a + b * q)) <= band).sum())
+    ok = correct(matches, gt)[q]
+    return MatchLine(a, b, band, hits / len(q), float(ok.mean()))

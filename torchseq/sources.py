@@ -276,14 +276,19 @@ def _decoded_in_order(files: list[Path], workers: int) -> Iterator[np.ndarray]:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def iter_image_folder(folder: Path, progress: bool = True,
+def _no_bar(progress: bool | None) -> bool | None:
+    """The ``disable`` of tqdm: None (a bar only on a terminal), or the caller's own choice."""
+    return None if progress is None else not progress
+
+
+def iter_image_folder(folder: Path, progress: bool | None = None,
                       select: FrameSelection | None = None,
                       workers: int | None = None) -> Iterator[np.ndarray]:
     """Yield the (selected) images of a folder in natural order, one ``(H, W)`` float32 each.
 
     Args:
         folder: the image folder.
-        progress: show a progress bar.
+        progress: show a progress bar (None: only when stderr is a terminal).
         select: which frames to keep (default: all).
         workers: decode threads (see :func:`decode_workers`; None: the usable CPUs, at most
             8). The frames are the same for any count.
@@ -296,7 +301,7 @@ def iter_image_folder(folder: Path, progress: bool = True,
     first = None
     frames = _decoded_in_order(chosen, decode_workers(workers))
     for f, grey in zip(chosen, tqdm(frames, total=len(chosen), desc=f"reading {folder.name}",
-                                    disable=not progress, leave=False)):
+                                    disable=_no_bar(progress), leave=False)):
         if first is None:
             first = (f, grey.shape)
         elif grey.shape != first[1]:
@@ -306,7 +311,7 @@ def iter_image_folder(folder: Path, progress: bool = True,
         yield grey
 
 
-def iter_video(path: Path, progress: bool = True,
+def iter_video(path: Path, progress: bool | None = None,
                select: FrameSelection | None = None) -> Iterator[np.ndarray]:
     """Yield the (selected) frames of a video, one ``(H, W)`` float32 grey each.
 
@@ -319,7 +324,7 @@ def iter_video(path: Path, progress: bool = True,
     total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
     kept = 0
     try:
-        with tqdm(total=total, desc=f"reading {path.name}", disable=not progress,
+        with tqdm(total=total, desc=f"reading {path.name}", disable=_no_bar(progress),
                   leave=False) as bar:
             i = 0
             while True:
@@ -364,7 +369,7 @@ def _nothing_selected(name, n: int, select: FrameSelection) -> str:
             f"frames from 0 and must be below {n}")
 
 
-def load_image_folder(folder: Path, progress: bool = True,
+def load_image_folder(folder: Path, progress: bool | None = None,
                       workers: int | None = None) -> torch.Tensor:
     """Load every image of a folder in natural sort order as ``(T, H, W)`` float32 grey.
 
@@ -476,7 +481,7 @@ def _event_frames(path: Path, opts: EventFrameOptions):
 
 
 def iter_traverse(source: Source, events: EventFrameOptions | None = None,
-                  progress: bool = True, select: FrameSelection | None = None,
+                  progress: bool | None = None, select: FrameSelection | None = None,
                   total: dict | None = None) -> Iterator[np.ndarray | torch.Tensor]:
     """Yield the grey frames of a traverse one at a time, ``(H, W)`` float32 each.
 
@@ -487,7 +492,8 @@ def iter_traverse(source: Source, events: EventFrameOptions | None = None,
     Args:
         source: as :func:`load_traverse`.
         events: how event files are accumulated into frames.
-        progress: show a progress bar for long reads.
+        progress: show a progress bar for long reads (None: only when stderr is a
+            terminal, so redirected logs get none).
         select: which frames to keep (default: all).
         total: a dict that receives ``"n_total"``, the traverse's frame count before the
             selection (a video's container count; None when the container does not say).
@@ -547,7 +553,7 @@ def thumbnail_size(frame_size: tuple[int, int], side: int = 160) -> tuple[int, i
 
 
 def load_traverse_sizes(source: Source, sizes: dict[str, tuple[int, int] | None],
-                        events: EventFrameOptions | None = None, progress: bool = True,
+                        events: EventFrameOptions | None = None, progress: bool | None = None,
                         select: FrameSelection | None = None, thumbnail: int | None = None
                         ) -> tuple[dict[str, torch.Tensor], dict]:
     """Load a traverse once, keeping only the frame sizes the engines need.
@@ -560,7 +566,7 @@ def load_traverse_sizes(source: Source, sizes: dict[str, tuple[int, int] | None]
         source: as :func:`load_traverse`.
         sizes: name -> ``(H, W)`` to resize to, or None for the original size.
         events: how event files are accumulated into frames.
-        progress: show a progress bar.
+        progress: show a progress bar (None: only when stderr is a terminal).
         select: which frames to keep.
         thumbnail: also keep uint8 thumbnails (longer side at most this many pixels) under
             ``"thumbnail"``, for plots.
@@ -627,7 +633,7 @@ def _check_empty_windows(source, repeats: int, out: dict[str, list]) -> None:
 
 
 def load_traverse(source: Source, events: EventFrameOptions | None = None,
-                  progress: bool = True, select: FrameSelection | None = None,
+                  progress: bool | None = None, select: FrameSelection | None = None,
                   size: tuple[int, int] | None = None) -> torch.Tensor:
     """Load a traverse as grey frames.
 
@@ -637,7 +643,8 @@ def load_traverse(source: Source, events: EventFrameOptions | None = None,
             array file (``.npy`` ``(T, H, W)`` or ``.npz`` with a ``frames`` key), or an
             in-memory ``(T, H, W)`` / ``(T, H, W, 3)`` array or tensor.
         events: how event files are accumulated into frames.
-        progress: show a progress bar for long reads.
+        progress: show a progress bar for long reads (None: only when stderr is a
+            terminal, so redirected logs get none).
         select: which frames to keep (start, stop, step, max_frames); default all.
         size: ``(H, W)`` to shrink each frame to as it is read (``torchseq.resize``);
             None keeps the original size.

@@ -25,6 +25,7 @@ from torchseq.cli.results import EngineRun, NeuralRun, SeqSLAMRun
 from torchseq.cli.runs import Notes, to_jsonable, warn
 from torchseq.cli.traverse import Traverse
 from torchseq.descriptors import neural_config, neural_input
+from torchseq.matches import Matches
 from torchseq.neural.memory import seqslam_template_bytes
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
 
@@ -113,6 +114,72 @@ def run_seqslam(s: Settings, ref, query, device, notes: Notes) -> SeqSLAMRun:
                       seconds=result.seconds["total"], parameters=to_jsonable(config),
                       difference=difference,
                       kernels=to_jsonable(result.kernels) or None)
+
+
+SAMPLE_QUERIES = 256  # queries of a candidate-mode run matched in the exact mode as well
+MAX_RECALL_LOSS = 0.02  # with ground truth: sample recall@1 below the exact mode's by more
+MIN_AGREEMENT = 0.75  # without: the share of the exact mode's matches found (nordland-b:
+#                       K = 20 28%, recall 0.380 against 0.653; K = 100 82%, recall held)
+
+
+def candidate_check(s: Settings, run: SeqSLAMRun, ref: Traverse, query: Traverse, gt, device,
+                    notes: Notes) -> None:
+    """Candidate mode against the exact mode on a sample of queries; warn where K loses.
+
+    A block of :data:`SAMPLE_QUERIES` queries in the middle of the route (with ``ds/2`` more
+    each side, so every sampled query has its whole sequence) is matched in the exact mode
+    against the whole reference. With ground truth the two recall@1 on the sample are
+    compared, else the share of sampled queries whose candidate-mode match lies within one
+    frame of the exact mode's; both go to ``run.candidate_agreement`` (metrics.json).
+    """
+    from torchseq.maps import ReferenceMap
+    from torchseq.seqslam.candidates import resolve_candidates
+
+    cfg = s.seqslam
+    with warnings.catch_warnings():  # said once already, by the run
+        warnings.simplefilter("ignore")
+        k = resolve_candidates(cfg, run.matrix_shape[0], len(query))
+    if not k or ref.members is not None:  # exact mode; an ensemble is not one descriptor set
+        return
+    engine = SeqSLAM(dataclasses.replace(ranked_config(cfg), candidates=0), device=device)
+    half = cfg.sequence_length // 2
+    n = min(len(query), SAMPLE_QUERIES + 2 * half)
+    a = (len(query) - n) // 2
+    if query.descriptors is not None:
+        sample = query.descriptors[a:a + n]
+    else:
+        sample = engine.descriptors(query.at(cfg.image_size)[a:a + n])
+    if s.run.map is not None:
+        reference = ReferenceMap(s.run.map).descriptors()
+    elif ref.descriptors is not None:
+        reference = ref.descriptors
+    else:
+        reference = engine.descriptors(ref.at(cfg.image_size))
+    cols = torch.arange(a + half, a + n - half)
+    exact = torch.full_like(run.matches.reference, -1)
+    exact[cols] = engine.match_descriptors(reference, sample).matches.reference[half:n - half]
+    mine = run.matches.reference
+    found = (exact[cols] >= 0) & ((mine[cols] - exact[cols]).abs() <= 1)
+    check = {"candidates": k, "queries": [int(cols[0]), int(cols[-1])],
+             "exact_match_found": float(found.float().mean())}
+    if gt is not None:
+        score = torch.full(exact.shape, 0.0, dtype=torch.float64)
+        keep = torch.from_numpy(metrics.positives(gt)).bool()[cols]
+        rows = {name: torch.from_numpy(metrics.correct(Matches(m, score, True), gt))[cols][keep]
+                for name, m in (("exact", exact), ("candidates", mine))}
+        check.update({f"{name}_recall_at_1": float(v.double().mean()) if len(v) else None
+                      for name, v in rows.items()})
+    run.candidate_agreement = check
+    if gt is not None and check["exact_recall_at_1"] is not None:
+        short = check["exact_recall_at_1"] - check["candidates_recall_at_1"] > MAX_RECALL_LOSS
+        text = (f"recall@1 {check['candidates_recall_at_1']:.3f} against the exact mode's "
+                f"{check['exact_recall_at_1']:.3f}")
+    else:
+        short = check["exact_match_found"] < MIN_AGREEMENT
+        text = f"finds the exact mode's match for {100 * check['exact_match_found']:.1f}%"
+    if short:
+        warn(PROG, f"--candidates {k}: {text} on {len(cols)} sampled queries; raise K or give "
+             f"--candidates 0 (the exact mode)", notes)
 
 
 def describe_reference(cfg: EvalConfig, ref: Traverse) -> dict:
@@ -206,9 +273,7 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None) -> Neu
                "too coarse for the interpolating readout")
         warn(PROG, f"neural: {n_ref} reference frames on {model.n_units} output units, one "
              f"unit stands for about {per_unit:.1f} frames ({how}; raise --neural-n-output "
-             f"for a finer place resolution; measured on nordland-b, 1,788 frames: recall@1 "
-             f"0.25 at 3.2 frames per unit against 0.59 at one; "
-             f"docs/results/neural-long-routes.md)", notes)
+             f"for finer places; figures: docs/results/neural-long-routes.md)", notes)
     self_check = model.self_check  # fit's figure, or the one a trained checkpoint carries
     if self_check is None:
         self_check = (getattr(model, "extra", None) or {}).get("self_check")

@@ -20,7 +20,7 @@ import torch
 
 import torchseq.cli.help as cli_help
 from torchseq.atomic import write_json, write_text
-from torchseq.cli.engines import run_engines, single_frame_baseline
+from torchseq.cli.engines import candidate_check, run_engines, single_frame_baseline
 from torchseq.cli.errors import UsageError
 from torchseq.cli.eval_settings import (
     ENGINES,
@@ -64,6 +64,7 @@ from torchseq.cli.runs import (
     config_text,
     mark_complete,
     mark_incomplete,
+    progress_wanted,
     run_folder,
     run_main,
     sweep_grid,
@@ -123,8 +124,12 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
     scfg = config_from_args(SeqSLAMConfig, args)
     check_ranges(scfg, {k: v for k, v in SEQSLAM_LIMITS.items() if hasattr(scfg, k)})
     scfg.validate()
+    speed = None
     if cfg.preset is not None:
         two_channel = str(cfg.event_mode).replace("_", "-") == "two-channel"
+        overrides = preset_overrides(cfg.preset, scfg, two_channel, seqslam_typed)
+        if cfg.preset == "events" and "speed_ratio" not in overrides and cfg.map is None:
+            speed = overrides  # the ratio comes from the traverses once they are read
         scfg = seqslam_preset(cfg.preset, scfg, two_channel, seqslam_typed)
     if cfg.map is not None:
         scfg = map_seqslam_config(cfg.map, scfg)
@@ -148,7 +153,7 @@ def settings_from(args: argparse.Namespace, typed: frozenset[str] = frozenset(),
                  ["--neural-preset"] * (cfg.neural_preset is not None)
                  + changed_flags(dataclasses.replace(ncfg, seed=0), preset, "neural_")
                  + ["--neural-seed"] * neural_seed_given)
-    return Settings(cfg, scfg, ncfg)
+    return Settings(cfg, scfg, ncfg, speed_from_data=speed)
 
 
 def changed_flags(config, default, prefix: str = "") -> list[str]:
@@ -179,6 +184,13 @@ def check_unused(cfg: EvalConfig, seqslam_flags: list[str], neural_flags: list[s
     if demo and cfg.dataset is not None:
         raise UsageError(f"{', '.join(demo)} shape the built-in demo route, not --dataset; "
                          f"drop {'it' if len(demo) == 1 else 'them'}")
+    alignment = [f"--{k.replace('_', '-')}" for k in ("gt_offset", "gt_scale")
+                 if getattr(cfg, k) != getattr(default, k)]
+    if alignment and (cfg.tolerance is None or cfg.ground_truth is not None
+                      or cfg.dataset is not None):
+        raise UsageError(f"{', '.join(alignment)} shape{'s' if len(alignment) == 1 else ''} "
+                         f"index alignment (--tolerance alone); drop "
+                         f"{'it' if len(alignment) == 1 else 'them'} or the ground-truth file")
     no_truth = (cfg.reference is not None and cfg.ground_truth is None and cfg.tolerance is None
                 and cfg.dataset is None)
     if no_truth and cfg.target_precision != default.target_precision:
@@ -199,15 +211,40 @@ def seqslam_preset(name: str, flags: SeqSLAMConfig, two_channel: bool = False,
     (OFF | ON side by side, twice as wide) its 16x16 becomes 16x32 unless ``--image-size``
     is given, so the halves are not squeezed into one square.
     """
+    try:
+        return SeqSLAMConfig.preset(name, **preset_overrides(name, flags, two_channel, typed))
+    except ValueError as err:
+        raise UsageError(f"--preset: {err}") from None
+
+
+def preset_overrides(name: str, flags: SeqSLAMConfig, two_channel: bool = False,
+                     typed: frozenset[str] = frozenset()) -> dict:
+    """The fields :func:`seqslam_preset` lays over the preset (flags given, event frame size)."""
     changed = changed_fields(flags, SeqSLAMConfig())
     changed.update({field: getattr(flags, field) for field in typed})  # typed flags win
     if name == "events" and two_channel and "image_size" not in changed:
         h, w = SeqSLAMConfig.events().image_size
         changed["image_size"] = (h, 2 * w)
-    try:
-        return SeqSLAMConfig.preset(name, **changed)
-    except ValueError as err:
-        raise UsageError(f"--preset: {err}") from None
+    return changed
+
+
+def speed_from_data(s: Settings, ref, query, source: dict) -> Settings:
+    """``--preset events`` without ``--speed-ratio``: the ratio from the traverses' lengths.
+
+    Both traverses cover one route, in windows of one length, so reference windows per
+    query window is their count ratio (the durations' ratio). Said on stderr, recorded in
+    ``source`` (metrics.json ``inputs.speed_ratio``) and in the run's config; ``--speed-ratio``
+    overrides it.
+    """
+    if s.speed_from_data is None:
+        return s
+    ratio = len(ref) / len(query)
+    what = "window" if ref.info.get("events") and query.info.get("events") else "frame"
+    scfg = SeqSLAMConfig.events(**{**s.speed_from_data, "speed_ratio": ratio})
+    source["speed_ratio"] = {"value": ratio, "from": f"{what} counts {len(ref)} / {len(query)}"}
+    print(f"{PROG}: speed ratio {ratio:.3f} reference per query {what}, from the {what} counts "
+          f"({len(ref)} / {len(query)}), ds {scfg.ds}; --speed-ratio overrides", file=sys.stderr)
+    return dataclasses.replace(s, seqslam=scfg)
 
 
 def parse_args(argv: list[str] | None
@@ -294,16 +331,6 @@ def sweep(base: Settings, points: list[Settings], grid: list[list[str]], specs: 
     return 0
 
 
-def progress_wanted(argv: list[str] | None, stream=None) -> bool:
-    """Progress bars only on a terminal: redirected logs get no carriage-return lines.
-
-    ``--progress`` given on the command line keeps them anywhere.
-    """
-    argv = sys.argv[1:] if argv is None else argv
-    stream = sys.stderr if stream is None else stream
-    return "--progress" in argv or bool(getattr(stream, "isatty", lambda: False)())
-
-
 def quiet(s: Settings) -> Settings:
     """``s`` with progress bars off."""
     return dataclasses.replace(s, run=dataclasses.replace(s.run, progress=False))
@@ -363,11 +390,15 @@ def run(s: Settings, points: list[Settings], grid: list[list[str]], specs: list[
             raise UsageError(f"{', '.join(typed)} ha{'s' if len(typed) == 1 else 've'} no "
                              f"effect on descriptors: the network's L1 takes the "
                              f"{ref.info['descriptor_dim']} values of each descriptor")
+    s, points = speed_from_data(s, ref, query, source), [
+        speed_from_data(p, ref, query, {}) for p in points]
     if grid:
         code = sweep(s, points, grid, specs, ref, query, gt, source, device, out, notes, model)
         mark_complete(out)
         return code
     results = run_engines(s, ref, query, device, notes, model)
+    if "seqslam" in results:
+        candidate_check(s, results["seqslam"], ref, query, gt, device, notes)
     # the baseline needs the reference's descriptors: a map run reads none (sharded maps)
     seqslam_run = results.get("seqslam")  # a SeqSLAMRun: its difference matrix, if kept
     difference = None if seqslam_run is None else seqslam_run.difference

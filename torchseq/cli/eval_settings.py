@@ -35,6 +35,7 @@ class EvalConfig(EventFlags):
     ground_truth: str | None = None
     tolerance: float | None = None
     gt_offset: float = 0.0
+    gt_scale: float | None = None
     engine: str = "both"
     checkpoint: str | None = None
     preset: str | None = None
@@ -75,6 +76,8 @@ HELP = {
                  "(with --ground-truth: widen that file's ground truth)",
     "gt_offset": "index alignment: reference frame where the query starts (traverses that "
                  "begin at different places)",
+    "gt_scale": "index alignment: reference frames per query frame (1: the query covers part "
+                "of the reference at its pace; default: stretched over the whole reference)",
     "engine": f"engine to run: one of {', '.join(ENGINES)}",
     "checkpoint": "neural model checkpoint (model.pt from train.py); without it the neural "
                   "engine is trained on the reference first",
@@ -123,7 +126,8 @@ HELP = {
 
 
 LIMITS = {
-    "tolerance": (0.0, 1e9), "gt_offset": (-1e9, 1e9), "target_precision": (0.0, 1.0),
+    "tolerance": (0.0, 1e9), "gt_offset": (-1e9, 1e9), "gt_scale": (1e-6, 1e6),
+    "target_precision": (0.0, 1.0),
     "demo_frames": (2, 20_000), "demo_speed": (0.01, 100.0), "seed": (0, 2 ** 32 - 1),
     "start": (0, 2 ** 40), "stop": (1, 2 ** 40), "frame_step": (1, 2 ** 40),
     "max_frames": (1, 2 ** 40), "descriptor_batch": (1, 2 ** 20),
@@ -142,6 +146,8 @@ class Settings:
     seqslam: SeqSLAMConfig
     neural: NeuralConfig
     given: frozenset = frozenset()  # event fields the command line gave, whatever their value
+    # --preset events without --speed-ratio: the preset's overrides, the ratio from the data
+    speed_from_data: dict | None = None
 
 
 def config_dict(s: Settings) -> dict:

@@ -15,6 +15,7 @@ from pathlib import Path
 import torchseq.cli.help as cli_help
 from torchseq.cli.errors import UsageError
 from torchseq.cli.flags import Parser, parse_size
+from torchseq.cli.runs import run_folder
 from torchseq.export.checkpoint import export_checkpoint
 from torchseq.versions import VERSIONS_KEY, versions_line
 
@@ -30,8 +31,7 @@ def summary_lines(out_dir) -> list[str]:
     if VERSIONS_KEY in report:  # files written before versions were recorded have none
         lines.append(f"made with {versions_line(report[VERSIONS_KEY])}")
     if "device_frame_size" in report:  # the integer device's input (none when skipped)
-        lines.append(f"device input: uint8 {'x'.join(map(str, report['device_frame_size']))} "
-                     f"(from {report['device_frame_size_source']})")
+        lines.append(device_line(report))
     for key, value in report.items():
         if key.endswith("_agreement") or key.endswith("_error") or key == "recall_at_1":
             outside = report.get(f"{key}_outside_near_ties")
@@ -76,6 +76,16 @@ def summary_lines(out_dir) -> list[str]:
     return lines
 
 
+def device_line(report: dict) -> str:
+    """What the integer device takes, and where that size came from."""
+    device, camera = report["device_frame_size"], report.get("camera_frame_size")
+    size, source = "x".join(map(str, device)), report["device_frame_size_source"]
+    if camera is None or list(camera) == list(device):  # files before camera_frame_size: as is
+        return f"device input: uint8 {size} (the camera frames' size, from {source})"
+    return (f"device input: uint8 {size}: camera frames {'x'.join(map(str, camera))} (from "
+            f"{source}) resized on the host (not a multiple of the model's input)")
+
+
 def _nir_config(args):
     """The SpikingConfig of ``--nir-weight-bits`` / ``--nir-levels`` (ValueError when bad)."""
     from torchseq.neural.spiking import SpikingConfig
@@ -110,6 +120,13 @@ def build_parser(prog: str = "torchseq export") -> argparse.ArgumentParser:
     ap.add_argument("--nir-levels", type=int, default=None, metavar="K",
                     help="ring neurons per output unit of the spiking model (default 128; "
                     "fewer fit a chip's memory: docs/guide/nir.md)")
+    ap.add_argument("--overwrite", action="store_true", help="replace a previous export in "
+                    "--out (one with a validation.json) instead of refusing")
+    ap.add_argument("--chip-report", action="store_true", help="also check the spiking model "
+                    "against each chip's published limits (Loihi 2, Speck, Xylo)")
+    ap.add_argument("--timed-spiking", action="store_true", help="also run the timed spiking "
+                    "model on the query and report it (no file; as long as the rest of the "
+                    "export on a long query)")
     ap.add_argument("--no-progress", action="store_true", help="do not show the long steps "
                     "on stderr (bars on a terminal, one line per step otherwise)")
 
@@ -122,9 +139,12 @@ def main(argv: list[str] | None = None, prog: str = "torchseq export") -> int:
     args = build_parser(prog).parse_args(argv)
     try:
         size = parse_size(args.frame_size)
-        ok = export_checkpoint(args.checkpoint, args.out, args.query, args.ground_truth,
+        config = _nir_config(args)
+        out = run_folder(args.out, "export", args.overwrite, own=("validation.json",))
+        ok = export_checkpoint(args.checkpoint, out, args.query, args.ground_truth,
                                frame_size=size, nir=not args.no_nir,
-                               progress=not args.no_progress, nir_config=_nir_config(args))
+                               progress=not args.no_progress, nir_config=config,
+                               chips=args.chip_report, timed=args.timed_spiking)
     except (ValueError, OSError, UsageError) as err:
         print(f"{prog}: error: {_first_line(err)}", file=sys.stderr)
         return 2

@@ -42,13 +42,13 @@ SELECTION = ("--start", "--stop", "--frame-step", "--max-frames")
 # (group, common flags, other flags) per command; a '*' in a name matches any text
 EVAL = (
     ("inputs", ("--reference", "--query", "--ground-truth", "--tolerance", "--engine",
-                "--checkpoint", "--config"),
-     ("--gt-offset", *SELECTION, "--dataset", "--root", "--reference-split", "--query-split",
-      "--descriptor", "--descriptor-batch", "--map", "--shards", "--ray-address",
-      "--demo-frames", "--demo-speed", "--seed")),
-    ("SeqSLAM", ("--preset", "--ds", "--vmin", "--vmax", "--speed-ratio"),
-     ("--candidates", "--image-size", "--patch-size", "--metric", "--enhance-window",
-      "--speed-tolerance", "--rwindow", "--top-k", "--match-at", "--preprocessing", "--edges")),
+                "--checkpoint", "--config", "--dataset", "--descriptor", "--map", "--shards"),
+     ("--gt-offset", "--gt-scale", *SELECTION, "--root", "--reference-split", "--query-split",
+      "--descriptor-batch", "--ray-address", "--demo-frames", "--demo-speed", "--seed")),
+    ("SeqSLAM", ("--preset", "--ds", "--speed-ratio", "--metric", "--candidates",
+                 "--image-size"),
+     ("--vmin", "--vmax", "--patch-size", "--enhance-window", "--speed-tolerance", "--rwindow",
+      "--top-k", "--match-at", "--preprocessing", "--edges")),
     ("neural", ("--neural-preset", *(f"--neural-{n}" for n in NEURAL_COMMON)),
      tuple(f"--neural-{n}" for n in NEURAL_OTHER)),
     ("events", EVENT_COMMON, EVENT_OTHER),
@@ -63,13 +63,14 @@ TRAIN = (
      tuple(f"--{n}" for n in NEURAL_OTHER)),
     ("events", EVENT_COMMON, EVENT_OTHER),
     ("outputs", ("--out", "--overwrite", "--export", "--export-query", "--tensorboard"),
-     ("--export-ground-truth", "--export-frame-size", "--progress")),
+     ("--export-ground-truth", "--export-frame-size", "--export-chip-report",
+      "--export-timed-spiking", "--progress")),
     ("advanced", (), ("--device", "--eps", "--chunk")),
 )
 EXPORT = (
     ("inputs", ("checkpoint", "--query", "--ground-truth"), ()),
-    ("outputs", ("--out", "--frame-size", "--no-nir", "--nir-weight-bits", "--nir-levels"),
-     ("--no-progress",)),
+    ("outputs", ("--out", "--overwrite", "--frame-size", "--no-nir", "--nir-weight-bits",
+                 "--nir-levels", "--chip-report", "--timed-spiking"), ("--no-progress",)),
 )
 
 CHOICES = {  # flag -> the values it takes, shown as its metavar
@@ -102,11 +103,14 @@ examples:
   torchseq eval                                  # the built-in demo route, both engines
   torchseq eval --reference ref/ --query query/ --ground-truth gt.csv --out runs/mine
   torchseq eval --reference a.mp4 --query b.mp4 --tolerance 2 --engine seqslam --ds 20
-  torchseq eval --reference a.aedat --query b.aedat --preset events --speed-ratio 0.66 \\
-      --engine seqslam                            # event files, 16x16 frames, ds 100
+  torchseq eval --reference a.aedat --query b.aedat --preset events --engine seqslam
+      # event files, 16x16 frames; speed ratio from the window counts (or --speed-ratio)
   torchseq eval --engine neural --checkpoint runs/train-<time>/model.pt
   torchseq eval --config runs/mine/config.json --out runs/again   # replay a run
 
+Which engine: seqslam (exact, the most recall) while reference x query pairs fit in memory
+(--candidates K beyond, with a K that holds recall; --map --shards across machines); neural
+to recognise a route in fewer bytes, on a device. Guide: docs/guide/seqslam.md.
 Every flag: torchseq eval --help-all. Guides: docs/guide/; flags: docs/reference/cli.md."""
 
 TRAIN_EXAMPLES = """\

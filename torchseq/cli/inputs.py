@@ -28,7 +28,12 @@ from torchseq.descriptors import (
     load_descriptors,
     load_hook,
 )
-from torchseq.ground_truth import GroundTruthRanges, alignment_ranges, load_ground_truth
+from torchseq.ground_truth import (
+    GroundTruthRanges,
+    alignment_ranges,
+    alignment_scale,
+    load_ground_truth,
+)
 from torchseq.sources import FrameSelection, load_traverse_sizes
 
 PROG = "torchseq eval"  # names warnings given a plain list (a run's WarningLog names itself)
@@ -195,9 +200,16 @@ def load_data(cfg: EvalConfig, sizes: dict, notes: Notes, engine_sizes: dict | N
         source["ground_truth"] = cfg.ground_truth + (
             f", widened by {cfg.tolerance} frames" if cfg.tolerance else "")
     elif cfg.tolerance is not None:
-        gt = alignment_ranges(n_ref, n_query, cfg.tolerance, offset=cfg.gt_offset)  # sparse
-        source["ground_truth"] = f"index alignment, tolerance {cfg.tolerance}" + (
-            f", offset {cfg.gt_offset}" if cfg.gt_offset else "")
+        gt = alignment_ranges(n_ref, n_query, cfg.tolerance, cfg.gt_offset, cfg.gt_scale)
+        scale = cfg.gt_scale or alignment_scale(n_ref, n_query, cfg.gt_offset)
+        source["ground_truth"] = (f"index alignment, tolerance {cfg.tolerance}, scale "
+                                  f"{scale:.4g}" + (f", offset {cfg.gt_offset}"
+                                                    if cfg.gt_offset else ""))
+        if cfg.gt_scale is None and n_ref != n_query:
+            warn(PROG, f"query has {n_query} frames, reference {n_ref}: --tolerance stretches "
+                 f"the query over the whole reference ({scale:.3f} reference frames per query "
+                 f"frame); if it covers a part, give --gt-scale and --gt-offset or "
+                 f"--ground-truth", notes)
     if selected and (cfg.reference is not None or cfg.dataset is not None) and gt is not None:
         gt = selected_ground_truth(gt, ref, query)
     if (ref.members is None) != (query.members is None):

@@ -29,7 +29,7 @@ from torchseq.cli.flags import (
     frame_selection,
 )
 from torchseq.cli.results import SeqSLAMRun
-from torchseq.cli.runs import run_main, to_jsonable
+from torchseq.cli.runs import progress_wanted, run_main, to_jsonable
 from torchseq.maps import MapError, ReferenceMap, build_map
 from torchseq.maps.build import DEFAULT_SHARD_SIZE
 from torchseq.maps.format import DESCRIPTOR_FIELDS
@@ -162,7 +162,9 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     args = build_parser(prog or PROG).parse_args(argv)
     if args.command == "verify":
         return run_verify(args.map)
-    return run_build(config_from_args(MapBuildConfig, args))
+    cfg = config_from_args(MapBuildConfig, args)
+    cfg.progress = cfg.progress and progress_wanted(argv)  # no bars in a redirected log
+    return run_build(cfg)
 
 
 def cli(argv: list[str] | None = None, prog: str | None = None) -> int:
@@ -237,6 +239,7 @@ def run_seqslam_map(s, query, device, progress: bool) -> SeqSLAMRun:
     engine = SeqSLAM(scfg, device=device)
     q = engine.descriptors(query.at(scfg.image_size))
     k = resolve_candidates(scfg, m.n_places, len(q))
+    sharding = None
     if cfg.shards is not None:
         from torchseq.seqslam.sharded import ShardedSeqSLAM
 
@@ -244,6 +247,7 @@ def run_seqslam_map(s, query, device, progress: bool) -> SeqSLAMRun:
             raise UsageError("--shards runs candidate mode: give --candidates K (K >= 1)")
         with ShardedSeqSLAM(cfg.map, scfg, cfg.shards, address=cfg.ray_address) as sharded:
             result = sharded.match_descriptors(q)
+            sharding = {"shards": cfg.shards, "restarted_shards": sharded.restarted()}
     elif k:
         ref = m.descriptors()
         result = CandidateSeqSLAM(ref, scfg, k, index=m.index(), device=device).\
@@ -254,4 +258,5 @@ def run_seqslam_map(s, query, device, progress: bool) -> SeqSLAMRun:
     return SeqSLAMRun(matches=result.matches, ranked=result.ranked, ranked_score=None,
                       matrix=matrix, matrix_shape=(m.n_places, len(query)),
                       matrix_reduced=result.enhanced is None,
-                      seconds=result.seconds["total"], parameters=to_jsonable(scfg))
+                      seconds=result.seconds["total"], parameters=to_jsonable(scfg),
+                      kernels=to_jsonable(result.kernels) or None, sharding=sharding)

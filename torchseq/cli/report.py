@@ -20,7 +20,7 @@ from torchseq.atomic import write_json, write_text
 from torchseq.cli.eval_settings import Settings, config_dict
 from torchseq.cli.results import EngineRun, EvalOutcome, TrainRun
 from torchseq.cli.run_warnings import warning_list
-from torchseq.cli.runs import Notes, config_text, mark_incomplete, to_jsonable
+from torchseq.cli.runs import Notes, config_text, mark_incomplete, to_jsonable, warn
 from torchseq.neural import NeuralConfig, NeuralFitLog, NeuralSeqSLAM
 from torchseq.versions import VERSIONS_KEY, versions
 
@@ -38,6 +38,9 @@ def report(outcome: EvalOutcome, notes: Notes) -> dict:
     """
     s, ref, query, gt = outcome.settings, outcome.reference, outcome.query, outcome.ground_truth
     source, results, out, single = outcome.inputs, outcome.engines, outcome.out, outcome.single
+    if gt is not None:
+        for name, r in results.items():
+            misaligned_truth_warning(name, r, gt, s, notes)
     summary = {"inputs": {**source, "n_reference": len(ref), "n_query": len(query),
                           "reference_frame_size": ref.info["frame_size"],
                           "query_frame_size": query.info["frame_size"]},
@@ -69,6 +72,21 @@ def report(outcome: EvalOutcome, notes: Notes) -> dict:
     write_json(out / "metrics.json", summary)
     outcome.metrics = summary
     return summary
+
+
+def misaligned_truth_warning(name: str, r: EngineRun, gt, s: Settings, notes: Notes) -> None:
+    """Warn where an engine's matches follow a line the ground truth does not admit."""
+    line = metrics.match_line(r.matches, gt)
+    if line is None or not line.disagrees():
+        return
+    cfg = s.run
+    alignment = cfg.tolerance is not None and cfg.ground_truth is None and cfg.dataset is None
+    remedy = (f"try --gt-scale {line.scale:.3f} --gt-offset {max(0.0, line.offset):.0f}"
+              if alignment else "check the ground truth")
+    warn("torchseq eval", f"{name}: {100 * line.correct:.1f}% of matches are correct, yet "
+         f"{100 * line.share:.1f}% lie within {line.band:g} frames of reference "
+         f"{line.offset:.1f} + {line.scale:.3f} x query: the ground truth looks misaligned "
+         f"({remedy})", notes)
 
 
 def report_figures(ref, query, gt, results: dict[str, EngineRun], curves: dict) -> dict:
@@ -223,6 +241,9 @@ def summary_line(name: str, m: dict) -> str:
         text += (f", single frame {vs['single_frame_recall_at_1']:.3f}, made worse "
                  f"{100 * vs['made_worse']:.1f}% / better {100 * vs['made_better']:.1f}% "
                  f"of queries")
+        if vs["n_without_sequence_match"] and vs["n_queries"]:  # SeqSLAM's ends (ds/2 each)
+            text += (f" ({100 * vs['n_without_sequence_match'] / vs['n_queries']:.1f}% "
+                     f"unmatched at the route's ends; --edges matches them)")
     return (f"{text}, AUC {m['auc']:.3f} over {m['n_queries']} queries "
             f"({m['seconds']:.2f} s)")
 

@@ -59,7 +59,11 @@ class SeqSLAMRun(EngineRun):
             ensemble or a map run, and dropped (set to None) once the baseline has it.
         kernels: which kernel ran per stage (``SeqSLAMResult.kernels``: ``"difference"``
             ``"sad"``, ``"thermometer"``, ``"cdist"`` ..., ``"threads"``, ``"matrices"``),
-            reported in ``metrics.json``; None where the run does not say (ensemble, map).
+            reported in ``metrics.json``; None where the run does not say (ensemble).
+        candidate_agreement: a candidate-mode run against the exact mode on a sample of
+            queries (``cli.engines.candidate_check``), reported in ``metrics.json``.
+        sharding: a ``--shards`` run's shard count and the shards whose Ray actor was
+            restarted during it (``ShardedSeqSLAM.restarted``), reported in ``metrics.json``.
     """
 
     matrix: torch.Tensor | None
@@ -67,12 +71,18 @@ class SeqSLAMRun(EngineRun):
     matrix_reduced: bool
     difference: torch.Tensor | None = None
     kernels: dict | None = None
+    candidate_agreement: dict | None = None
+    sharding: dict | None = None
 
     def reported(self) -> dict:
         """The engine's own entries of ``metrics.json``, after its metrics, in the file's order."""
         out = super().reported()
         if self.kernels:
             out["kernels"] = self.kernels
+        if self.candidate_agreement:
+            out["candidate_agreement"] = self.candidate_agreement
+        if self.sharding:
+            out["sharding"] = self.sharding
         return out
 
 

@@ -76,12 +76,24 @@ def warn(prog: str, message: str, sink=None) -> None:
         sink.append(message)
 
 
-def run_folder(out: str | None, kind: str, overwrite: bool) -> Path:
+def progress_wanted(argv: list[str] | None, stream=None) -> bool:
+    """Progress bars only on a terminal: redirected logs get no carriage-return lines.
+
+    ``--progress`` given on the command line keeps them anywhere (eval, train, map build).
+    """
+    argv = sys.argv[1:] if argv is None else argv
+    stream = sys.stderr if stream is None else stream
+    return "--progress" in argv or bool(getattr(stream, "isatty", lambda: False)())
+
+
+def run_folder(out: str | None, kind: str, overwrite: bool,
+               own: tuple[str, ...] = ("config.json", "INCOMPLETE")) -> Path:
     """The output folder of one run, created empty.
 
     ``out`` None: a new ``runs/<kind>-<UTC time>`` folder. An existing non-empty ``out`` is
-    refused unless ``overwrite`` is set and it holds a previous run (its ``config.json``),
-    which is then removed, so the outputs of two runs never mix.
+    refused unless ``overwrite`` is set and it holds a previous run (one of the files
+    ``own``: a run's ``config.json``, an export's ``validation.json``), which is then
+    removed, so the outputs of two runs never mix.
     """
     import shutil
     import time
@@ -101,9 +113,9 @@ def run_folder(out: str | None, kind: str, overwrite: bool) -> Path:
         if not overwrite:
             raise UsageError(f"--out {path} already holds files; give a new folder or "
                              f"--overwrite to replace the previous run there")
-        if not ((path / "config.json").is_file() or (path / "INCOMPLETE").is_file()):
+        if not any((path / name).is_file() for name in own):
             raise UsageError(f"--overwrite only replaces a previous run's folder (one with a "
-                             f"config.json); {path} is not one")
+                             f"{own[0]}); {path} is not one")
         shutil.rmtree(path)
     path.mkdir(parents=True, exist_ok=True)
     return path

@@ -42,7 +42,14 @@ from torchseq.cli.presets import apply_preset, preset_help, preset_name
 from torchseq.cli.report import log_training, write_train_json
 from torchseq.cli.results import TrainRun
 from torchseq.cli.run_warnings import WarningLog
-from torchseq.cli.runs import config_file_defaults, config_text, run_folder, run_main, to_jsonable
+from torchseq.cli.runs import (
+    config_file_defaults,
+    config_text,
+    progress_wanted,
+    run_folder,
+    run_main,
+    to_jsonable,
+)
 from torchseq.demo import make_demo
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.neural.memory import seqslam_template_bytes
@@ -73,6 +80,8 @@ class TrainConfig(EventFlags):
     export_query: str | None = None
     export_ground_truth: str | None = None
     export_frame_size: str | None = None
+    export_chip_report: bool = False
+    export_timed_spiking: bool = False
 
 
 HELP = {
@@ -94,6 +103,10 @@ HELP = {
     "export_query": "query traverse to validate the export on (default: the model's own "
                     "reference, as python -m torchseq.export)",
     "export_ground_truth": "ground truth of --export-query (CSV or .npy, see eval.py)",
+    "export_chip_report": "with --export: also check the spiking model against each chip's "
+                          "limits (torchseq export --chip-report)",
+    "export_timed_spiking": "with --export: also run the timed spiking model on the query "
+                            "(torchseq export --timed-spiking)",
     "export_frame_size": "camera frame size HxW the integer device takes (default: the "
                          "reference's frame size)",
 }
@@ -166,6 +179,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     PROG = prog or PROG
     argv = list(sys.argv[1:] if argv is None else argv)
     cfg, ncfg = parse_args(argv)
+    cfg.progress = cfg.progress and progress_wanted(argv)  # no bars in a redirected log
     given = given_flags(build_parser(), argv, EVENT_FIELDS)  # event flags typed, any value
     notes = WarningLog(PROG)  # the library's warnings, once each, also in train.json
     with notes.capture():
@@ -184,8 +198,9 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
         raise UsageError("--window-ms with several windows (a temporal-window ensemble) is for "
                          "eval's SeqSLAM; give train one window")
     orphans = [f"--{k.replace('_', '-')}" for k in ("export_query", "export_ground_truth",
-                                                     "export_frame_size")
-               if getattr(cfg, k) is not None]
+                                                     "export_frame_size", "export_chip_report",
+                                                     "export_timed_spiking")
+               if getattr(cfg, k) not in (None, False)]
     if orphans and not cfg.export:  # they would be silently ignored
         raise UsageError(f"{', '.join(orphans)} set{'s' if len(orphans) == 1 else ''} up the "
                          f"export, which runs only with --export; add it or drop them")
@@ -240,7 +255,8 @@ def train(cfg: TrainConfig, ncfg: NeuralConfig, notes: WarningLog,
                                query=export_query(cfg, events),
                                ground_truth=cfg.export_ground_truth,
                                frame_size=parse_size(cfg.export_frame_size),
-                               progress=cfg.progress)
+                               progress=cfg.progress, chips=cfg.export_chip_report,
+                               timed=cfg.export_timed_spiking)
         for line in summary_lines(out / "export"):
             print(f"export: {line}")
         run.export_passed = bool(ok)

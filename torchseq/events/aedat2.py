@@ -16,6 +16,7 @@ and unwrapped: a backward jump of more than 2**31 us is a counter wrap and adds 
 from __future__ import annotations
 
 import re
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -180,9 +181,20 @@ def iter_aedat2(path: str | Path, chunk_events: int = 1 << 20,
             raise file_error(path, 0, "pass sensor_size= for a DAVIS file of unknown chip")
         body = path.stat().st_size - header_len
         state: dict = {}
+        foreign, first, total = 0, None, 0  # DVS128 words use bits 0-15: others are not events
         for offset, records in iter_records(f, path, RECORD, body, chunk_events, truncated,
                                             "8-byte record"):
+            total += len(records)
+            if layout == "dvs128":
+                bad = np.flatnonzero(records["a"] >= 0x10000)
+                foreign += len(bad)
+                if first is None and len(bad):
+                    first = offset + RECORD.itemsize * int(bad[0])
             yield Chunk(decode(records, layout, size, flip_y, state), size, offset)
+        if foreign:
+            warnings.warn(f"{path}: skipped {foreign} of {total} records that are not DVS128 "
+                          f"events (address bits 16-31 set), the first at byte {first}: the "
+                          f"file may be corrupt there", stacklevel=2)
 
 
 def write_aedat2(path: str | Path, stream: EventStream, layout: str = "dvs128",

@@ -99,7 +99,7 @@ def _check_window(window_us, event_count) -> None:
 
 def accumulate(events: EventStream | np.ndarray, sensor_size: tuple[int, int] | None = None,
                window_us: int | None = 10_000, event_count: int | None = None,
-               mode: str = "signed", hot_pixel: float | None = None,
+               mode: str = "count", hot_pixel: float | None = None,
                refractory_us: int | None = None, downsample: tuple[int, int] | None = None,
                t_start: int | None = None, device: torch.device | str | None = None,
                dtype: torch.dtype = torch.float32, anchor: str | int = "first") -> torch.Tensor:

@@ -131,7 +131,8 @@ def _suggested_threshold(model, frames, gt) -> float | None:
 
 def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
                       frame_size: tuple[int, int] | None = None, nir: bool = True,
-                      progress: bool = False, nir_config=None) -> bool:
+                      progress: bool = False, nir_config=None, chips: bool = False,
+                      timed: bool = False) -> bool:
     """Export a Neural SeqSLAM checkpoint to every deployment format and validate them.
 
     Args:
@@ -151,6 +152,8 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
         progress: show each long step on stderr (:mod:`torchseq.export.progress`).
         nir_config: the :class:`~torchseq.neural.spiking.SpikingConfig` of the NIR export
             (None: defaults: float32 weights, 128 levels).
+        chips: also check the spiking model against each chip's limits (``nir.chips``).
+        timed: also run the timed spiking model on the query (``nir.timed``).
 
     Returns:
         True when every check passes (see ``validation.json`` ``checks``).
@@ -214,7 +217,7 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     report = {VERSIONS_KEY: versions(), "checkpoint": str(ckpt),
               "checkpoint_bytes": ckpt.stat().st_size,
               "query_source": source, "ground_truth_source": gt_source,
-              "device_frame_size_source": size_source}
+              "camera_frame_size": list(frame_size), "device_frame_size_source": size_source}
     steps = ExportProgress(enabled=progress)
     report.update(export_and_validate(model, out, frames, ground_truth, frame_size=frame_size,
                                       progress=steps))
@@ -240,7 +243,8 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
             model, rec, replayed=frames if query is None else None,
             load=lambda: _recorded_frames(model, ckpt, rec))
         report["nir"] = export_nir(model, out, frames, ground_truth, calib, calib_source,
-                                   progress=steps, config=nir_config)
+                                   progress=steps, config=nir_config, chips=chips,
+                                   timed=timed)
     else:
         report["nir"] = {"skipped": "--no-nir"}
     if "checks" in report["nir"]:

@@ -17,6 +17,15 @@ import numpy as np
 import torch
 
 NIR_FILE = "model.nir"
+# model.nir holds two dense float32 matrices of N x N*K values (levels and shift): 8 N^2 K
+# bytes, held again by the read-back and each consumer's modules. Above this bound the NIR
+# step is skipped with the estimate (a 3,576-unit model at 128 levels: 13.1 GB, >13 GB seen).
+NIR_MAX_BYTES = 2 ** 31
+
+
+def nir_dense_bytes(n_units: int, levels: int) -> int:
+    """Bytes of ``model.nir``'s dense ``levels`` and ``shift`` matrices (float32, N x N*K each)."""
+    return 8 * int(n_units) ** 2 * int(levels)
 MIN_CONSUMER_AGREEMENT = 0.99
 # The consumers run the query cut into streams of this many frames, stepped together
 # (nir_consumers.compare): on a 500-frame route 32 streams of 16 steps instead of 500 steps.
@@ -75,7 +84,7 @@ def _roundtrip_equal(graph, back) -> bool:
 
 
 def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
-               progress=None, config=None) -> dict:
+               progress=None, config=None, chips: bool = False, timed: bool = False) -> dict:
     """Write ``model.nir`` and validate it; return the ``"nir"`` section of the report.
 
     Args:
@@ -88,13 +97,16 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
         calib_source: where they came from (reported).
         progress: an :class:`~torchseq.export.progress.ExportProgress`, or None.
         config: the :class:`~torchseq.neural.spiking.SpikingConfig` (None: defaults).
+        chips: also check the budget against each chip's published limits (``"chips"``).
+        timed: also run the timed spiking model on the query (``"timed"``,
+            :func:`timed_report`; as long as the rest of the export on a long query).
 
     Returns:
         ``{"file", "bytes", "round_trip_equal", "steps_per_frame", "time_steps", "levels",
         "calibration_source", "spiking": {agreement with the rate model, recall},
         "consumers": {name: agreement, recall, time steps, streams ..., skipped (not
-        installed) or failed (it raised: the check fails)}, "budget", "chips", "timed"
-        (:func:`timed_report`), "checks"}``,
+        installed) or failed (it raised: the check fails)}, "budget", "checks"}``, with
+        ``"chips"`` and ``"timed"`` where asked for,
         or ``{"skipped": reason}`` without the ``nir`` package or the learnt reference.
     """
     from torchseq.export.nir_export import NIRExportError, read_nir, require_nir, write_nir
@@ -107,13 +119,23 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
         return {"skipped": str(err)}
     if calib is None:
         return {"skipped": calib_source}
+    from torchseq.neural.spiking import SpikingConfig
+
+    levels = (config or SpikingConfig()).levels
+    need = nir_dense_bytes(model.n_units, levels)
+    if need > NIR_MAX_BYTES:
+        return {"skipped": f"model.nir would hold {need / 1e9:.1f} GB of dense weights "
+                           f"({model.n_units} units x {levels} levels; more again while it is "
+                           f"validated), above the {NIR_MAX_BYTES / 2 ** 30:g} GiB bound: "
+                           f"lower --nir-levels or give --no-nir"}
     from torchseq.export.hardware_budget import budget, check
     from torchseq.export.nir_consumers import compare
     from torchseq.metrics import recall_at_k
     from torchseq.neural.spiking import SpikingSeqSLAM
 
     query = torch.as_tensor(frames).to(torch.float32)
-    with progress.step("NIR: spiking conversion and model.nir"):
+    with progress.step(f"NIR: spiking conversion and model.nir ({need / 1e6:,.0f} MB of "
+                       f"dense weights)"):
         sp = SpikingSeqSLAM.convert(model, torch.as_tensor(calib).to(torch.float32), config)
         path = Path(out_dir) / NIR_FILE
         graph = write_nir(sp, path)
@@ -130,8 +152,12 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
     ran = {k: v for k, v in consumers.items() if "skipped" not in v}
     with progress.step("NIR: hardware budget"):
         b = budget(graph)
-    timed = timed_report(model, calib, query, ground_truth, rate, progress,
-                         None if config is None else config.weight_bits)
+    extra = {}
+    if chips:
+        extra["chips"] = check(b)
+    if timed:
+        extra["timed"] = timed_report(model, calib, query, ground_truth, rate, progress,
+                                      None if config is None else config.weight_bits, chips)
     return {
         "file": NIR_FILE, "bytes": path.stat().st_size, "round_trip_equal": same,
         "steps_per_frame": 1, "time_steps": int(x.shape[0]), "levels": sp.levels,
@@ -154,8 +180,7 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
                              "torchseq_streams_recall_at_1":
                                  rep["torchseq"].get("streams_recall_at_1")},
         "budget": {k: v for k, v in b.items() if k != "effective_synapses_by_pair"},
-        "chips": check(b),
-        "timed": timed,
+        **extra,
         "checks": {"nir_round_trip": same,
                    "nir_consumers_agree": all(v.get("agreement", 0.0) >= MIN_CONSUMER_AGREEMENT
                                               for v in ran.values())},
@@ -163,13 +188,13 @@ def export_nir(model, out_dir, frames, ground_truth, calib, calib_source: str,
 
 
 def timed_report(model, calib, query, ground_truth, rate, progress,
-                 weight_bits: int | None) -> dict:
+                 weight_bits: int | None, chips: bool = True) -> dict:
     """The timed spiking model's figures on the query: it is not written to ``model.nir``.
 
     :class:`~torchseq.neural.spiking_timed.TimedSpikingSeqSLAM` (many steps per frame,
     calibrated on ``calib`` only, at ``weight_bits``): agreement with the rate model's
-    decisions ``rate`` ``(T,)``, recall@1, steps per frame, its budget and the chips it
-    fits. Its IF units reset by subtraction and its phases start from zero, which NIR's
+    decisions ``rate`` ``(T,)``, recall@1, steps per frame, its budget and (``chips``) the
+    chips it fits. Its IF units reset by subtraction and its phases start from zero, which NIR's
     nodes do not express (``docs/results/nir.md``, "The timed model").
     """
     from torchseq.export.hardware_budget import check, memory_bytes
@@ -196,5 +221,5 @@ def timed_report(model, calib, query, ground_truth, rate, progress,
         "budget": {"neurons": b["neurons"], "effective_synapses": b["effective_synapses"],
                    "memory_bytes_8bit": memory_bytes(b, 8), "max_fan_in": b["max_fan_in"],
                    "max_fan_out": b["max_fan_out"]},
-        "chips": check(b),
+        **({"chips": check(b)} if chips else {}),
     }

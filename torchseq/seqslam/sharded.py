@@ -586,6 +586,11 @@ class ShardedSeqSLAM:
         """Per worker: bytes of rows held, cached work and the process's resident set."""
         return self._get([w.memory.remote() for w in self.workers])
 
+    def restarted(self) -> list[int]:
+        """The shards whose actor was restarted since they started (a new process id)."""
+        now = self._get([w.ready.remote() for w in self.workers])
+        return [i for i, (a, b) in enumerate(zip(self.status, now)) if a["pid"] != b["pid"]]
+
     def close(self) -> None:
         """Stop the actors (and the local Ray cluster this object started)."""
         if self.use_ray and self.workers:
