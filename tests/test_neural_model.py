@@ -281,7 +281,8 @@ def test_the_engine_times_nothing():
 
     from torchseq.neural import NeuralFitLog
 
-    assert [f.name for f in dataclasses.fields(NeuralResult)] == ["matches", "activity"]
+    assert [f.name for f in dataclasses.fields(NeuralResult)] == [
+        "matches", "activity", "stage", "scores", "ranked", "ranked_score"]
     assert [f.name for f in dataclasses.fields(NeuralFitLog)] == [
         "winners", "evidence", "unit_to_reference", "self_check"]
     import torchseq.neural.model as model_module

@@ -34,7 +34,13 @@ from torchseq.neural.progress import Progress, as_progress
 from torchseq.neural.progress import chunks as _chunks
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
-from torchseq.neural.search import UnitSearch, search_active, search_step
+from torchseq.neural.search import (
+    UnitSearch,
+    decision_stage,
+    search_active,
+    search_step,
+    sequence_frames,
+)
 from torchseq.neural.selfcheck import SELF_CHECK_FLOOR, disturbed, self_recall
 from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import patch_normalise, quantise_input, zscore_blocks
@@ -90,6 +96,16 @@ class NeuralSeqSLAM(nn.Module):
         self.register_buffer("unit_to_reference", torch.zeros(n_units, 2, dtype=torch.int64,
                                                               device=dev))
         self.register_buffer("unit_centre", torch.zeros(n_units, dtype=torch.int64, device=dev))
+
+    @property
+    def stage(self) -> str:
+        """The stage that decides: ``"ring"``, ``"adaptive ring"`` or ``"unit search"`` (fit)."""
+        return decision_stage(self.config, self.search is not None)
+
+    @property
+    def sequence_frames(self) -> float:
+        """Query frames a decision integrates (:func:`~torchseq.neural.search.sequence_frames`)."""
+        return sequence_frames(self.config, self.stage)
 
     @property
     def readout_spans(self) -> torch.Tensor | None:
@@ -371,37 +387,53 @@ SEARCH_EFFECT = ("measured on a real route (nordland-b, 1,788 frames on 555 unit
 
 
 def _warn_coarse_units(n_frames: int, n_units: int, readout: str, search: bool = False) -> None:
-    """Say loudly when units stand for several frames (the place resolution this costs).
+    """Warn with :func:`coarse_units` (``fit``'s spelling of the setting: ``n_output``)."""
+    message = coarse_units(n_frames, n_units, readout, search)
+    if message:
+        warnings.warn(message, stacklevel=4)
+
+
+def coarse_units(n_frames: int, n_units: int, readout: str, search: bool = False,
+                 n_output: str = "n_output") -> str | None:
+    """What units of several frames cost the stage that decides, or None where nothing.
 
     Measured on demo routes (docs/results/neural.md, "Long routes"): 5.4 frames per unit cost the
     centre readout a fifth of its recall@1 (the interpolating readout keeps it); 36 frames
     per unit fail both (a unit's weights then average views that share nothing). On a real
     route (nordland-b, ``experiments/neural_long_route.py``) much less suffices: 3.2 frames
     per unit take recall@1 from 0.59 (one unit per frame) to 0.25, interpolating or not, with
-    the ring alone; the unit search (``search``, the default there) reads sequences across
-    units and gets 0.75 (:data:`SEARCH_EFFECT`).
+    the ring alone; the unit search (``search``: it decides, the default there) reads
+    sequences across units and gets 0.75 (:data:`SEARCH_EFFECT`), and its message quotes it.
+
+    Args:
+        n_frames: reference frames.
+        n_units: output units.
+        readout: the ring's ``readout``.
+        search: the unit search decides (its figures, not the ring's).
+        n_output: how the caller spells the setting (``--neural-n-output`` on the command line).
     """
     per_unit = n_frames / n_units
-    if search and per_unit <= COARSE_UNIT_FRAMES:
-        warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
-                      f"{per_unit:.1f} frames per unit, so the ring alone blurs the route; the "
-                      f"unit search decides (NeuralConfig.unit_search). Expected effect, "
-                      f"{SEARCH_EFFECT} (docs/results/neural-long-routes.md)", stacklevel=4)
-        return
+    head = (f"a route of {n_frames} frames on {n_units} output units ({n_output}): "
+            f"{per_unit:.1f} frames per unit")
+    if search and per_unit > 1:
+        if per_unit <= COARSE_UNIT_FRAMES:
+            return (f"{head}, so the ring alone blurs the route; the unit search decides "
+                    f"(unit_search). Expected effect, {SEARCH_EFFECT} "
+                    f"(docs/results/neural-long-routes.md)")
+        return (f"{head}: the unit search decides, but past {COARSE_UNIT_FRAMES} frames per "
+                f"unit it degrades too; raise {n_output} (docs/results/neural-long-routes.md)")
     if per_unit <= 1 or (readout == "interpolate" and per_unit <= COARSE_UNIT_FRAMES):
-        return
+        return None
     if per_unit > COARSE_UNIT_FRAMES:
-        advice = ("recognition degrades badly this coarse whatever the readout: raise "
-                  "n_output or split the route")
+        advice = (f"recognition degrades badly this coarse whatever the readout: raise "
+                  f"{n_output} or split the route")
     else:
         advice = ("readout='interpolate' reads the position within a unit from its "
                   "neighbours' activity")
-    warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
-                  f"{per_unit:.1f} frames per unit, so readout {readout!r} places are no finer "
-                  f"than that; {advice}. Expected effect, measured on a real route "
-                  f"(nordland-b, 1,788 frames, summer -> winter): recall@1 0.25 at 3.2 frames "
-                  f"per unit (interpolate 0.27) against 0.59 at one, 0.12 at 6.4 "
-                  f"(docs/results/neural-long-routes.md)", stacklevel=4)
+    return (f"{head}, so readout {readout!r} places are no finer than that; {advice}. "
+            f"Expected effect, measured on a real route (nordland-b, 1,788 frames, summer -> "
+            f"winter): recall@1 0.25 at 3.2 frames per unit (interpolate 0.27) against 0.59 "
+            f"at one, 0.12 at 6.4 (docs/results/neural-long-routes.md)")
 
 
 def _warn_self_check(figure: float, n_frames: int, n_units: int, search: bool = False) -> None:
