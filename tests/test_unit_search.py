@@ -207,8 +207,16 @@ def test_every_export_refuses_a_searching_model_by_name(tmp_path):
     with pytest.raises(SpikingError, match="unit search"):
         SpikingSeqSLAM.convert(m, torch.as_tensor(d.reference))
     m.save(tmp_path / "m.pt")  # the command writes every form, so it refuses the model
-    with pytest.raises(ExportError, match="unit search"):
+    with pytest.raises(ExportError, match="unit search") as err:
         export_checkpoint(tmp_path / "m.pt", tmp_path / "out", query=d.query)
+    import torchseq.cli.train as cli_train  # its remedies are train flags that exist
+
+    said = str(err.value)
+    assert "torchseq train --neural-unit-search off, or --neural-n-output" in said
+    n = said.split("--neural-n-output ")[1].split(")")[0]
+    args = cli_train.build_parser().parse_args(["--neural-unit-search", "off",
+                                                "--neural-n-output", n])
+    assert (args.unit_search, args.n_output) == ("off", len(d.reference))
 
 
 @pytest.mark.slow
