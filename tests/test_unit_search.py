@@ -6,6 +6,7 @@ The stage's maths is pinned against a plain loop written from the module docstri
 """
 
 import csv
+import dataclasses
 import json
 import math
 import warnings
@@ -293,3 +294,20 @@ def test_every_figure_of_an_eval_run_comes_from_the_stage_that_decided(
                     map(str, summary["warnings"]))
     assert ("unit search decides" in said) == (stage == "unit search")
     assert "matches are unit centres" not in said
+
+
+def test_auto_is_resolved_at_fit_from_the_route_and_kept_in_the_checkpoint(tmp_path):
+    """Issue 33: "auto" searches on routes of more than 10 lines (or units of several frames),
+    resolved once at fit into the config a checkpoint carries; an older checkpoint's "auto"
+    keeps the rule it was made with (units of several frames only)."""
+    d = make_demo(n_reference=120, seed=3)
+    long = _fit(d.reference, NeuralConfig(hidden=512, search_length=10))  # 120 > 10 x 10
+    short = _fit(d.reference, NeuralConfig(hidden=512, search_length=12))  # 120 = 10 x 12
+    assert (long.config.unit_search, long.stage, long.n_units) == ("on", "unit search", 120)
+    assert (short.config.unit_search, short.stage) == ("off", "ring")
+    long.save(tmp_path / "m.pt")
+    loaded = NeuralSeqSLAM.load(tmp_path / "m.pt")
+    assert loaded.config.unit_search == "on" and loaded.search is not None
+    former = NeuralSeqSLAM(dataclasses.replace(long.config, unit_search="auto"))
+    former.load_state_dict(long.state_dict())  # fitted before issue 33: one unit per frame
+    assert former.search is None and former.stage == "ring"

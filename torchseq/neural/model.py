@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -37,6 +38,7 @@ from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
 from torchseq.neural.search import (
     UnitSearch,
     decision_stage,
+    resolve_search,
     search_active,
     search_step,
     sequence_frames,
@@ -61,6 +63,7 @@ class NeuralSeqSLAM(nn.Module):
         super().__init__()
         self.config = (config or NeuralConfig()).validate()
         cfg = self.config
+        self._unit_search = cfg.unit_search  # as asked: fit resolves "auto" per route
         self.l1 = MaskedLinear(cfg.n_input, cfg.hidden, cfg.density, bias=False, seed=cfg.seed,
                                device=device)
         self.l1.weight.requires_grad_(False)
@@ -223,11 +226,14 @@ class NeuralSeqSLAM(nn.Module):
         if reference.dim() not in (3, 4) or reference.shape[0] < 2:
             raise NeuralError(f"reference must be (T, H, W) with T >= 2 frames, got "
                               f"{tuple(reference.shape)}")
-        cfg = self.config
         t_len = reference.shape[0]
-        n_units = min(t_len, cfg.n_output)
+        n_units = min(t_len, self.config.n_output)
+        # the stage that decides, resolved once from the reference and kept in the config
+        stage = resolve_search(replace(self.config, unit_search=self._unit_search), t_len,
+                               n_units)
+        self.config = cfg = replace(self.config, unit_search=stage)
         self._build_output(n_units)
-        _warn_coarse_units(t_len, n_units, cfg.readout, search_active(cfg, t_len, n_units))
+        _warn_coarse_units(t_len, n_units, cfg.readout, stage == "on")
         _warn_adaptive_units(t_len, n_units, cfg.ring_velocity)
         _warn_novelty_without_effect(t_len, cfg.n_output, cfg.recruit)
         dev = self.l1.weight.device
