@@ -207,7 +207,10 @@ class NeuralSeqSLAM(nn.Module):
         ``recruit="novelty"`` :func:`~torchseq.neural.learning.recruit_by_novelty`, which
         first keeps the route's L2 codes as ``(T, k)`` winner indices); L2 -> L3 weights
         follow the configured Hebbian rule (:func:`~torchseq.neural.learning.hebbian_weights`);
-        the ring's shift matrix learns from the order in which units fired.
+        the ring's shift matrix learns from the order in which units fired. The stage that
+        decides is resolved here from the reference's length
+        (:func:`~torchseq.neural.search.resolve_search`) and kept in :attr:`config`
+        (``unit_search`` ``"on"`` or ``"off"``; :attr:`stage` names it).
 
         Args:
             reference: ``(T, H, W)`` or ``(T, H, W, 3)`` frames, any size, 0..255, ``T >= 2``
