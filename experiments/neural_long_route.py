@@ -14,6 +14,8 @@ command per table (from the repository root), one thread:
     .venv/bin/python experiments/neural_long_route.py selfcheck # fit's self-check vs real
     .venv/bin/python experiments/neural_long_route.py bytes     # model bytes vs SeqSLAM's
     .venv/bin/python experiments/neural_long_route.py search --seeds 3  # section 2's result
+    .venv/bin/python experiments/neural_long_route.py equal --seeds 3   # same frames as SeqSLAM
+    .venv/bin/python experiments/neural_long_route.py stage --seeds 3   # ring or search, per route
 
 Each writes ``neural_long_route_<table>.json`` and ``.md`` under ``--out`` and prints the
 Markdown table (docs/results/neural-long-routes.md quotes them). SeqSLAM's results
@@ -434,7 +436,74 @@ def t_search(args) -> list[dict]:
     return rows
 
 
-TABLES = {"search": t_search, "stages": t_stages, "overlap": t_overlap, "units": t_units,
+def seqslam_at(ref, query, gt, ds: int) -> float:
+    """SeqSLAM's recall@1 with sequence length ``ds`` (its other settings default)."""
+    from torchseq.seqslam import SeqSLAM, SeqSLAMConfig
+
+    return recall(SeqSLAM(SeqSLAMConfig(threads=1, ds=ds)).match(ref, query).matches, gt)
+
+
+def t_equal(args) -> list[dict]:
+    """Issue 33: the network against SeqSLAM over the same query frames. Each network row
+    records the frames its decision integrates (``model.sequence_frames``: the search's
+    ``search_length``, the ring's ``1 / (1 - decay)``, rounded) and SeqSLAM runs with ``ds``
+    set to it; SeqSLAM's default (ds 10) beside. Seeds 0..seeds-1."""
+    settings = [("default", {})]
+    for per in (1, 2):
+        for length in (10, 20, 40):
+            settings.append((f"1 unit per {per} frame{'s' if per > 1 else ''}, search "
+                             f"{length}", {"units_per": per, "unit_search": "on",
+                                           "search_length": length}))
+    rows = []
+    for n in args.places:
+        ref, query, gt = nordland(n)
+        sq = {10: seqslam_at(ref, query, gt, 10)}
+        for label, kw in settings:
+            kw = dict(kw)
+            per = kw.pop("units_per", None)
+            if per is not None:
+                kw["n_output"] = n // per
+            got, model = [], None
+            for seed in range(args.seeds):
+                model = fitted(n, ref, seed=seed, **{"unit_search": "auto", **kw})
+                got.append(recall(model.run(query).matches, gt))
+            ds = int(round(model.sequence_frames))
+            if ds not in sq:
+                sq[ds] = seqslam_at(ref, query, gt, ds)
+            rows.append({"places": n, "network": label, "units": model.n_units,
+                         "stage": model.stage, "sequence frames": ds,
+                         "recall@1 (seeds)": " ".join(f"{v:.3f}" for v in got),
+                         "mean": f"{np.mean(got):.3f}", "min": f"{min(got):.3f}",
+                         "SeqSLAM same ds": f"{sq[ds]:.3f}", "SeqSLAM ds 10": f"{sq[10]:.3f}"})
+            print(rows[-1], flush=True)
+    return rows
+
+
+def t_stage(args) -> list[dict]:
+    """Issue 33: which stage should decide, one unit per frame: the ring against the unit
+    search (search_length 10, 20, 40) on every route; corridor 8 seeds, the rest
+    ``--seeds``."""
+    from neural_quality import datasets
+
+    cases = [(f"nordland-b {n}", *nordland(n)) for n in args.places]
+    cases += [(name, *v) for name, v in datasets().items()]
+    settings = [("ring", {"unit_search": "off"})]
+    settings += [(f"search {n}", {"unit_search": "on", "search_length": n}) for n in (10, 20, 40)]
+    rows = []
+    for name, ref, query, gt in cases:
+        seeds = range(8) if name == "corridor" else range(args.seeds)
+        row = {"data": name, "frames": len(ref)}
+        for label, kw in settings:
+            got = [recall(fitted(len(ref), ref, seed=s, n_output=len(ref), **kw).run(query)
+                          .matches, gt) for s in seeds]
+            row[f"{label} mean / min"] = f"{np.mean(got):.3f} / {min(got):.3f}"
+        rows.append(row)
+        print(row, flush=True)
+    return rows
+
+
+TABLES = {"equal": t_equal, "stage": t_stage, "search": t_search, "stages": t_stages,
+          "overlap": t_overlap, "units": t_units,
           "ring": t_ring, "shift": t_shift, "tries": t_tries, "others": t_others,
           "selfcheck": t_selfcheck,
           "bytes": t_bytes}

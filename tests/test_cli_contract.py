@@ -138,7 +138,8 @@ def train_cases(d):
         (["--ring-stay", "nan"], "--ring-stay"),
         (["--ring-spread-decay", "inf"], "--ring-spread-decay"),
         (["--hidden", "abc"], "--hidden"),
-        (["--hidden", str(2 ** 40)], "--hidden"),
+        (["--hidden", str(2 ** 40)], "--neural-hidden"),  # eval's name; --hidden an alias
+        (["--neural-hidden", str(2 ** 40)], "--neural-hidden must be in 1..1048576"),
         (["--demo-frames", "100000000000"], "--demo-frames"),
         (["--reference", str(d / "huge_frames.npy")], "huge_frames.npy"),
         (["--window-ms", "-5"], "--window-ms"),

@@ -21,7 +21,7 @@ def test_coarse_units_are_warned_once(tmp_path, capsys):
                     "--neural-hidden", "256", "--neural-n-output", "20", "--no-progress")
     assert code == 0
     lines = [line for line in err.splitlines() if "output units" in line]
-    assert len(lines) == 1 and "one unit stands for about 3.0 frames" in lines[0], err
+    assert len(lines) == 1 and "3.0 frames per unit" in lines[0], err
 
 
 @pytest.mark.slow

@@ -14,7 +14,7 @@ METRICS = ["recall_at_1", "auc", "recall_at_100_precision", "coverage", "correct
 # SeqSLAM's "kernels" (the kernel that ran per stage) added after "parameters"
 KEYS = {"seqslam": [*METRICS, "seconds", "parameters", "kernels", "versus_single_frame"],
         "neural": [*METRICS, "seconds", "fit_seconds", "model_bytes", "seqslam_template_bytes",
-                   "frames_per_unit",
+                   "frames_per_unit", "stage", "sequence_frames",
                    "self_check", "preset", "parameters", "versus_single_frame"]}
 TOP = ["inputs", "warnings", "versions", "single_frame", "seqslam", "neural", "status"]
 

@@ -57,10 +57,10 @@ def test_sweep_json_counts_a_warning_of_every_point(tmp_path, capsys):
                               "--out", str(out))
     assert code == 0, err
     # one cause, one warning: the run's (naming --neural-n-output), not also fit's
-    assert err.count("warning: neural: 40 reference frames on 4 output units") == 1
-    assert "a route of 40 frames" not in err
+    assert err.count("warning: neural: a route of 40 frames on 4 output units") == 1
+    assert "output units (n_output)" not in err
     notes = json.loads((out / "sweep.json").read_text())["warnings"]
-    assert any(n.startswith("neural: 40 reference frames") and n.endswith("(2 times)")
+    assert any(n.startswith("neural: a route of 40 frames") and n.endswith("(2 times)")
                for n in notes)
 
 

@@ -205,9 +205,10 @@ def test_errors(fitted, route):
 
 def test_config_validation_and_dict():
     cfg = NeuralConfig()
-    assert cfg.n_input == 768 and cfg.k == 307 and cfg.n_output == 555 and cfg.density == 0.2
+    assert cfg.n_input == 768 and cfg.k == 307 and cfg.n_output == 4096 and cfg.density == 0.2
     t1 = NeuralConfig.table1()
-    assert t1.k == 154 and t1.density_out == 0.2 and t1.hidden == 3072 and t1.density == 0.2
+    assert t1.n_output == 555 and t1.k == 154 and t1.density_out == 0.2
+    assert t1.hidden == 3072 and t1.density == 0.2
     assert NeuralConfig.table1(seed=3).seed == 3
     assert NeuralConfig.from_dict(cfg.to_dict()) == cfg
     for bad in (dict(input_size=(25, 32)), dict(patch_mode="x"), dict(density=0.0),
@@ -281,7 +282,8 @@ def test_the_engine_times_nothing():
 
     from torchseq.neural import NeuralFitLog
 
-    assert [f.name for f in dataclasses.fields(NeuralResult)] == ["matches", "activity"]
+    assert [f.name for f in dataclasses.fields(NeuralResult)] == [
+        "matches", "activity", "stage", "scores", "ranked", "ranked_score"]
     assert [f.name for f in dataclasses.fields(NeuralFitLog)] == [
         "winners", "evidence", "unit_to_reference", "self_check"]
     import torchseq.neural.model as model_module

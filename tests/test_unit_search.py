@@ -5,6 +5,9 @@ The stage's maths is pinned against a plain loop written from the module docstri
 ``experiments/neural_long_route.py search`` (docs/results/neural-long-routes.md).
 """
 
+import csv
+import dataclasses
+import json
 import math
 import warnings
 
@@ -13,6 +16,9 @@ import pytest
 import torch
 from conftest import shared_data
 
+import torchseq.cli.eval as cli_eval
+import torchseq.cli.plots as plots
+from torchseq.cli.runs import run_main
 from torchseq.demo import make_demo
 from torchseq.layers.unit_search import (
     VELOCITIES,
@@ -20,6 +26,7 @@ from torchseq.layers.unit_search import (
     contrast_units,
     search_decide,
     search_lines,
+    search_units,
     unit_search_scan,
     unit_search_step,
 )
@@ -40,7 +47,7 @@ def loop_search(e, a, n_frames, length, phases, window, weight, spans, uwin, eps
             var = sum(x * x for x in w) / len(w) - mu * mu
             row.append((e[t][u] - mu) / math.sqrt(max(var, eps * eps)))
         c.append(row)
-    refs, confs = [], []
+    refs, confs, units = [], [], []
     for t in range(t_len):
         filled = min(t + 1, length)
         q = []
@@ -62,7 +69,13 @@ def loop_search(e, a, n_frames, length, phases, window, weight, spans, uwin, eps
         refs.append(f + math.floor((p + 0.5) * (last - f) / phases))
         rivals = [q[i] for i in range(len(q)) if abs(i // phases - u) > uwin]
         confs.append(q[mstar] - (max(rivals) if rivals else min(q)))
-    return refs, confs
+        row = []  # each unit's best phase (first on ties): its score and its frame
+        for v in range(n):
+            p = max(range(phases), key=lambda i: (q[v * phases + i], -i))
+            f, last = spans[v]
+            row.append((q[v * phases + p], f + math.floor((p + 0.5) * (last - f) / phases)))
+        units.append(row)
+    return refs, confs, units
 
 
 def _case(seed=0, t_len=23, n=9, n_frames=30):
@@ -79,13 +92,17 @@ def _case(seed=0, t_len=23, n=9, n_frames=30):
 def test_scan_and_step_match_a_plain_loop(length, phases, window, weight):
     e, a, spans = _case()
     n_frames = int(spans[-1, 1])
-    ref, conf = loop_search(e.tolist(), a.tolist(), n_frames, length, phases, window, weight,
-                            spans.tolist(), 2)
+    ref, conf, units = loop_search(e.tolist(), a.tolist(), n_frames, length, phases, window,
+                                   weight, spans.tolist(), 2)
     lines = search_lines(e.shape[1], n_frames, length, phases)
     scores = unit_search_scan(e, a, lines, window, weight)
     got_ref, got_conf = search_decide(scores, spans, phases, 2)
     assert got_ref.tolist() == ref
     np.testing.assert_allclose(got_conf.numpy(), conf, rtol=1e-9, atol=1e-9)
+    unit_score, unit_frame = search_units(scores, spans, phases)  # the ranked candidates
+    np.testing.assert_allclose(unit_score.numpy(), [[s for s, _ in r] for r in units],
+                               rtol=1e-9, atol=1e-9)
+    assert unit_frame.tolist() == [[f for _, f in r] for r in units]
     state = SearchHistory(torch.zeros(1, length, e.shape[1], dtype=e.dtype),
                           torch.zeros(1, dtype=torch.int64))
     for t in range(e.shape[0]):  # the streaming step is the definition: the same numbers
@@ -191,8 +208,16 @@ def test_every_export_refuses_a_searching_model_by_name(tmp_path):
     with pytest.raises(SpikingError, match="unit search"):
         SpikingSeqSLAM.convert(m, torch.as_tensor(d.reference))
     m.save(tmp_path / "m.pt")  # the command writes every form, so it refuses the model
-    with pytest.raises(ExportError, match="unit search"):
+    with pytest.raises(ExportError, match="unit search") as err:
         export_checkpoint(tmp_path / "m.pt", tmp_path / "out", query=d.query)
+    import torchseq.cli.train as cli_train  # its remedies are train flags that exist
+
+    said = str(err.value)
+    assert "torchseq train --neural-unit-search off, or --neural-n-output" in said
+    n = said.split("--neural-n-output ")[1].split(")")[0]
+    args = cli_train.build_parser().parse_args(["--neural-unit-search", "off",
+                                                "--neural-n-output", n])
+    assert (args.unit_search, args.n_output) == ("off", len(d.reference))
 
 
 @pytest.mark.slow
@@ -228,3 +253,61 @@ def test_float_onnx_of_the_search_decides_as_the_model():
     with pytest.raises(ValueError, match="does not use the unit search"):
         build_search_onnx(_fit(d.reference, NeuralConfig(n_output=40, hidden=512,
                                                          unit_search="off")))
+
+
+@pytest.mark.parametrize("n_output,stage", [(40, "unit search"), (200, "ring")])
+def test_every_figure_of_an_eval_run_comes_from_the_stage_that_decided(
+        tmp_path, capsys, monkeypatch, n_output, stage):
+    """Issue 33: recall@K, the recall table, the raster, matches.csv and the warnings of one
+    run all come from the stage that decided (the demo's 200 frames on 40 units: the search;
+    on 200: the ring). Before, recall@5 and the table came from the ring under the search
+    (recall@1 0.984 against recall@5 0.843)."""
+    drawn = {}
+    draw = plots.plot_activity_raster
+
+    def spy(activity, *args, **kwargs):
+        drawn["raster"], drawn["title"] = np.asarray(activity), kwargs.get("title", "")
+        return draw(activity, *args, **kwargs)
+
+    monkeypatch.setattr(plots, "plot_activity_raster", spy)
+    out = tmp_path / "o"
+    assert run_main(cli_eval.main, "eval.py", [
+        "--engine", "neural", "--neural-n-output", str(n_output), "--no-progress",
+        "--no-tensorboard", "--out", str(out)]) == 0
+    capsys.readouterr()
+    summary = json.loads((out / "metrics.json").read_text())
+    m = summary["neural"]
+    assert m["stage"] == stage
+    assert drawn["title"] == ("neural unit search score per unit over the query" if stage ==
+                              "unit search" else "neural output activity over the query")
+    assert m["sequence_frames"] == pytest.approx(40 if stage == "unit search" else 1 / 0.03)
+    rows = [r for r in csv.DictReader((out / "matches.csv").open()) if r["engine"] == "neural"]
+    first = [int(r["candidates"].split()[0]) for r in rows]
+    assert first == [int(r["reference"]) for r in rows]  # the first candidate is the decision
+    unit = np.asarray(first) * n_output // 200  # uniform recruitment: frame t -> t N / R
+    assert (drawn["raster"].argmax(1) == unit).all()  # the raster's best unit holds it
+    assert m["recall_at_1"] <= m["recall_at_5"] <= m["recall_at_10"]
+    table = m["recall"]["queries_with_a_true_match"]
+    assert table["ties_against"]["1"] <= m["recall_at_1"] <= table["ties_for"]["1"]
+    assert m["versus_single_frame"]["sequence_recall_at_1"] == m["recall_at_1"]
+    said = " ".join(summary["warnings"] if isinstance(summary["warnings"], list) else
+                    map(str, summary["warnings"]))
+    assert ("unit search decides" in said) == (stage == "unit search")
+    assert "matches are unit centres" not in said
+
+
+def test_auto_is_resolved_at_fit_from_the_route_and_kept_in_the_checkpoint(tmp_path):
+    """Issue 33: "auto" searches on routes of more than 10 lines (or units of several frames),
+    resolved once at fit into the config a checkpoint carries; an older checkpoint's "auto"
+    keeps the rule it was made with (units of several frames only)."""
+    d = make_demo(n_reference=120, seed=3)
+    long = _fit(d.reference, NeuralConfig(hidden=512, search_length=10))  # 120 > 10 x 10
+    short = _fit(d.reference, NeuralConfig(hidden=512, search_length=12))  # 120 = 10 x 12
+    assert (long.config.unit_search, long.stage, long.n_units) == ("on", "unit search", 120)
+    assert (short.config.unit_search, short.stage) == ("off", "ring")
+    long.save(tmp_path / "m.pt")
+    loaded = NeuralSeqSLAM.load(tmp_path / "m.pt")
+    assert loaded.config.unit_search == "on" and loaded.search is not None
+    former = NeuralSeqSLAM(dataclasses.replace(long.config, unit_search="auto"))
+    former.load_state_dict(long.state_dict())  # fitted before issue 33: one unit per frame
+    assert former.search is None and former.stage == "ring"

@@ -242,7 +242,7 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
 def run_neural(s: Settings, ref, query, device, notes: Notes, model=None) -> NeuralRun:
     """Neural SeqSLAM, from a checkpoint (``model``, loaded) or trained on the reference now."""
     from torchseq.neural import NeuralSeqSLAM
-    from torchseq.neural.model import COARSE_UNIT_FRAMES
+    from torchseq.neural.model import coarse_units
 
     cfg = s.run
     start = time.perf_counter()
@@ -266,32 +266,27 @@ def run_neural(s: Settings, ref, query, device, notes: Notes, model=None) -> Neu
                          f"descriptors)")
     fit_seconds = time.perf_counter() - start
     n_ref = int(model.unit_to_reference[-1, 1])
-    per_unit = n_ref / model.n_units
-    readout = model.config.readout
-    if per_unit > (COARSE_UNIT_FRAMES if readout == "interpolate" else 1):
-        how = ("matches are unit centres" if readout == "centre" else
-               "too coarse for the interpolating readout")
-        warn(PROG, f"neural: {n_ref} reference frames on {model.n_units} output units, one "
-             f"unit stands for about {per_unit:.1f} frames ({how}; raise --neural-n-output "
-             f"for finer places; figures: docs/results/neural-long-routes.md)", notes)
+    coarse = coarse_units(n_ref, model.n_units, model.config.readout, model.search is not None,
+                          "--neural-n-output")  # the message of the stage that decides
+    if coarse:
+        warn(PROG, f"neural: {coarse}", notes)
     self_check = model.self_check  # fit's figure, or the one a trained checkpoint carries
     if self_check is None:
         self_check = (getattr(model, "extra", None) or {}).get("self_check")
     t0 = time.perf_counter()
-    result = model.run(query.at(size) if query.descriptors is None else
-                       neural_input(query.descriptors), progress=cfg.progress)
+    result = model.inference().run(query.at(size) if query.descriptors is None else
+                                   neural_input(query.descriptors), cfg.progress, RANKED)
     run_seconds = time.perf_counter() - t0
-    k = min(RANKED, model.n_units)
-    top = result.activity.topk(k, dim=1)  # activity: higher is better, as the confidence
-    ranked = model.unit_centre.cpu()[top.indices]
     preset = None if cfg.checkpoint else preset_name(cfg.neural_preset)
-    return NeuralRun(matches=result.matches, ranked=ranked, ranked_score=top.values,
-                     activity=result.activity, unit_spans=model.unit_to_reference.cpu(),
+    # every figure of the run from the stage that decided (result.stage)
+    return NeuralRun(matches=result.matches, ranked=result.ranked,
+                     ranked_score=result.ranked_score, activity=result.scores,
+                     unit_spans=model.unit_to_reference.cpu(),
                      seconds=run_seconds, fit_seconds=fit_seconds, preset=preset,
                      parameters=to_jsonable(model.config), model_bytes=int(model.model_bytes()),
-                     seqslam_template_bytes=seqslam_template_bytes(
-                         int(model.unit_to_reference[-1, 1])),
-                     frames_per_unit=per_unit, self_check=self_check)
+                     seqslam_template_bytes=seqslam_template_bytes(n_ref),
+                     frames_per_unit=n_ref / model.n_units, self_check=self_check,
+                     stage=result.stage, sequence_frames=model.sequence_frames)
 
 
 def run_engines(s: Settings, ref, query, device, notes: Notes,

@@ -24,7 +24,7 @@ GROUPS = {  # key -> section title, in the order printed
     "advanced": "advanced",
 }
 
-# NeuralConfig fields as flags (``--neural-`` prefix in eval, none in train); common first
+# NeuralConfig fields as flags (``--neural-`` prefix; train also takes them without); common first
 NEURAL_COMMON = ("n-output", "seed")
 NEURAL_OTHER = (
     "input-size", "patch-size", "patch-mode", "input-steps", "density", "density-out",
@@ -59,13 +59,13 @@ EVAL = (
 )
 TRAIN = (
     ("inputs", ("--reference", "--config"), (*SELECTION, "--demo-frames", "--demo-seed")),
-    ("neural", ("--neural-preset", *(f"--{n}" for n in NEURAL_COMMON)),
-     tuple(f"--{n}" for n in NEURAL_OTHER)),
+    ("neural", ("--neural-preset", *(f"--neural-{n}" for n in NEURAL_COMMON)),
+     tuple(f"--neural-{n}" for n in NEURAL_OTHER)),
     ("events", EVENT_COMMON, EVENT_OTHER),
     ("outputs", ("--out", "--overwrite", "--export", "--export-query", "--tensorboard"),
      ("--export-ground-truth", "--export-frame-size", "--export-chip-report",
       "--export-timed-spiking", "--progress")),
-    ("advanced", (), ("--device", "--eps", "--chunk")),
+    ("advanced", (), ("--device", "--neural-eps", "--neural-chunk")),
 )
 EXPORT = (
     ("inputs", ("checkpoint", "--query", "--ground-truth"), ()),

@@ -107,8 +107,9 @@ def report_figures(ref, query, gt, results: dict[str, EngineRun], curves: dict) 
         r = results["neural"]
         truth = (None if gt is None else
                  plots.true_units(gt, r.unit_spans, r.activity.shape[0]))
+        what = "output activity" if "ring" in r.stage else f"{r.stage} score per unit"
         fig = plots.plot_activity_raster(
-            r.activity, title="neural output activity over the query", truth=truth)
+            r.activity, title=f"neural {what} over the query", truth=truth)
         images["neural_activity"] = plots.figure_to_array(fig)  # drawn once
         fig.clear()
     for name, r in results.items():

@@ -90,8 +90,11 @@ class SeqSLAMRun(EngineRun):
 class NeuralRun(EngineRun):
     """Neural SeqSLAM's run, with its output activity and what the model learnt.
 
+    Every figure comes from the stage that decided (``stage``).
+
     Attributes:
-        activity: ``(Q, N)`` output activity over the query (the raster plot).
+        activity: ``(Q, N)`` the deciding stage's score per unit over the query (the raster
+            plot): the ring's activity, or the unit search's best position per unit.
         unit_spans: ``(N, 2)`` reference frames each output unit stands for.
         fit_seconds: learning the reference (or checking a checkpoint).
         preset: the ``--neural-preset`` (None with a checkpoint).
@@ -99,6 +102,9 @@ class NeuralRun(EngineRun):
         seqslam_template_bytes: SeqSLAM's templates for the same route (one byte a value).
         frames_per_unit: reference frames per output unit.
         self_check: the model's recall on its own reference (None: not measured).
+        stage: the decision stage (``"ring"``, ``"adaptive ring"``, ``"unit search"``).
+        sequence_frames: query frames a decision integrates (SeqSLAM's ``ds`` to compare
+            with; :func:`torchseq.neural.search.sequence_frames`).
     """
 
     activity: torch.Tensor
@@ -109,13 +115,16 @@ class NeuralRun(EngineRun):
     seqslam_template_bytes: int
     frames_per_unit: float
     self_check: float | None
+    stage: str = "ring"
+    sequence_frames: float | None = None
 
     def reported(self) -> dict:
         """The engine's own entries of ``metrics.json``, after its metrics, in the file's order."""
         return {"seconds": self.seconds, "fit_seconds": self.fit_seconds,
                 "model_bytes": self.model_bytes,
                 "seqslam_template_bytes": self.seqslam_template_bytes,
-                "frames_per_unit": self.frames_per_unit,
+                "frames_per_unit": self.frames_per_unit, "stage": self.stage,
+                "sequence_frames": self.sequence_frames,
                 "self_check": self.self_check, "preset": self.preset,
                 "parameters": self.parameters}
 

@@ -121,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "flags override them")
     add_config_flags(parser, TrainConfig, HELP, skip=EventFlags)
     add_config_flags(parser.add_argument_group("event files"), EventFlags, EVENT_HELP)
-    add_config_flags(parser.add_argument_group("model (NeuralConfig)"), NeuralConfig, {})
+    add_config_flags(parser.add_argument_group("model (NeuralConfig)"), NeuralConfig, {},
+                     spelled="neural_")  # eval's names (--neural-n-output); --n-output too
     organise_help(parser, cli_help.TRAIN, cli_help.TRAIN_EXAMPLES)
     return parser
 
@@ -144,7 +145,7 @@ def parse_args(argv: list[str] | None) -> tuple[TrainConfig, NeuralConfig]:
     ncfg = apply_preset(config_from_args(NeuralConfig, args), cfg.neural_preset,
                         given_flags(parser, argv, neural), replayed & neural,
                         parser.get_default("neural_preset"))
-    check_neural(ncfg)
+    check_neural(ncfg, "neural_")
     return cfg, ncfg.validate()
 
 

@@ -15,7 +15,8 @@ matrix, at a few speeds, in units per frame:
 3. ``q_t[m] = s_t[m] + lambda z(a_t)[floor(x_m)]``: the ring's activity, standardised over
    units, is one input;
 4. the place is the best position's frame within its unit, the confidence its margin over
-   positions more than ``window`` units away.
+   positions more than ``window`` units away; candidates past the first are ranked by each
+   unit's best position (:func:`search_units`), one frame per unit.
 
 State: the last ``L`` contrast-enhanced evidence vectors, ``(B, L, N)``: bounded by the
 unit count, not the route. :func:`unit_search_step` is the definition;
@@ -201,3 +202,23 @@ def search_decide(scores: torch.Tensor, spans: torch.Tensor, phases: int,
     rival = scores.masked_fill(near, -torch.inf).amax(1)
     rival = torch.where(torch.isfinite(rival), rival, scores.amin(1))
     return reference, best - rival
+
+
+def search_units(scores: torch.Tensor, spans: torch.Tensor,
+                 phases: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each unit's best position: its score and its frame (the search's ranked candidates).
+
+    ``score[b, u] = max_p q[b, u P + p]`` and the frame of that phase, as
+    :func:`search_decide` reads it: the best unit here holds the decision.
+
+    Args:
+        scores: ``(B, N * P)``.
+        spans: ``(N, 2)`` int64 first and one-past-last frame of each unit.
+        phases: ``P``.
+
+    Returns:
+        ``(scores (B, N), frames (B, N) int64)``.
+    """
+    best, phase = scores.reshape(scores.shape[0], -1, phases).max(2)
+    first, last = spans[:, 0], spans[:, 1]
+    return best, first + ((2 * phase + 1) * (last - first)) // (2 * phases)

@@ -55,8 +55,11 @@ class NeuralConfig:
     """Settings of :class:`torchseq.neural.NeuralSeqSLAM`.
 
     The structure is the seed's Table 1: 32x24 input, 20% L1 -> L2 mask, 3072 L2 units,
-    555 output units, except the L2 -> L3 layer, which is dense (``density_out=1.0``; Table
-    1: a 20% mask). The dynamics were chosen by measurements over several seeds
+    except the L2 -> L3 layer, which is dense (``density_out=1.0``; Table 1: a 20% mask),
+    and the output units: one per reference frame up to 4,096 (Table 1: 555; measured on
+    nordland-b, 1,788 places: one unit per frame 0.913 recall@1, one per two 0.845, 555
+    units 0.754, 3 seeds, docs/results/neural-long-routes.md). The dynamics were chosen by
+    measurements over several seeds
     (``experiments/neural_quality.py --ablation``, ``docs/results/neural.md``):
     ``k_fraction=0.10`` (Table 1's example: 5%), ``patch_size=4``, ``ring_decay=0.97``,
     ``hebbian="centred"``, ``rectify=True``, ``density_out=1.0`` (over 8 seeds it lifts the
@@ -116,9 +119,11 @@ class NeuralConfig:
             window that is trusted; other windows pull the speed back to 1.
         velocity_rate: step of the speed estimate towards its target per frame (0, 1].
         unit_search: ``"auto"`` (the default: a short sequence search over unit evidence
-            beside the ring, :mod:`torchseq.layers.unit_search`, where the route is longer
-            than ``n_output`` so units stand for several frames and the ring blurs; routes
-            of at most ``n_output`` frames keep the ring alone, bit for bit), ``"on"``
+            beside the ring, :mod:`torchseq.layers.unit_search`, decides on routes of more
+            than 10 search lines, ``10 * search_length`` frames, or where units stand for
+            several frames; shorter routes keep the ring alone, bit for bit; ``fit``
+            resolves it to ``"on"`` or ``"off"`` from the reference's length and keeps that
+            in the model's config, :func:`torchseq.neural.search.resolve_search`), ``"on"``
             (always) or ``"off"`` (the ring alone; older checkpoints). Where it runs it
             decides instead of ``readout``. Measured on
             nordland-b, ``docs/results/neural-long-routes.md``. Float ONNX form:
@@ -143,7 +148,7 @@ class NeuralConfig:
     l1_levels: int = 64
     l3_levels: int = 127
     k_fraction: float = 0.10
-    n_output: int = 555
+    n_output: int = 4096
     ring_decay: float = 0.97
     ring_gain: float | None = None
     ring_spread: int = 2
@@ -259,11 +264,11 @@ class NeuralConfig:
 
     @classmethod
     def table1(cls, **overrides) -> NeuralConfig:
-        """The seed's Table 1 network: 20% L2 -> L3 mask and 5% k-WTA winners.
+        """The seed's Table 1 network: 20% L2 -> L3 mask, 5% k-WTA winners, 555 output units.
 
         The remaining fields keep this class's defaults; ``overrides`` replace any field.
         """
-        return cls(**{"density_out": 0.2, "k_fraction": 0.05, **overrides})
+        return cls(**{"density_out": 0.2, "k_fraction": 0.05, "n_output": 555, **overrides})
 
     @classmethod
     def dense_readout(cls, **overrides) -> NeuralConfig:

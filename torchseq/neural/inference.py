@@ -63,12 +63,18 @@ from torchseq.layers import kernels as K
 from torchseq.layers.kernels import TIE_STEP, Int8Linear
 from torchseq.layers.ring import band_diagonals, ring_power, ring_scan, ring_step
 from torchseq.matches import Matches
+from torchseq.metrics import RECALL_KS
 from torchseq.neural.checks import checked_grey, checked_state
 from torchseq.neural.config import NeuralError
 from torchseq.neural.progress import Progress, as_progress, chunks
-from torchseq.neural.readout import decide
+from torchseq.neural.readout import decide, rank
 from torchseq.neural.results import NeuralResult, NeuralStep
-from torchseq.neural.search import SearchState, UnitSearch, checked_search_state
+from torchseq.neural.search import (
+    SearchState,
+    UnitSearch,
+    checked_search_state,
+    decision_stage,
+)
 from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import block_order, zscore_pixel_major
 from torchseq.quantise import factor_power_of_two, factor_rows
@@ -446,19 +452,20 @@ class NeuralInference(nn.Module):
                 RingState(activity))
 
     @torch.inference_mode()
-    def run(self, query: torch.Tensor,
-            progress: bool | Progress | None = None) -> NeuralResult:
+    def run(self, query: torch.Tensor, progress: bool | Progress | None = None,
+            top_k: int = max(RECALL_KS) + 1) -> NeuralResult:
         """A whole query traverse as one stream, from a zero state.
 
         The evidence runs in batches of ``config.chunk`` frames (it does not depend on the
         state), then the ring over all frames by the ``scan`` kernel (the blocked
         :func:`~torchseq.layers.ring_scan`; the adaptive ring frame by frame,
-        :meth:`stream`), then the read-out. Same numbers as :meth:`step` once per frame, up
-        to float rounding.
+        :meth:`stream`), then the read-out: the decision stage's places, scores and ranked
+        candidates. Same numbers as :meth:`step` once per frame, up to float rounding.
 
         Args:
             query: ``(T, H, W)`` or ``(T, H, W, 3)`` frames (a tensor or a NumPy array).
             progress: a callback ``(frames done, frames in all)`` (``True``: a tqdm bar).
+            top_k: ranked candidates per frame (default 21: recall@20 and the tie past it).
 
         Returns:
             :class:`~torchseq.neural.NeuralResult`.
@@ -469,17 +476,26 @@ class NeuralInference(nn.Module):
         parts = [self.evidence(query[lo:hi])
                  for lo, hi in chunks(query.shape[0], self.config.chunk,
                                       as_progress(progress, "run"))]
+        frames = self.unit_centre
         if self._kernels["scan"] == "velocity_loop":  # adaptive: decisions feed the ring
             activity, reference, confidence = self.stream(torch.cat(parts))
+            scores = activity
         else:
             evidence = torch.cat(parts)
-            activity = self.scan(evidence)  # (T, N)
+            activity = scores = self.scan(evidence)  # (T, N)
             if self.search is not None:  # the unit search decides (neural/search.py)
-                reference, confidence = self.search.scan(evidence, activity)
+                reference, confidence, scores, frames = self.search.scan(evidence, activity)
             else:
                 reference, confidence = self.decide(activity)
+        ranked, ranked_score = rank(scores, frames, reference, top_k)
         matches = Matches(reference.cpu(), confidence.cpu(), lower_is_better=False)
-        return NeuralResult(matches, activity.cpu())
+        return NeuralResult(matches, activity.cpu(), self.stage, scores.cpu(), ranked.cpu(),
+                            ranked_score.cpu())
+
+    @property
+    def stage(self) -> str:
+        """The decision stage (:func:`~torchseq.neural.search.decision_stage`)."""
+        return decision_stage(self.config, self.search is not None)
 
     @property
     def n_units(self) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -34,7 +35,14 @@ from torchseq.neural.progress import Progress, as_progress
 from torchseq.neural.progress import chunks as _chunks
 from torchseq.neural.readout import decide
 from torchseq.neural.results import NeuralFitLog, NeuralResult, NeuralStep
-from torchseq.neural.search import UnitSearch, search_active, search_step
+from torchseq.neural.search import (
+    UnitSearch,
+    decision_stage,
+    resolve_search,
+    search_active,
+    search_step,
+    sequence_frames,
+)
 from torchseq.neural.selfcheck import SELF_CHECK_FLOOR, disturbed, self_recall
 from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import patch_normalise, quantise_input, zscore_blocks
@@ -55,6 +63,7 @@ class NeuralSeqSLAM(nn.Module):
         super().__init__()
         self.config = (config or NeuralConfig()).validate()
         cfg = self.config
+        self._unit_search = cfg.unit_search  # as asked: fit resolves "auto" per route
         self.l1 = MaskedLinear(cfg.n_input, cfg.hidden, cfg.density, bias=False, seed=cfg.seed,
                                device=device)
         self.l1.weight.requires_grad_(False)
@@ -90,6 +99,16 @@ class NeuralSeqSLAM(nn.Module):
         self.register_buffer("unit_to_reference", torch.zeros(n_units, 2, dtype=torch.int64,
                                                               device=dev))
         self.register_buffer("unit_centre", torch.zeros(n_units, dtype=torch.int64, device=dev))
+
+    @property
+    def stage(self) -> str:
+        """The stage that decides: ``"ring"``, ``"adaptive ring"`` or ``"unit search"`` (fit)."""
+        return decision_stage(self.config, self.search is not None)
+
+    @property
+    def sequence_frames(self) -> float:
+        """Query frames a decision integrates (:func:`~torchseq.neural.search.sequence_frames`)."""
+        return sequence_frames(self.config, self.stage)
 
     @property
     def readout_spans(self) -> torch.Tensor | None:
@@ -188,7 +207,10 @@ class NeuralSeqSLAM(nn.Module):
         ``recruit="novelty"`` :func:`~torchseq.neural.learning.recruit_by_novelty`, which
         first keeps the route's L2 codes as ``(T, k)`` winner indices); L2 -> L3 weights
         follow the configured Hebbian rule (:func:`~torchseq.neural.learning.hebbian_weights`);
-        the ring's shift matrix learns from the order in which units fired.
+        the ring's shift matrix learns from the order in which units fired. The stage that
+        decides is resolved here from the reference's length
+        (:func:`~torchseq.neural.search.resolve_search`) and kept in :attr:`config`
+        (``unit_search`` ``"on"`` or ``"off"``; :attr:`stage` names it).
 
         Args:
             reference: ``(T, H, W)`` or ``(T, H, W, 3)`` frames, any size, 0..255, ``T >= 2``
@@ -207,11 +229,14 @@ class NeuralSeqSLAM(nn.Module):
         if reference.dim() not in (3, 4) or reference.shape[0] < 2:
             raise NeuralError(f"reference must be (T, H, W) with T >= 2 frames, got "
                               f"{tuple(reference.shape)}")
-        cfg = self.config
         t_len = reference.shape[0]
-        n_units = min(t_len, cfg.n_output)
+        n_units = min(t_len, self.config.n_output)
+        # the stage that decides, resolved once from the reference and kept in the config
+        stage = resolve_search(replace(self.config, unit_search=self._unit_search), t_len,
+                               n_units)
+        self.config = cfg = replace(self.config, unit_search=stage)
         self._build_output(n_units)
-        _warn_coarse_units(t_len, n_units, cfg.readout, search_active(cfg, t_len, n_units))
+        _warn_coarse_units(t_len, n_units, cfg.readout, stage == "on")
         _warn_adaptive_units(t_len, n_units, cfg.ring_velocity)
         _warn_novelty_without_effect(t_len, cfg.n_output, cfg.recruit)
         dev = self.l1.weight.device
@@ -365,43 +390,50 @@ class NeuralSeqSLAM(nn.Module):
 
 
 COARSE_UNIT_FRAMES = 8  # frames per unit past which even the interpolating readout fails
-SEARCH_EFFECT = ("measured on a real route (nordland-b, 1,788 frames on 555 units, summer -> "
-                 "winter, 3 seeds): recall@1 0.75 with the unit search against 0.25 with the "
-                 "ring alone, 0.59 at one unit per frame and SeqSLAM's 0.65")
 
 
 def _warn_coarse_units(n_frames: int, n_units: int, readout: str, search: bool = False) -> None:
-    """Say loudly when units stand for several frames (the place resolution this costs).
+    """Warn with :func:`coarse_units` (``fit``'s spelling of the setting: ``n_output``)."""
+    message = coarse_units(n_frames, n_units, readout, search)
+    if message:
+        warnings.warn(message, stacklevel=4)
+
+
+def coarse_units(n_frames: int, n_units: int, readout: str, search: bool = False,
+                 n_output: str = "n_output") -> str | None:
+    """What units of several frames cost the stage that decides, or None where nothing.
 
     Measured on demo routes (docs/results/neural.md, "Long routes"): 5.4 frames per unit cost the
     centre readout a fifth of its recall@1 (the interpolating readout keeps it); 36 frames
     per unit fail both (a unit's weights then average views that share nothing). On a real
     route (nordland-b, ``experiments/neural_long_route.py``) much less suffices: 3.2 frames
     per unit take recall@1 from 0.59 (one unit per frame) to 0.25, interpolating or not, with
-    the ring alone; the unit search (``search``, the default there) reads sequences across
-    units and gets 0.75 (:data:`SEARCH_EFFECT`).
+    the ring alone; the unit search (``search``: it decides, the default there) reads
+    sequences across units and gets 0.75.
+
+    Args:
+        n_frames: reference frames.
+        n_units: output units.
+        readout: the ring's ``readout``.
+        search: the unit search decides (its figures, not the ring's).
+        n_output: how the caller spells the setting (``--neural-n-output`` on the command line).
     """
     per_unit = n_frames / n_units
-    if search and per_unit <= COARSE_UNIT_FRAMES:
-        warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
-                      f"{per_unit:.1f} frames per unit, so the ring alone blurs the route; the "
-                      f"unit search decides (NeuralConfig.unit_search). Expected effect, "
-                      f"{SEARCH_EFFECT} (docs/results/neural-long-routes.md)", stacklevel=4)
-        return
+    head = (f"a route of {n_frames} frames on {n_units} output units ({n_output}): "
+            f"{per_unit:.1f} frames per unit")
+    doc = "docs/results/neural-long-routes.md"
+    if search and per_unit > 1:
+        if per_unit <= COARSE_UNIT_FRAMES:
+            return f"{head}, so the ring alone blurs the route; the unit search decides ({doc})"
+        return (f"{head}: the unit search decides, but past {COARSE_UNIT_FRAMES} frames per "
+                f"unit it degrades too; raise {n_output} ({doc})")
     if per_unit <= 1 or (readout == "interpolate" and per_unit <= COARSE_UNIT_FRAMES):
-        return
+        return None
     if per_unit > COARSE_UNIT_FRAMES:
-        advice = ("recognition degrades badly this coarse whatever the readout: raise "
-                  "n_output or split the route")
+        advice = f"recognition degrades badly this coarse whatever the readout: raise {n_output}"
     else:
-        advice = ("readout='interpolate' reads the position within a unit from its "
-                  "neighbours' activity")
-    warnings.warn(f"a route of {n_frames} frames on {n_units} output units (n_output): "
-                  f"{per_unit:.1f} frames per unit, so readout {readout!r} places are no finer "
-                  f"than that; {advice}. Expected effect, measured on a real route "
-                  f"(nordland-b, 1,788 frames, summer -> winter): recall@1 0.25 at 3.2 frames "
-                  f"per unit (interpolate 0.27) against 0.59 at one, 0.12 at 6.4 "
-                  f"(docs/results/neural-long-routes.md)", stacklevel=4)
+        advice = "readout='interpolate' reads places within a unit"
+    return f"{head}, so readout {readout!r} places are no finer than that; {advice} ({doc})"
 
 
 def _warn_self_check(figure: float, n_frames: int, n_units: int, search: bool = False) -> None:
@@ -412,23 +444,13 @@ def _warn_self_check(figure: float, n_frames: int, n_units: int, search: bool = 
     """
     if figure >= SELF_CHECK_FLOOR:
         return
-    if search:
-        warnings.warn(f"self-check: only {figure:.2f} of the reference frames, lightly "
-                      f"disturbed, win their own output unit ({n_frames} frames on {n_units} "
-                      f"units; below {SELF_CHECK_FLOOR}): single frames are poorly separated; "
-                      f"the unit search reads sequences across units, {SEARCH_EFFECT}; raise "
-                      "n_output if single-frame places matter (the ring alone at one unit per "
-                      "frame there: recall@1 0.59) (docs/results/neural-long-routes.md)",
-                      stacklevel=4)
-        return
-    warnings.warn(f"self-check: only {figure:.2f} of the reference frames, lightly disturbed, "
-                  f"win their own output unit ({n_frames} frames on {n_units} units; below "
-                  f"{SELF_CHECK_FLOOR}): expect a collapse on a real query (nordland-b, 1,788 "
-                  "frames on 555 units: self-check 0.86, recall@1 0.25); raise n_output "
-                  "towards the route's length (there: one unit per frame, recall@1 0.59) or, "
-                  "for a query at the reference's speed, ring_decay=0.998 (there: 0.66, 3 "
-                  "seeds; it costs queries at other speeds) (docs/results/neural-long-routes.md)",
-                  stacklevel=4)
+    head = (f"self-check: only {figure:.2f} of the reference frames, lightly disturbed, win "
+            f"their own output unit ({n_frames} frames on {n_units} units; below "
+            f"{SELF_CHECK_FLOOR})")
+    advice = ("single frames are poorly separated; the unit search reads sequences across units"
+              if search else "expect a collapse on a real query; raise n_output towards the "
+              "route's length")
+    warnings.warn(f"{head}: {advice} (docs/results/neural-long-routes.md)", stacklevel=4)
 
 
 def _warn_adaptive_units(n_frames: int, n_units: int, ring_velocity: str) -> None:

@@ -1,4 +1,7 @@
-"""Read-out of Neural SeqSLAM: the place is the most active ring unit, with a margin."""
+"""Read-out of Neural SeqSLAM: the place is the most active ring unit, with a margin.
+
+:func:`rank` turns any decision stage's per-unit scores into its ranked candidates.
+"""
 
 from __future__ import annotations
 
@@ -65,6 +68,30 @@ def decide(activity: torch.Tensor, unit_centre: torch.Tensor, window: int,
     if tracing or bool(inside.any()):
         second = torch.where(inside, activity.amin(dim=1), second)
     return unit_centre[unit], best - second
+
+
+def rank(scores: torch.Tensor, frames: torch.Tensor, reference: torch.Tensor,
+         k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The best ``k`` candidates of a decision stage, the first its decision.
+
+    Units ranked by their score, each standing for its frame; the first candidate is the
+    stage's own decision ``reference`` (inside the best unit's stretch: the interpolating
+    read-out and the search's phases read a frame finer than the unit).
+
+    Args:
+        scores: ``(T, N)`` the stage's score per unit, higher is better (the ring: activity).
+        frames: ``(N,)`` or ``(T, N)`` int64 frame each unit stands for.
+        reference: ``(T,)`` int64 the stage's decisions.
+        k: candidates (at most ``N``).
+
+    Returns:
+        ``(ranked (T, k) int64, ranked_score (T, k))``, best first.
+    """
+    top = scores.topk(min(k, scores.shape[1]), dim=1)
+    ranked = (frames[top.indices] if frames.dim() == 1
+              else frames.gather(1, top.indices))
+    ranked[:, 0] = reference
+    return ranked, top.values
 
 
 def _decide_numpy(activity: torch.Tensor, unit_centre: torch.Tensor,

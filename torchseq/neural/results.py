@@ -28,15 +28,27 @@ class NeuralStep(NamedTuple):
 class NeuralResult:
     """A query traverse through the network.
 
+    Every figure but ``activity`` comes from the stage that decided (``stage``).
+
     Attributes:
         matches: per-frame decisions (``lower_is_better=False``).
-        activity: ``(T, N)`` output-ring activity (a raster).
+        activity: ``(T, N)`` output-ring activity.
+        stage: the decision stage (``"ring"``, ``"adaptive ring"`` or ``"unit search"``).
+        scores: ``(T, N)`` the deciding stage's score per unit, higher is better (the rings:
+            ``activity``; the search: each unit's best position), the raster to draw.
+        ranked: ``(T, K)`` int64 reference frames of the stage's best ``K`` units, best
+            first, the first the decision (:func:`~torchseq.neural.readout.rank`).
+        ranked_score: ``(T, K)`` their ``scores``.
 
     The engine times nothing: callers time :meth:`NeuralSeqSLAM.run` themselves.
     """
 
     matches: Matches
     activity: torch.Tensor
+    stage: str
+    scores: torch.Tensor
+    ranked: torch.Tensor
+    ranked_score: torch.Tensor
 
 
 @dataclass

@@ -18,6 +18,7 @@ from torchseq.layers.unit_search import (
     SearchHistory,
     search_decide,
     search_lines,
+    search_units,
     unit_search_scan,
     unit_search_step,
 )
@@ -37,16 +38,63 @@ class SearchState(NamedTuple):
     search: SearchHistory
 
 
-def search_active(config: NeuralConfig, n_frames: int, n_units: int) -> bool:
-    """Whether a model of ``n_units`` units on a route of ``n_frames`` frames searches.
+SEARCH_ROUTE_LINES = 10  # "auto": the search decides on routes of more lines than this
 
-    ``"auto"``: when units stand for several frames (``n_frames > n_units``) and the ring is
-    the fixed one; ``"on"``: always; ``"off"``: never.
+
+def resolve_search(config: NeuralConfig, n_frames: int, n_units: int) -> str:
+    """``fit``'s reading of ``unit_search``: ``"on"`` or ``"off"``, kept in the model's config.
+
+    ``"auto"``: the search decides where units stand for several frames (``n_frames >
+    n_units``) or the route holds more than :data:`SEARCH_ROUTE_LINES` search lines
+    (``n_frames > 10 * search_length``: 400 frames at the default 40), with the fixed ring;
+    else the ring. Measured from the reference's length alone
+    (``experiments/neural_long_route.py stage``, docs/results/neural-long-routes.md): at one
+    unit per frame the ring wins on the corridor (111 frames, 0.866 against 0.611) and LENS
+    (100, +-2 frames: 0.827 against 0.760), ties on the demo (200: 0.999, 1.000) and loses on
+    nordland-b (500: 0.901 against 0.969; 1,788: 0.587 against 0.913).
     """
-    if config.unit_search == "on":
-        return True
-    return (config.unit_search == "auto" and n_frames > n_units
-            and config.ring_velocity == "fixed")
+    if config.unit_search != "auto":
+        return config.unit_search
+    long = n_frames > n_units or n_frames > SEARCH_ROUTE_LINES * config.search_length
+    return "on" if long and config.ring_velocity == "fixed" else "off"
+
+
+def search_active(config: NeuralConfig, n_frames: int, n_units: int) -> bool:
+    """Whether a fitted model of ``n_units`` units on ``n_frames`` frames searches.
+
+    ``"on"`` / ``"off"``: as :func:`resolve_search` left them at fit. ``"auto"`` is a
+    checkpoint fitted before fit resolved it, which keeps the rule it was made with: units
+    of several frames (``n_frames > n_units``) and the fixed ring.
+    """
+    if config.unit_search != "auto":
+        return config.unit_search == "on"
+    return n_frames > n_units and config.ring_velocity == "fixed"
+
+
+STAGES = ("ring", "adaptive ring", "unit search")  # what decides a fitted model's places
+
+
+def decision_stage(config: NeuralConfig, search: bool) -> str:
+    """The stage that decides: ``"unit search"`` where it runs, else the fixed or adaptive ring.
+
+    ``search``: whether the model searches (:func:`search_active`, resolved at fit).
+    """
+    if search:
+        return "unit search"
+    return "adaptive ring" if config.ring_velocity == "adaptive" else "ring"
+
+
+def sequence_frames(config: NeuralConfig, stage: str) -> float:
+    """Query frames a decision of ``stage`` integrates (what SeqSLAM's ``ds`` compares with).
+
+    The unit search: its lines' ``search_length`` frames. The rings: ``1 / (1 -
+    ring_decay)``, the sum of the weights ``decay ** j`` of frame ``j`` back against the
+    newest's 1 (33.3 at the default 0.97; 90% of the weight lies in the last
+    ``ln 0.1 / ln decay`` frames, 75.6 there).
+    """
+    if stage == "unit search":
+        return float(config.search_length)
+    return 1.0 / (1.0 - config.ring_decay)
 
 
 class UnitSearch(nn.Module):
@@ -83,13 +131,19 @@ class UnitSearch(nn.Module):
                                               cfg.uniqueness_window)
         return reference, confidence, state
 
-    def scan(self, evidence: torch.Tensor,
-             activity: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(reference (T,), confidence (T,))`` of one stream from its start."""
+    def scan(self, evidence: torch.Tensor, activity: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """One stream from its start: its decisions and each unit's best position.
+
+        Returns:
+            ``(reference (T,), confidence (T,), unit scores (T, N), unit frames (T, N))``:
+            :func:`~torchseq.layers.unit_search.search_decide` and
+            :func:`~torchseq.layers.unit_search.search_units` of the same scores.
+        """
         cfg = self.config
         scores = unit_search_scan(evidence, activity, self.lines, cfg.search_contrast,
                                   cfg.search_ring_weight, cfg.eps)
-        return search_decide(scores, self.spans, cfg.search_phases, cfg.uniqueness_window)
+        return (*search_decide(scores, self.spans, cfg.search_phases, cfg.uniqueness_window),
+                *search_units(scores, self.spans, cfg.search_phases))
 
 
 def checked_search_state(state, batch: int, n_units: int) -> SearchState | None:
