@@ -445,11 +445,9 @@ def _warn_self_check(figure: float, n_frames: int, n_units: int, search: bool = 
     if figure >= SELF_CHECK_FLOOR:
         return
     head = (f"self-check: only {figure:.2f} of the reference frames, lightly disturbed, win "
-            f"their own output unit ({n_frames} frames on {n_units} units; below "
-            f"{SELF_CHECK_FLOOR})")
-    advice = ("single frames are poorly separated; the unit search reads sequences across units"
-              if search else "expect a collapse on a real query; raise n_output towards the "
-              "route's length")
+            f"their own unit ({n_frames} frames, {n_units} units; floor {SELF_CHECK_FLOOR})")
+    advice = ("the unit search reads sequences; raise n_output for single-frame places" if search
+              else "expect a collapse on a real query; raise n_output towards the route's length")
     warnings.warn(f"{head}: {advice} (docs/results/neural-long-routes.md)", stacklevel=4)
 
 
