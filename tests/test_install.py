@@ -73,11 +73,11 @@ def test_wheel_in_a_fresh_venv_runs_torchseq_eval(tmp_path):
     usage = subprocess.run([py, "-m", "torchseq", "--help"], capture_output=True, text=True,
                            cwd=work, env=env, timeout=120)
     assert usage.returncode == 0 and "eval" in usage.stdout and "export" in usage.stdout
-    bad = subprocess.run([venv / "bin" / "torchseq", "train", "--eps", "nan"],
+    bad = subprocess.run([venv / "bin" / "torchseq", "train", "--neural-eps", "nan"],
                          capture_output=True, text=True, cwd=work, env=env, timeout=120)
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines() == [
-        "torchseq train: error: argument --eps: must be a finite number, got 'nan'"]
+        "torchseq train: error: argument --neural-eps/--eps: must be a finite number, got 'nan'"]
 
 
 @pytest.mark.slow
