@@ -287,31 +287,6 @@ class NeuralSeqSLAM(nn.Module):
         self._require_fit()
         return NeuralInference(self, kernels)
 
-    def fold(self, kernels: str | dict = "auto") -> NeuralInference:
-        """Deprecated: use :meth:`inference` and call the returned module's ``step``.
-
-        Returns ``self.inference(kernels)``. It no longer changes what :meth:`step` runs
-        (the model holds no mode): :meth:`step` is always the layers.
-        """
-        warnings.warn("NeuralSeqSLAM.fold() is deprecated and no longer changes step(): hold "
-                      "inf = model.inference() and call inf.step(frames, state)",
-                      DeprecationWarning, stacklevel=2)
-        return self.inference(kernels)
-
-    def unfold(self) -> None:
-        """Deprecated: does nothing (the model holds no folded module; step is the layers)."""
-        warnings.warn("NeuralSeqSLAM.unfold() is deprecated and does nothing: step() always "
-                      "runs the layers; model.inference() returns the fast module",
-                      DeprecationWarning, stacklevel=2)
-
-    @property
-    def kernels(self) -> None:
-        """Deprecated: always None (step runs the layers); see ``inference().kernels``."""
-        warnings.warn("NeuralSeqSLAM.kernels is deprecated (always None: step() runs the "
-                      "layers); the kernels are model.inference().kernels",
-                      DeprecationWarning, stacklevel=2)
-        return None
-
     def run(self, query: torch.Tensor, progress: bool | Progress | None = None,
             l1_dtype: torch.dtype | None = None) -> NeuralResult:
         """Stream a whole query traverse through the network (one stream).
