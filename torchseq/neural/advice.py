@@ -33,7 +33,8 @@ def coarse_units(n_frames: int, n_units: int, readout: str, search: bool = False
         n_output: how the caller spells the setting.
     """
     per_unit = n_frames / n_units
-    head = f"a route of {n_frames} frames on {n_units} output units: {per_unit:.1f} frames per unit"
+    head = (f"a route of {n_frames} frames on {n_units} output units ({n_output}): "
+            f"{per_unit:.1f} frames per unit")
     if search and per_unit > 1:
         if per_unit <= COARSE_UNIT_FRAMES:
             return f"{head}, so the ring alone blurs the route; the unit search decides " \
@@ -46,7 +47,7 @@ def coarse_units(n_frames: int, n_units: int, readout: str, search: bool = False
         return (f"{head}: past {COARSE_UNIT_FRAMES} any readout fails; raise {n_output} "
                 f"({LONG_ROUTES})")
     return (f"{head}, so readout {readout!r} places are no finer; readout='interpolate' reads "
-            f"places within a unit ({LONG_ROUTES})")
+            f"within a unit ({LONG_ROUTES})")
 
 
 def self_check(figure: float, n_frames: int, n_units: int, search: bool = False,
@@ -58,7 +59,7 @@ def self_check(figure: float, n_frames: int, n_units: int, search: bool = False,
     """
     if figure >= SELF_CHECK_FLOOR:
         return None
-    head = (f"self-check: only {figure:.2f} of the reference frames, lightly disturbed, win "
+    head = (f"self-check: only {figure:.2f} of the reference frames, disturbed, win "
             f"their own unit (floor {SELF_CHECK_FLOOR})")
     advice = (f"the unit search reads sequences; raise {n_output} for single-frame places"
               if search else f"expect a collapse on a real query; raise {n_output}")
