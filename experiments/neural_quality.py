@@ -624,7 +624,8 @@ def repeat_rows(repeats=(2, 3), seeds: int = 8, n_reference: int = 200) -> list[
 # issue 15: settings measured over 8 seeds (mean / worst seed); each row changes the default
 SEED_SWEEP = {
     "default (density_out 1.0)": {},
-    "Table 1 L2->L3 mask (density_out 0.2; the default before issue 15)": dict(density_out=0.2),
+    "Table 1 L2->L3 mask (density_out 0.2; the default before the dense layer)":
+        dict(density_out=0.2),
     "density_out 0.5": dict(density_out=0.5),
     "dense_readout() (decay 0.96)": dict(ring_decay=0.96),
     "decay 0.975": dict(ring_decay=0.975),

@@ -11,13 +11,12 @@ import torch
 from torchseq.matches import Matches
 
 
-def test_import_preprocess_gives_the_module_and_the_call_still_works():
+def test_import_preprocess_gives_the_module():
     import torchseq
     import torchseq.preprocess as pre
 
     assert pre.__name__ == "torchseq.preprocess" and callable(pre.resize)
-    x = torch.rand(3, 64, 128) * 255
-    assert torch.equal(torchseq.preprocess(x, (32, 64), 8), pre.preprocess(x, (32, 64), 8))
+    assert torchseq.preprocess is pre and not callable(pre)
 
 
 @pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)

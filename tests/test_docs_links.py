@@ -70,3 +70,12 @@ def test_generated_reference_pages_are_up_to_date():
     stale = [str(path.relative_to(ROOT)) for path, text in generate.pages().items()
              if not path.exists() or path.read_text(encoding="utf-8") != text]
     assert not stale, f"out of date: {stale}; run python docs/generate.py"
+
+
+def test_no_tracker_numbers_in_docs_or_code():
+    # a reference names the change or the results section it means, not a ticket number
+    ticket = re.compile(r"issues? ?#?\d+", re.I)
+    files = [*pages(), *sorted((ROOT / "torchseq").rglob("*.py"))]
+    said = [f"{f.relative_to(ROOT)}: {m.group(0)}" for f in files
+            for m in ticket.finditer(f.read_text(encoding="utf-8"))]
+    assert not said, said[:10]

@@ -83,14 +83,6 @@ def test_runtime_runs_every_stage_with_its_kernel_only(ran, kernel, adaptive):
     assert {s for s, _ in ran} == (ADAPTIVE if adaptive else FIXED)
 
 
-def test_the_old_kernel_name_warns_and_runs_the_torch_kernel(ran):
-    im, frames = model()
-    with pytest.warns(DeprecationWarning, match="kernel='torch'"):
-        rt = IntegerRuntime(im, kernel="module")
-    rt.step(frames[:2])
-    assert rt.kernel == "torch" and {k for _, k in ran} == {"torch"}
-
-
 def stage_args(im, frames, adaptive):
     """The arguments of every stage on real intermediate values of ``im``, as NumPy arrays."""
     p, a, st = im.params, im.arrays, im.velocity

@@ -597,9 +597,8 @@ def test_place_resolution_warning_follows_the_readout(tmp_path, capsys):
     assert code == 0 and "frames per unit" not in err, err
     code, err = run_inprocess("eval", capsys, *common, "--neural-n-output", "6",
                               "--out", str(tmp_path / "coarse"))
-    assert code == 0 and "10.0 frames per unit, so readout 'interpolate' places are no " \
-        "finer than that; recognition degrades badly this coarse whatever the readout: " \
-        "raise --neural-n-output" in err, err
+    assert code == 0 and "10.0 frames per unit: past 8 any readout fails; raise " \
+        "--neural-n-output" in err, err
 
 
 @pytest.mark.slow

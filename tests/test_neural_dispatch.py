@@ -186,8 +186,6 @@ def test_kernels_do_not_follow_grad_mode_or_history(grid_model, route):
         logs.append(ran)
     assert logs[0] == logs[1] == logs[2] and logs[0]
     grid_model.run(route.query[:5])
-    with pytest.warns(DeprecationWarning):
-        grid_model.fold()
     for ctx in (torch.enable_grad, torch.inference_mode):
         with recording(inf) as ran, ctx():
             grid_model.step(route.query[:2])

@@ -121,16 +121,12 @@ def test_prepared_step_checks_frames_at_the_input_size(route):
     assert out.reference.shape == (1,)
 
 
-def test_the_model_holds_no_mode_and_fold_is_a_deprecated_alias(route):
-    """``fold``/``unfold`` warn and change nothing: ``step`` is the layers whatever ran."""
+def test_the_model_holds_no_mode(route):
+    """Building an inference module changes nothing: ``step`` is the layers whatever ran."""
     model = fitted(route, True, 1)
     frames = streams(route, 3)
     want, _ = model.step(frames)
-    with pytest.warns(DeprecationWarning, match="inference"):
-        inf = model.fold()
-    assert inf.kernels == model.inference().kernels  # the alias returns a new module
-    with pytest.warns(DeprecationWarning, match="inference"):
-        assert model.kernels is None
+    inf = model.inference()
     assert not any(isinstance(m, type(inf)) for m in model.modules())  # nothing kept inside
     assert not [k for k in model.state_dict() if "inference" in k]
     ran = []
@@ -142,5 +138,3 @@ def test_the_model_holds_no_mode_and_fold_is_a_deprecated_alias(route):
         type(inf).step = original
     assert ran == []  # the layers ran, not an inference module
     assert torch.equal(got.activity, want.activity)
-    with pytest.warns(DeprecationWarning, match="nothing"):
-        model.unfold()

@@ -66,7 +66,7 @@ PUBLIC = {
     "torchseq.maps": ["FORMAT", "VERSION", "MapError", "ReferenceMap", "build_map", "load_map"],
     "torchseq.seqslam.sharded": ["ShardWorker", "ShardedSeqSLAM", "edge_rows", "rank_merged",
                                  "shard_ranges"],
-    # the training grids (torchseq.neural.fixed_point, a re-export module, was removed)
+    # the training grids
     "torchseq.quantise": [
         "factor_power_of_two", "factor_rows", "integer_weights", "round_rows",
     ],
@@ -137,36 +137,8 @@ def test_event_modes_of_the_library_and_the_command_line_agree():
         "count", "signed", "two_channel", "binary"}
 
 
-# names of removed re-export modules, still found (with a DeprecationWarning) where users met
-# them: {package: {name: its new home}}
-MOVED = {
-    "torchseq.neural": {
-        "integer_weights": "torchseq.quantise", "round_rows": "torchseq.quantise",
-        "factor_power_of_two": "torchseq.quantise", "factor_rows": "torchseq.quantise",
-        "power_of_two_scale": "torchseq.quantise", "quantise_input": "torchseq.preprocess",
-        "zscore_blocks": "torchseq.preprocess", "zscore_pixel_major": "torchseq.preprocess",
-        "block_order": "torchseq.preprocess", "in_order_sum": "torchseq.preprocess",
-    },
-}
-
-
-@pytest.mark.parametrize("module", sorted(MOVED))
-def test_moved_names_warn_and_are_the_same_object(module):
-    mod = importlib.import_module(module)
-    for name, home in MOVED[module].items():
-        with pytest.warns(DeprecationWarning, match=f"{module}.{name} moved to {home}.{name}"):
-            got = getattr(mod, name)
-        assert got is getattr(importlib.import_module(home), name), name
-        assert name not in getattr(mod, "__all__", ())
-    with pytest.raises(AttributeError, match="no attribute 'no_such_name'"):
-        mod.no_such_name  # noqa: B018
-
-
-def test_removed_re_export_modules_are_gone():
-    for gone in ("torchseq.neural.fixed_point", "torchseq.export.quantise"):
-        with pytest.raises(ModuleNotFoundError):
-            importlib.import_module(gone)
-    # the export package keeps its quantiser names (the same objects as torchseq.quantise)
+def test_the_export_package_holds_the_quantiser_names():
+    # the same objects as torchseq.quantise
     import torchseq.export as export
     import torchseq.quantise as one
 

@@ -1,7 +1,5 @@
 """torchseq: sequence-based visual place recognition for ordinary and event cameras."""
 
-import types as _types
-
 from torchseq import metrics, preprocess
 from torchseq.datasets import PlaceDataset, open_dataset
 from torchseq.demo import DemoRoute, make_demo
@@ -25,19 +23,6 @@ from torchseq.sources import EventFrameOptions, TraverseError, load_traverse
 
 __version__ = "0.1.0"
 
-
-class _CallableModule(_types.ModuleType):
-    """``torchseq.preprocess`` is the module; calling it still runs ``preprocess.preprocess``.
-
-    ``import torchseq.preprocess`` must give the module (its ``resize``, ``patch_normalise``,
-    ...), while ``torchseq.preprocess(frames, size)`` keeps working for existing callers.
-    """
-
-    def __call__(self, *args, **kwargs):
-        return self.preprocess(*args, **kwargs)
-
-
-preprocess.__class__ = _CallableModule
 
 __all__ = [
     "DemoRoute",

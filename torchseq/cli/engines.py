@@ -242,7 +242,7 @@ def checkpoint_mismatch(model, this: dict) -> str | None:
 def run_neural(s: Settings, ref, query, device, notes: Notes, model=None) -> NeuralRun:
     """Neural SeqSLAM, from a checkpoint (``model``, loaded) or trained on the reference now."""
     from torchseq.neural import NeuralSeqSLAM
-    from torchseq.neural.model import coarse_units
+    from torchseq.neural.advice import coarse_units
 
     cfg = s.run
     start = time.perf_counter()

@@ -90,7 +90,7 @@ def event_options(window_ms: float, event_count: int | None,
         raise UsageError(f"--evt3-kernel must be {', '.join(EVT3_KERNEL_CHOICES[:-1])} or "
                          f"{EVT3_KERNEL_CHOICES[-1]}, got {evt3_kernel!r}")
     if evt3_kernel == "numba" and importlib.util.find_spec("numba") is None:
-        raise UsageError("--evt3-kernel numba needs numba: pip install torchseq[fast] (or "
+        raise UsageError("--evt3-kernel numba needs numba: pip install numba (or "
                          "--evt3-kernel numpy: the same events)")
     if time_unit is not None and time_unit not in UNITS_PER_US:  # the readers' units
         raise UsageError(f"--time-unit must be s, ms, us or ns, got {time_unit!r}")

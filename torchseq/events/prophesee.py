@@ -12,7 +12,7 @@ polarity bit 11), ``0x3`` VECT_BASE_X (sets the column base and polarity for vec
 ``read_events``: ``evt3_kernel=``), both exact and interchangeable mid-stream (they carry the
 same state across chunks, so files stream in bounded memory):
 
-- ``"numba"`` (``pip install torchseq[fast]``): one compiled pass over the words, a state
+- ``"numba"`` (``pip install numba``): one compiled pass over the words, a state
   machine as the format is meant to be read; about 2.8x the NumPy kernel's rate, but loading
   numba costs about a second once per process.
 - ``"numpy"``: vectorised; each event word's state (row, time, vector base) is the value
@@ -145,7 +145,7 @@ def check_evt3_kernel(kernel: str | None, nbytes: int = 0) -> str:
     if kernel not in EVT3_KERNELS:
         raise ValueError(f"unknown EVT 3.0 kernel {kernel!r} (use 'numba' or 'numpy')")
     if kernel == "numba" and importlib.util.find_spec("numba") is None:
-        raise ValueError("the numba EVT 3.0 kernel needs numba: pip install torchseq[fast] "
+        raise ValueError("the numba EVT 3.0 kernel needs numba: pip install numba "
                          "(or pass evt3_kernel='numpy')")
     return kernel
 

@@ -12,7 +12,6 @@ with a plain-Python oracle and with the integer ONNX graph.
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import NamedTuple
 
@@ -85,18 +84,13 @@ class IntegerRuntime:
         model: an :class:`IntegerModel` or a path to a ``.tsq`` file.
         kernel: ``"numpy"`` (default): the stages' NumPy kernels, with a dense ``(M, N)``
             int32 L3 matrix; ``"torch"``: :class:`IntegerStepModule` run eagerly (the
-            definition; memory follows the file's size). ``"module"``, the former name of
-            ``"torch"``, still works with a ``DeprecationWarning``.
+            definition; memory follows the file's size).
         memory_budget: bytes of dense weights the NumPy kernels may build
             (``IntegerFormatError`` past it).
     """
 
     def __init__(self, model: IntegerModel | str | Path, kernel: str = "numpy",
                  memory_budget: int = MEMORY_BUDGET) -> None:
-        if kernel == "module":
-            warnings.warn("IntegerRuntime(kernel='module') is now kernel='torch'",
-                          DeprecationWarning, stacklevel=2)
-            kernel = "torch"
         if kernel not in KERNELS:
             raise IntegerInputError(f"kernel must be one of {KERNELS}, got {kernel!r}")
         if not isinstance(model, IntegerModel):

@@ -264,8 +264,8 @@ class NeuralInference(nn.Module):
                 raise NeuralError(f"the {out['step']!r} step kernel is CPU-only; the model is "
                                   "elsewhere")
             if not numba_available():
-                raise NeuralError(f"the {out['step']!r} step kernel needs numba (the 'fast' "
-                                  "extra: pip install torchseq[fast])")
+                raise NeuralError(f"the {out['step']!r} step kernel needs numba: "
+                                  "pip install numba")
             if not self._numba_fits(w1, w3):
                 raise NeuralError(f"the {out['step']!r} step kernel needs the integer L1 grids "
                                   "(input_steps a power of two, patch_mode 'zscore'), one "

@@ -19,7 +19,7 @@ from torch import nn
 from torchseq._checks import as_frames
 from torchseq.layers import KWinnersTakeAll, MaskedLinear, OutputRing, RingState
 from torchseq.layers.functional import cohort_normalise
-from torchseq.neural import memory
+from torchseq.neural import advice, memory
 from torchseq.neural.checkpoint import load_model, save_checkpoint
 from torchseq.neural.checks import checked_grey, checked_state
 from torchseq.neural.config import NeuralConfig, NeuralError
@@ -43,7 +43,7 @@ from torchseq.neural.search import (
     search_step,
     sequence_frames,
 )
-from torchseq.neural.selfcheck import SELF_CHECK_FLOOR, disturbed, self_recall
+from torchseq.neural.selfcheck import disturbed, self_recall
 from torchseq.neural.velocity import VelocityTracker, adaptive_step
 from torchseq.preprocess import patch_normalise, quantise_input, zscore_blocks
 from torchseq.quantise import integer_weights
@@ -236,9 +236,9 @@ class NeuralSeqSLAM(nn.Module):
                                n_units)
         self.config = cfg = replace(self.config, unit_search=stage)
         self._build_output(n_units)
-        _warn_coarse_units(t_len, n_units, cfg.readout, stage == "on")
-        _warn_adaptive_units(t_len, n_units, cfg.ring_velocity)
-        _warn_novelty_without_effect(t_len, cfg.n_output, cfg.recruit)
+        _warn(advice.coarse_units(t_len, n_units, cfg.readout, stage == "on"),
+              advice.adaptive_units(t_len, n_units, cfg.ring_velocity),
+              advice.novelty_without_effect(t_len, cfg.n_output, cfg.recruit))
         dev = self.l1.weight.device
         codes = ((lo, hi, self.code(self.encode(reference[lo:hi])))
                  for lo, hi in _chunks(t_len, cfg.chunk, as_progress(progress, "fit")))
@@ -261,7 +261,7 @@ class NeuralSeqSLAM(nn.Module):
             evidence = torch.cat(parts).cpu()
         self.self_check = self._self_check(reference) if check else None
         if check:
-            _warn_self_check(self.self_check, t_len, n_units, self.search is not None)
+            _warn(advice.self_check(self.self_check, t_len, n_units, self.search is not None))
         return NeuralFitLog(unit_of_frame, evidence, spans, self.self_check)
 
     def _self_check(self, reference: torch.Tensor) -> float:
@@ -286,31 +286,6 @@ class NeuralSeqSLAM(nn.Module):
         """
         self._require_fit()
         return NeuralInference(self, kernels)
-
-    def fold(self, kernels: str | dict = "auto") -> NeuralInference:
-        """Deprecated: use :meth:`inference` and call the returned module's ``step``.
-
-        Returns ``self.inference(kernels)``. It no longer changes what :meth:`step` runs
-        (the model holds no mode): :meth:`step` is always the layers.
-        """
-        warnings.warn("NeuralSeqSLAM.fold() is deprecated and no longer changes step(): hold "
-                      "inf = model.inference() and call inf.step(frames, state)",
-                      DeprecationWarning, stacklevel=2)
-        return self.inference(kernels)
-
-    def unfold(self) -> None:
-        """Deprecated: does nothing (the model holds no folded module; step is the layers)."""
-        warnings.warn("NeuralSeqSLAM.unfold() is deprecated and does nothing: step() always "
-                      "runs the layers; model.inference() returns the fast module",
-                      DeprecationWarning, stacklevel=2)
-
-    @property
-    def kernels(self) -> None:
-        """Deprecated: always None (step runs the layers); see ``inference().kernels``."""
-        warnings.warn("NeuralSeqSLAM.kernels is deprecated (always None: step() runs the "
-                      "layers); the kernels are model.inference().kernels",
-                      DeprecationWarning, stacklevel=2)
-        return None
 
     def run(self, query: torch.Tensor, progress: bool | Progress | None = None,
             l1_dtype: torch.dtype | None = None) -> NeuralResult:
@@ -389,96 +364,11 @@ class NeuralSeqSLAM(nn.Module):
         return memory.memory_comparison(self, descriptor)
 
 
-COARSE_UNIT_FRAMES = 8  # frames per unit past which even the interpolating readout fails
-
-
-def _warn_coarse_units(n_frames: int, n_units: int, readout: str, search: bool = False) -> None:
-    """Warn with :func:`coarse_units` (``fit``'s spelling of the setting: ``n_output``)."""
-    message = coarse_units(n_frames, n_units, readout, search)
-    if message:
-        warnings.warn(message, stacklevel=4)
-
-
-def coarse_units(n_frames: int, n_units: int, readout: str, search: bool = False,
-                 n_output: str = "n_output") -> str | None:
-    """What units of several frames cost the stage that decides, or None where nothing.
-
-    Measured on demo routes (docs/results/neural.md, "Long routes"): 5.4 frames per unit cost the
-    centre readout a fifth of its recall@1 (the interpolating readout keeps it); 36 frames
-    per unit fail both (a unit's weights then average views that share nothing). On a real
-    route (nordland-b, ``experiments/neural_long_route.py``) much less suffices: 3.2 frames
-    per unit take recall@1 from 0.59 (one unit per frame) to 0.25, interpolating or not, with
-    the ring alone; the unit search (``search``: it decides, the default there) reads
-    sequences across units and gets 0.75.
-
-    Args:
-        n_frames: reference frames.
-        n_units: output units.
-        readout: the ring's ``readout``.
-        search: the unit search decides (its figures, not the ring's).
-        n_output: how the caller spells the setting (``--neural-n-output`` on the command line).
-    """
-    per_unit = n_frames / n_units
-    head = (f"a route of {n_frames} frames on {n_units} output units ({n_output}): "
-            f"{per_unit:.1f} frames per unit")
-    doc = "docs/results/neural-long-routes.md"
-    if search and per_unit > 1:
-        if per_unit <= COARSE_UNIT_FRAMES:
-            return f"{head}, so the ring alone blurs the route; the unit search decides ({doc})"
-        return (f"{head}: the unit search decides, but past {COARSE_UNIT_FRAMES} frames per "
-                f"unit it degrades too; raise {n_output} ({doc})")
-    if per_unit <= 1 or (readout == "interpolate" and per_unit <= COARSE_UNIT_FRAMES):
-        return None
-    if per_unit > COARSE_UNIT_FRAMES:
-        advice = f"recognition degrades badly this coarse whatever the readout: raise {n_output}"
-    else:
-        advice = "readout='interpolate' reads places within a unit"
-    return f"{head}, so readout {readout!r} places are no finer than that; {advice} ({doc})"
-
-
-def _warn_self_check(figure: float, n_frames: int, n_units: int, search: bool = False) -> None:
-    """Say once when the model separates its own reference poorly (see ``selfcheck.py``).
-
-    With the unit search deciding (``search``) the figure no longer predicts a collapse on
-    nordland-b (self-check 0.86 there, recall@1 0.75): the warning says so.
-    """
-    if figure >= SELF_CHECK_FLOOR:
-        return
-    head = (f"self-check: only {figure:.2f} of the reference frames, lightly disturbed, win "
-            f"their own unit ({n_frames} frames, {n_units} units; floor {SELF_CHECK_FLOOR})")
-    advice = ("the unit search reads sequences; raise n_output for single-frame places" if search
-              else "expect a collapse on a real query; raise n_output towards the route's length")
-    warnings.warn(f"{head}: {advice} (docs/results/neural-long-routes.md)", stacklevel=4)
-
-
-def _warn_adaptive_units(n_frames: int, n_units: int, ring_velocity: str) -> None:
-    """Say loudly when the adaptive ring gets units of two or more frames.
-
-    Measured (docs/results/neural.md, "Long routes"): it helps while each unit holds one frame and
-    costs recall past about two (3,000 frames on 555 units, interpolate: 0.994 -> 0.953;
-    corridor at 55 units: 0.798 -> 0.741), where the fixed ring is the better choice.
-    """
-    per_unit = n_frames / n_units
-    if ring_velocity != "adaptive" or per_unit < 2:
-        return
-    warnings.warn(f"ring_velocity='adaptive' on {per_unit:.1f} frames per unit: measured worse "
-                  "than the fixed ring once units hold two or more frames; raise n_output to "
-                  f"at least {n_frames} or use ring_velocity='fixed' (docs/results/neural.md, Long "
-                  "routes)", stacklevel=4)
-
-
-def _warn_novelty_without_effect(n_frames: int, n_output: int, recruit: str) -> None:
-    """Say so when ``recruit="novelty"`` cannot change the model (one frame per unit).
-
-    With ``R <= n_output`` both rules give every frame its own unit, so the model is the
-    uniform one bit for bit; without a word a user would read equal recall as the rule's
-    measured effect.
-    """
-    if recruit != "novelty" or n_frames > n_output:
-        return
-    warnings.warn(f"recruit='novelty' has no effect on a route of {n_frames} frames with "
-                  f"n_output={n_output}: each frame gets its own unit, as with 'uniform' (it "
-                  "only changes routes longer than n_output)", stacklevel=4)
+def _warn(*messages: str | None) -> None:
+    """Warn each message of :mod:`torchseq.neural.advice` there is, at ``fit``'s caller."""
+    for message in messages:
+        if message:
+            warnings.warn(message, stacklevel=4)  # this, fit, torch.no_grad's wrapper, caller
 
 
 def _winners(codes, k: int) -> torch.Tensor:
