@@ -60,7 +60,7 @@ def test_coarse_schedule_reports_ties(ms):
 
 @pytest.fixture(scope="module")
 def route():
-    from test_spiking import tiny
+    from spiking_helpers import tiny
 
     model, demo, sp = tiny()
     xr = model.encode(demo.reference).double()

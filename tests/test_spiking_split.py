@@ -9,7 +9,7 @@ frame. Checked here on the tiny route of tests/test_spiking.py.
 import numpy as np
 import pytest
 from conftest import load_script
-from test_spiking import tiny
+from spiking_helpers import tiny
 
 
 @pytest.fixture(scope="module")
