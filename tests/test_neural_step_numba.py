@@ -12,16 +12,12 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchseq.demo import make_demo
 from torchseq.layers import RingState
 from torchseq.neural import NeuralConfig, NeuralError, NeuralSeqSLAM
 from torchseq.neural import _step_numba as S
 from torchseq.preprocess import resize
 
-
-@pytest.fixture(scope="module")
-def route():
-    return make_demo(n_reference=40, size=(48, 64), seed=11)
+ROUTE = dict(n_reference=40, seed=11)  # the conftest ``route`` fixture's demo
 
 
 _MODELS = {}
