@@ -55,6 +55,29 @@ def coarse_units_expected():
         yield
 
 
+@pytest.fixture(scope="module")
+def route(request):
+    """The test module's synthetic route: ``make_demo(size=(48, 64), **ROUTE)``.
+
+    ``ROUTE`` is a dict of the module (its length, seed, speed), so each module keeps its data.
+    """
+    from torchseq.demo import make_demo
+
+    return make_demo(**{"size": (48, 64), **request.module.ROUTE})
+
+
+@pytest.fixture(scope="module")
+def tiny_runs():
+    """The tiny spiking model's runs (``spiking_helpers.tiny``): ``(model, spiking, xr, xq,
+    rate, spiking_run)``, with ``xr``/``xq`` the float64 encoded reference and query and
+    ``rate`` the rate model's decisions."""
+    from spiking_helpers import tiny
+
+    model, demo, sp = tiny()  # levels=6
+    xr, xq = (model.encode(x).double() for x in (demo.reference, demo.query))
+    return model, sp, xr, xq, model.run(demo.query).matches.reference.numpy(), sp.run(demo.query)
+
+
 @dataclasses.dataclass(frozen=True)
 class Corridor:
     """The real corridor pair (../shared/data/corridor), loaded once per session.

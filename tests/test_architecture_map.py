@@ -8,7 +8,7 @@ folder.
 import re
 from pathlib import Path
 
-from test_import_graph import import_graph
+from import_graph_helpers import import_graph
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "torchseq"

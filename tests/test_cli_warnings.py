@@ -9,8 +9,8 @@ import json
 import warnings
 
 import pytest
+from cli_helpers import run_inprocess
 from conftest import shared_data
-from test_frontends import run_inprocess
 
 
 def test_reader_warning_is_one_counted_line_and_in_metrics(tmp_path, capsys):

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 import torch
+from events_oracle import loop_frames, loop_pool
 
 from torchseq import EventFrameOptions, load_traverse
 from torchseq.events import (
@@ -19,39 +20,6 @@ from torchseq.events import frames as frames_module
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="no CUDA device"))]
 DTYPES = [torch.float32, torch.float64]
-
-
-def loop_frames(ev, w, h, window_us=None, event_count=None, mode="signed", origin=None):
-    """Plain-Python reference: one event at a time into a list of frames."""
-    t0 = int(ev["t"].min()) if origin is None else origin
-    ev = [e for e in ev if int(e["t"]) >= t0]
-    chans = 2 if mode == "two_channel" else 1
-    frames = {}
-    for i, e in enumerate(ev):
-        k = i // event_count if event_count else (int(e["t"]) - t0) // window_us
-        f = frames.setdefault(k, np.zeros((chans, h, w)))
-        c = int(e["p"]) if chans == 2 else 0
-        if mode == "signed":
-            f[c, e["y"], e["x"]] += 1 if e["p"] else -1
-        elif mode == "binary":
-            f[c, e["y"], e["x"]] = 1
-        else:
-            f[c, e["y"], e["x"]] += 1
-    n = max(frames) + 1
-    out = np.stack([frames.get(k, np.zeros((chans, h, w))) for k in range(n)])
-    return out if chans == 2 else out[:, 0]
-
-
-def loop_pool(frames, out_h, out_w):
-    """Block mean for integer factors, written as loops."""
-    h, w = frames.shape[-2:]
-    fh, fw = h // out_h, w // out_w
-    out = np.zeros(frames.shape[:-2] + (out_h, out_w))
-    for i in range(out_h):
-        for j in range(out_w):
-            block = frames[..., i * fh:(i + 1) * fh, j * fw:(j + 1) * fw]
-            out[..., i, j] = block.mean(axis=(-2, -1))
-    return out
 
 
 def sample(n=400, w=12, h=8, seed=0, span=100_000):

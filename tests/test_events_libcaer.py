@@ -190,8 +190,8 @@ def test_torchseq_eval_on_ddd20_files_matches_the_same_events_as_aedat(tmp_path,
     """eval on the real DVS128 recording, rewritten as DDD20 packets, gives the AEDAT's metrics."""
     import json
 
+    from cli_helpers import run_inprocess
     from conftest import shared_data
-    from test_frontends import run_inprocess
 
     aedat = shared_data("events", "alex_walking_again.aedat")
     s = read_events(aedat)

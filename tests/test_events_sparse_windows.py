@@ -12,7 +12,7 @@ import resource
 import numpy as np
 import pytest
 import torch
-from test_events_frames import loop_frames, loop_pool
+from events_oracle import loop_frames, loop_pool
 
 import torchseq.cli.eval as cli_eval
 from torchseq.cli.runs import run_main

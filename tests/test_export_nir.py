@@ -6,76 +6,13 @@ import numpy as np
 import pytest
 import torch
 from conftest import coarse_units_expected
-from test_spiking import demo_setup, tiny
+from spiking_helpers import demo_setup, nir_reference_run, tiny
 
 from torchseq.export.hardware_budget import LIMITS, budget, check
 from torchseq.export.nir_export import FORMAT, NIRExportError, read_nir, to_nir, write_nir
 from torchseq.neural.spiking import DT
 
 nir = pytest.importorskip("nir", reason="the 'nir' package is absent: pip install 'torchseq[nir]'")
-
-
-def nir_reference_run(graph, x: np.ndarray, dt: float) -> np.ndarray:
-    """Run a NIR graph of Input / Linear / LIF / Output nodes by NIR's own equations.
-
-    Written from the NIR specification, not from torchseq or a consumer: a depth-first walk
-    from the input along the edges marks the edges that close a cycle (they point back to a
-    node on the walk's stack); those carry the source's output of the previous step (zeros at
-    the start), every other edge the output of the same step. Every step, a node adds the
-    outputs of its sources; Linear is ``W @ in``; LIF is one Euler step of
-    ``tau dv/dt = (v_leak - v) + r I``, spike ``v > v_threshold``, then ``v = v_reset`` where
-    it spiked. Returns the output node's values ``(T, n)``.
-    """
-    nodes = graph.nodes
-    start = next(k for k, n in nodes.items() if isinstance(n, nir.Input))
-    back, done = set(), set()
-
-    def walk(k, stack):
-        for s, d in graph.edges:
-            if s != k:
-                continue
-            if d in stack:
-                back.add((s, d))
-            elif d not in done:
-                walk(d, stack | {d})
-        done.add(k)
-
-    walk(start, frozenset({start}))
-    forward = [e for e in graph.edges if e not in back]
-    order, ready = [], [start]
-    while ready:  # Kahn's topological sort on the forward edges
-        k = ready.pop()
-        order.append(k)
-        for s, d in forward:
-            if s == k and all(a in order for a, b in forward if b == d):
-                ready.append(d)
-    assert set(order) == set(nodes)
-    sources = {k: [s for s, d in graph.edges if d == k] for k in nodes}
-    prev = {k: 0.0 for k in nodes}
-    v = {k: np.zeros(n.tau.shape) for k, n in nodes.items() if isinstance(n, nir.LIF)}
-    out = []
-    for frame in x.astype(np.float64):
-        cur = {}
-        for k in order:
-            n = nodes[k]
-            if isinstance(n, nir.Input):
-                cur[k] = frame
-                continue
-            i = sum(prev[s] if (s, k) in back else cur[s] for s in sources[k])
-            if isinstance(n, nir.Linear):
-                cur[k] = n.weight.astype(np.float64) @ i
-            elif isinstance(n, nir.LIF):
-                vk = v[k] + dt / n.tau * ((n.v_leak - v[k]) + n.r * i)
-                z = (vk > n.v_threshold).astype(np.float64)
-                v[k] = np.where(z > 0, n.v_reset, vk)
-                cur[k] = z
-            elif isinstance(n, nir.Output):
-                cur[k] = i
-            else:
-                raise AssertionError(f"unexpected node {type(n).__name__}")
-        prev = cur
-        out.append(cur["output"])
-    return np.array(out)
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-from test_spiking import tiny
+from spiking_helpers import tiny
 
 from torchseq.export.nir_export import FORMAT, NIRExportError, graph_metadata, read_nir, write_nir
 

@@ -12,17 +12,13 @@ import pytest
 import torch
 from conftest import DEVICES
 
-from torchseq.demo import make_demo
 from torchseq.layers import kernels as K
 from torchseq.layers import ring as R
 from torchseq.neural import NeuralConfig, NeuralError, NeuralSeqSLAM, readout
 from torchseq.neural import _step_numba as S
 from torchseq.neural import inference as I
 
-
-@pytest.fixture(scope="module")
-def route():
-    return make_demo(n_reference=40, size=(48, 64), seed=8)
+ROUTE = dict(n_reference=40, seed=8)  # the conftest ``route`` fixture's demo
 
 
 @pytest.fixture(scope="module")

@@ -5,16 +5,13 @@ import pytest
 import torch
 from conftest import DEVICES, coarse_units_expected
 
-from torchseq.demo import make_demo
 from torchseq.neural import NeuralConfig, NeuralError, NeuralResult, NeuralSeqSLAM, NeuralStep
 from torchseq.neural.model import seqslam_bytes
 
 SMALL = dict(hidden=1024, n_output=555)
 
 
-@pytest.fixture(scope="module")
-def route():
-    return make_demo(n_reference=80, size=(48, 64), seed=3)
+ROUTE = dict(n_reference=80, seed=3)  # the conftest ``route`` fixture's demo
 
 
 @pytest.fixture(scope="module")

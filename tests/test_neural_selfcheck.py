@@ -101,7 +101,7 @@ def test_fit_warns_once_with_the_figure_when_units_do_not_separate():
 
 @pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_train_and_eval_record_the_figure(tmp_path, capsys):
-    from test_frontends import run_inprocess
+    from cli_helpers import run_inprocess
 
     out = tmp_path / "t"
     code, err = run_inprocess("train", capsys, "--demo-frames", "40", "--hidden", "256",

@@ -12,16 +12,12 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchseq.demo import make_demo
 from torchseq.layers import RingState
 from torchseq.neural import NeuralConfig, NeuralError, NeuralSeqSLAM
 from torchseq.neural import _step_numba as S
 from torchseq.preprocess import resize
 
-
-@pytest.fixture(scope="module")
-def route():
-    return make_demo(n_reference=40, size=(48, 64), seed=11)
+ROUTE = dict(n_reference=40, seed=11)  # the conftest ``route`` fixture's demo
 
 
 _MODELS = {}
@@ -169,3 +165,33 @@ def test_without_numba_auto_runs_the_stages_quietly(route, monkeypatch, recwarn)
     assert out.reference.shape == (1,) and len(recwarn) == 0
     with pytest.raises(NeuralError, match="needs numba"):
         model.inference({"step": "numba"})
+
+
+
+@pytest.mark.parametrize("blocks", [0, 1])
+def test_kwta_ties_go_to_the_lowest_index_like_the_stages(route, blocks):
+    """Exact ties across the k-th place of the k-WTA, built with no shared data: a flat frame
+    gives every L1 sum 0 (all hidden units tie, the first ``k`` win); a frame with one
+    textured block gives 0 to the units that do not see it, tied across the k-th place."""
+    from torchseq.preprocess import zscore_pixel_major
+
+    model = small_model(route)
+    h, w = model.config.input_size
+    p = model.config.patch_size
+    gen = torch.Generator().manual_seed(blocks)
+    frame = torch.full((1, h, w), 0.5)
+    for i in range(blocks):
+        r, c = (i * 2 % (h // p)) * p, (i * 3 % (w // p)) * p
+        frame[0, r:r + p, c:c + p] = torch.rand(p, p, generator=gen)
+    fast, slow = model.inference({"step": "numba"}), model.inference({"step": "stages"})
+    z = zscore_pixel_major(frame, p, "numpy").permute(1, 2, 0).reshape(-1).numpy()
+    x = np.rint(z * np.float32(model.config.input_steps)).astype(np.int32)
+    sums = fast.w1_i8.astype(np.int32) @ x  # the compiled step's integer L1 sums
+    kth = np.sort(sums)[::-1][fast._k - 1]
+    assert (sums > kth).sum() < fast._k < (sums >= kth).sum()  # the case this test is for
+    state = RingState(torch.rand(1, model.n_units, generator=gen))
+    with torch.inference_mode():
+        o1, s1 = fast.step(frame, state)
+        o2, s2 = slow.step(frame, state)
+    assert torch.equal(o1.reference, o2.reference)
+    assert same_bits(o1.confidence, o2.confidence) and same_bits(s1.activity, s2.activity)

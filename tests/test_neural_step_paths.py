@@ -9,15 +9,11 @@ definition in docs/guide/neural.md, "Step maths"), so no fast kernel is involved
 import pytest
 import torch
 
-from torchseq.demo import make_demo
 from torchseq.layers import cohort_normalise
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.neural.readout import decide
 
-
-@pytest.fixture(scope="module")
-def route():
-    return make_demo(n_reference=40, size=(48, 64), seed=6)
+ROUTE = dict(n_reference=40, seed=6)  # the conftest ``route`` fixture's demo
 
 
 def eager_step(model, frames, activity):

@@ -22,9 +22,7 @@ from torchseq.neural.velocity import VelocityState, VelocityTracker
 SMALL = dict(hidden=512, n_output=60)
 
 
-@pytest.fixture(scope="module")
-def route():
-    return make_demo(n_reference=60, size=(48, 64), speed=0.7, seed=3)
+ROUTE = dict(n_reference=60, speed=0.7, seed=3)  # the conftest ``route`` fixture's demo
 
 
 _MODELS = {}

@@ -99,8 +99,7 @@ PUBLIC = {
     "torchseq.neural.spiking_events": ["EventSpikingSeqSLAM", "pool_matrix", "check_counts",
                                        "block_centring", "block_scales", "count_frames"],
     "torchseq.cli.plots": [
-        "figure_to_array", "plot_activity_raster", "plot_difference_matrix", "plot_matched_pairs",
-        "plot_matrix", "plot_pr_curves", "save_figure",
+        "figure_to_array", "plot_activity_raster", "plot_matrix", "save_figure",
     ],
 }
 

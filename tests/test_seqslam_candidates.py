@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DEVICES
+from routes import route
 from seqslam_oracle import (
     _uniqueness,
     oracle_difference,
@@ -25,18 +26,6 @@ faiss = pytest.importorskip(
 
 from torchseq.seqslam import candidates as cm  # noqa: E402
 from torchseq.seqslam.ann_index import CandidateIndex  # noqa: E402
-
-
-def route(rng, n_ref, n_query, speed, dim=64, integer=True):
-    """Patch-normalised-like descriptors; ``integer=False`` adds noise so no two trajectory
-    sums tie (without enhancement integer sums tie often, and torch.topk, which ranks both
-    modes' candidates, picks any of the tied ones at the K-th place)."""
-    ref = 127 + np.clip(np.round(rng.normal(0, 2.5, (n_ref, dim))), -8, 8)
-    pos = np.minimum(np.round(np.arange(n_query) * speed).astype(int), n_ref - 1)
-    query = np.clip(ref[pos] + np.round(rng.normal(0, 1.5, (n_query, dim))), 119, 135)
-    if not integer:
-        ref, query = ref + rng.uniform(0, 0.5, ref.shape), query + rng.uniform(0, 0.5, query.shape)
-    return ref, query
 
 
 def oracle_candidate_rule(enh, cand, ds, vmin, vmax, rwindow, top_k, report, floor_rule):

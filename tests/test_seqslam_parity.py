@@ -4,19 +4,12 @@ import numpy as np
 import pytest
 import torch
 from conftest import DEVICES
+from routes import route
 from seqslam_oracle import oracle_difference, oracle_enhance, oracle_seqslam
 
 from torchseq.demo import make_demo
 from torchseq.metrics import evaluate
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, search, velocities
-
-
-def route(rng, n_ref, n_query, speed, dim=64, noise=1.5):
-    """Integer descriptors of a route; the query revisits it at ``speed`` with noise."""
-    ref = 127 + np.clip(np.round(rng.normal(0, 2.5, (n_ref, dim))), -8, 8)
-    pos = np.minimum(np.round(np.arange(n_query) * speed).astype(int), n_ref - 1)
-    query = np.clip(ref[pos] + np.round(rng.normal(0, noise, (n_query, dim))), 119, 135)
-    return ref, query
 
 
 def assert_parity(result, want, exact_scores):

@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 import torch
-from test_seqslam_candidates import route
+from routes import route
 
 from torchseq.maps import MapError, build_map
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig

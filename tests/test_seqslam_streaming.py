@@ -8,17 +8,12 @@ import numpy as np
 import pytest
 import torch
 from conftest import DEVICES
+from routes import route
 from seqslam_oracle import oracle_difference, oracle_streaming
 
 from torchseq.demo import make_demo
 from torchseq.metrics import evaluate
 from torchseq.seqslam import SeqSLAM, SeqSLAMConfig, StreamingSeqSLAM
-
-
-def route(rng, n_ref, n_query, speed, dim=64):
-    ref = 127 + np.clip(np.round(rng.normal(0, 2.5, (n_ref, dim))), -8, 8)
-    pos = np.minimum(np.round(np.arange(n_query) * speed).astype(int), n_ref - 1)
-    return ref, np.clip(ref[pos] + np.round(rng.normal(0, 1.5, (n_query, dim))), 119, 135)
 
 
 @pytest.mark.parametrize("device", DEVICES)

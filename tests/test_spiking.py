@@ -1,38 +1,18 @@
 """Spiking Neural SeqSLAM: loop oracle of the dynamics, calibration, agreement with the rate."""
 
 import math
-from functools import lru_cache
 
 import numpy as np
 import pytest
 import torch
-from conftest import coarse_units_expected, shared_data
+from conftest import shared_data
+from spiking_helpers import demo_setup, tiny
 
 from torchseq.demo import make_demo
 from torchseq.layers import kwta
 from torchseq.metrics import recall_at_k
 from torchseq.neural import NeuralConfig, NeuralSeqSLAM
 from torchseq.neural.spiking import SpikingConfig, SpikingError, SpikingSeqSLAM, lif_step
-
-
-@lru_cache(maxsize=None)
-def tiny():
-    """A tiny model (small enough for a pure-Python loop) on a 40-frame demo route."""
-    demo = make_demo(n_reference=40, size=(48, 64), seed=3)
-    model = NeuralSeqSLAM(NeuralConfig(
-        unit_search="off", input_size=(8, 12), hidden=96, n_output=20))
-    with coarse_units_expected():  # a small model: units of several frames
-        model.fit(demo.reference, log=False)
-    spiking = SpikingSeqSLAM.convert(model, demo.reference, SpikingConfig(levels=6))
-    return model, demo, spiking
-
-
-@lru_cache(maxsize=None)
-def demo_setup():
-    demo = make_demo()
-    model = NeuralSeqSLAM(NeuralConfig(unit_search="off"))
-    model.fit(demo.reference, log=False)
-    return model, demo, SpikingSeqSLAM.convert(model, demo.reference)
 
 
 def loop_oracle(w1, w3, inv_theta, step, shift, x):

@@ -6,7 +6,7 @@ from functools import lru_cache
 import numpy as np
 import pytest
 import torch
-from test_spiking import tiny
+from spiking_helpers import NIR104_SCRIPT, nir104_python, nir_reference_run, tiny
 
 from torchseq.neural.spiking import (
     SpikingConfig,
@@ -17,8 +17,6 @@ from torchseq.neural.spiking import (
 )
 
 nir = pytest.importorskip("nir", reason="the 'nir' package is absent: pip install 'torchseq[nir]'")
-
-from test_export_nir import nir_reference_run  # noqa: E402
 
 from torchseq.export.hardware_budget import (  # noqa: E402
     CHIPS,
@@ -208,40 +206,6 @@ class TestChips:
 
 
 # ------------------------------------------------------------------ nir 1.0.4
-NIR104_SCRIPT = """
-import sys, numpy as np, nir
-out = {}
-for i, path in enumerate(sys.argv[2:]):
-    g = nir.read(path)
-    out[f"{i}/meta/format"] = np.array(str(g.metadata["format"]))
-    for name, node in g.nodes.items():
-        out[f"{i}/{name}/type"] = np.array(type(node).__name__)
-        for field, value in vars(node).items():
-            if isinstance(value, np.ndarray):
-                out[f"{i}/{name}/{field}"] = value
-    out[f"{i}/edges"] = np.array(sorted(map(list, g.edges)))
-np.savez(sys.argv[1], **out)
-"""
-
-
-def nir104_python(tmp_path_factory) -> str:
-    """A Python with nir 1.0.4: ``$TORCHSEQ_NIR104_PYTHON``, else a venv made here (pip)."""
-    import os
-    import subprocess
-    import sys
-
-    given = os.environ.get("TORCHSEQ_NIR104_PYTHON")
-    if given:
-        return given
-    venv = tmp_path_factory.mktemp("nir104") / "venv"
-    try:
-        subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True,
-                       capture_output=True, timeout=120)
-        subprocess.run([str(venv / "bin" / "pip"), "install", "-q", "nir==1.0.4"], check=True,
-                       capture_output=True, timeout=600)
-    except (subprocess.SubprocessError, OSError) as err:
-        pytest.skip(f"no venv with nir 1.0.4 could be made here ({type(err).__name__})")
-    return str(venv / "bin" / "python")
 
 
 def test_lif_nodes_are_written_without_v_reset(files):

@@ -253,7 +253,7 @@ class TestBadInput:
 # ------------------------------------------------------------------ NIR
 nir = pytest.importorskip("nir", reason="the 'nir' package is absent: pip install 'torchseq[nir]'")
 
-from test_export_nir import nir_reference_run  # noqa: E402
+from spiking_helpers import nir_reference_run  # noqa: E402
 
 from torchseq.export.nir_export import read_nir, write_nir  # noqa: E402
 from torchseq.neural.spiking import DT  # noqa: E402
@@ -397,7 +397,7 @@ def test_consumer_runs_event_windows_spike_for_spike(name, event_file):
 def test_nir_104_reads_the_event_graph(event_file, tmp_path_factory):
     import subprocess
 
-    from test_spiking_chips import NIR104_SCRIPT, nir104_python
+    from spiking_helpers import NIR104_SCRIPT, nir104_python
 
     sp, qry, graph, path = event_file
     py = nir104_python(tmp_path_factory)

@@ -58,30 +58,19 @@ def test_coarse_schedule_reports_ties(ms):
     assert (win_min > lose_max).all()
 
 
-@pytest.fixture(scope="module")
-def route():
-    from test_spiking import tiny
-
-    model, demo, sp = tiny()
-    xr = model.encode(demo.reference).double()
-    xq = model.encode(demo.query).double()
-    rate = model.run(demo.query).matches.reference.numpy()
-    return model, sp, xr, xq, rate
-
-
-def test_own_pipeline_all_exact_is_the_rate_model(ms, route):
+def test_own_pipeline_all_exact_is_the_rate_model(ms, tiny_runs):
     # the study's stage switches hold only if its all-exact path is the rate model
-    model, sp, xr, xq, rate = route
+    model, sp, xr, xq, rate, _ = tiny_runs
     r = ms.simulate(model, xr, xq, sp.calibration["theta2"], ms.RATE)
     assert (r["reference"] == rate).all()
     assert (r["fired"] == model.config.k).all()
 
 
-def test_division_by_timing_tends_to_the_mad_division(ms, route):
+def test_division_by_timing_tends_to_the_mad_division(ms, tiny_runs):
     # a long window: the counts are max(c, 0) / MAD to about 1e-6, the evidence is the float
     # MAD division's and so are the decisions (a window that ignores the frame's MAD, or
     # counts that are not rectified, part from them)
-    model, sp, xr, xq, _rate = route
+    model, sp, xr, xq, _rate, _ = tiny_runs
     th = sp.calibration["theta2"]
     mad = ms.simulate(model, xr, xq, th, "kwta:mad:evidence:exact")
     div = ms.simulate(model, xr, xq, th, "kwta:div1000000:evidence:exact")
@@ -143,11 +132,11 @@ def test_square_window_closed_form_is_the_stepped_network(ms, steps):
     np.testing.assert_allclose(win, (2.0 * theta / (rate * var)).sqrt(), rtol=0.1 + 1 / steps)
 
 
-def test_square_division_tends_to_the_std_division(ms, route):
+def test_square_division_tends_to_the_std_division(ms, tiny_runs):
     # fine rungs and a long window: the evidence is the rate model's division by each frame's
     # cohort std (rectified) to 1e-3 and so are the decisions; a window from the MAD, or a
     # single integrator (a window of one over the variance), parts from it
-    model, sp, xr, xq, rate = route
+    model, sp, xr, xq, rate, _ = tiny_runs
     th = sp.calibration["theta2"]
     exact = ms.simulate(model, xr, xq, th, "kwta:frame:evidence:exact")
     sq = ms.simulate(model, xr, xq, th, "kwta:sq100000k0.01r1.05:evidence:exact")
@@ -157,9 +146,9 @@ def test_square_division_tends_to_the_std_division(ms, route):
     assert (sq["reference"] == rate).all()
 
 
-def test_every_variant_reports_the_same_fields(ms, route):
+def test_every_variant_reports_the_same_fields(ms, tiny_runs):
     # main tabulates every field of every variant: the split's one-step path must carry them
-    model, sp, xr, xq, _rate = route
+    model, sp, xr, xq, _rate, _ = tiny_runs
     th = sp.calibration["theta2"]
     keys = {v: set(ms.simulate(model, xr, xq, th, v)) for v in
             [ms.SPIKING, ms.RATE, "kwta:sq64:evidence:exact", "kwta:div64:evidence:exact"]}

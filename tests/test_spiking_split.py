@@ -3,13 +3,12 @@
 The split (docs/results/nir.md, "Where the disagreement comes from") recomputes the pipeline
 with each stage as the spiking or as the rate model has it; its claims hold only if the
 all-spiking variant is the spiking model and the all-exact variant the rate model, frame for
-frame. Checked here on the tiny route of tests/test_spiking.py.
+frame. Checked here on the tiny route of tests/spiking_helpers.py.
 """
 
 import numpy as np
 import pytest
 from conftest import load_script
-from test_spiking import tiny
 
 
 @pytest.fixture(scope="module")
@@ -17,34 +16,24 @@ def split():
     return load_script("experiments/spiking_split.py")
 
 
-@pytest.fixture(scope="module")
-def route(split):
-    model, demo, sp = tiny()  # levels=6
-    xr = model.encode(demo.reference).double()
-    xq = model.encode(demo.query).double()
-    rate = model.run(demo.query).matches.reference.numpy()
-    spiking = sp.run(demo.query)
-    return model, sp, xr, xq, rate, spiking
-
-
-def test_spiking_end_is_the_spiking_model(split, route):
-    model, sp, xr, xq, _rate, spiking = route
+def test_spiking_end_is_the_spiking_model(split, tiny_runs):
+    model, sp, xr, xq, _rate, spiking = tiny_runs
     refs, fired = split.simulate(model, xr, xq, sp.calibration["theta2"], "fixed:fixed:ring:K6")
     np.testing.assert_array_equal(refs, spiking["reference"].numpy())
     np.testing.assert_array_equal(fired, spiking["l2_spikes"].numpy())
 
 
-def test_exact_end_is_the_rate_model(split, route):
-    model, sp, xr, xq, rate, _spiking = route
+def test_exact_end_is_the_rate_model(split, tiny_runs):
+    model, sp, xr, xq, rate, _spiking = tiny_runs
     refs, fired = split.simulate(model, xr, xq, sp.calibration["theta2"], split.RATE)
     np.testing.assert_array_equal(refs, rate)
     assert (fired == model.config.k).all()  # the exact k-WTA keeps k units every frame
 
 
-def test_linear_threshold_folds_into_w1(split, route):
+def test_linear_threshold_folds_into_w1(split, tiny_runs):
     # the linear rule fires where x @ w1.T > b + x @ c: fitted on the reference midpoints, it
     # keeps about k units there (a rule folded wrongly fires none or all)
-    model, sp, xr, xq, _rate, _spiking = route
+    model, sp, xr, xq, _rate, _spiking = tiny_runs
     code = split.l2_rule("linear0.001", xr, model.l1.folded_weight().double(), model.config.k,
                          sp.calibration["theta2"])
     fired = code(xr).sum(1).numpy()

@@ -320,7 +320,7 @@ def test_bad_input(demo, net):
 
 
 # ---------------------------------------------------------------- real data
-def route(name):
+def real_pair(name):
     from torchseq.sources import load_traverse
 
     if name == "corridor":
@@ -338,7 +338,7 @@ def test_agreement_goal_over_eight_seeds(name):
     # issue 26's goal: >= 0.95 of the rate model's decisions on every seed 0-7, calibrated on
     # the reference only. Measured worst (float / 8-bit weights): corridor 0.991 / 0.964,
     # LENS 0.970 / 0.970; the one-step model 0.685 / 0.790 (docs/results/nir.md)
-    ref, qry = route(name)
+    ref, qry = real_pair(name)
     torch.set_num_threads(1)
     worst = {None: 1.0, 8: 1.0}
     for seed in range(8):

@@ -1,5 +1,8 @@
-"""Figures for reports and TensorBoard: difference matrices, PR curves, rasters, frame pairs.
+"""The neural figures for reports and TensorBoard, and the helpers the report's images share.
 
+The activity raster and the ring matrix are drawn here (matplotlib); the eval report's
+difference matrix, PR curves and frame pairs by :mod:`torchseq.cli.report_images`, with the
+NumPy helpers below (:func:`reduce_matrix`, :func:`checked_matrix`, :func:`pick_pairs`).
 Every ``plot_*`` function returns a matplotlib figure; :func:`save_figure` writes it atomically
 as PNG and :func:`figure_to_array` turns it into an ``(H, W, 3)`` uint8 image for TensorBoard;
 :func:`save_image` writes such an image as PNG without drawing the figure again.
@@ -18,9 +21,8 @@ import torch
 
 from torchseq.area import area_mean
 from torchseq.atomic import atomic_path
-from torchseq.ground_truth import GroundTruthRanges, admits
+from torchseq.ground_truth import admits
 from torchseq.matches import Matches
-from torchseq.metrics import PRCurve, auc
 
 if TYPE_CHECKING:  # matplotlib is imported by the first figure (_figure)
     from matplotlib.figure import Figure
@@ -147,80 +149,6 @@ def matched_points(matches: Matches, gt, n_ref: int,
     return q, ref[q], ok
 
 
-def plot_difference_matrix(matrix, matches: Matches | None = None, gt=None,
-                           title: str = "contrast-enhanced difference matrix",
-                           shape: tuple[int, int] | None = None) -> Figure:
-    """Show a ``(R, Q)`` difference matrix with ground truth and matches overlaid.
-
-    A matrix larger than :data:`PLOT_SIDE` on a side is area-reduced first
-    (:func:`reduce_matrix`) and stretched over the full ``(R, Q)`` coordinates, so matplotlib
-    never resamples millions of cells; ``matrix`` may also be such a reduced copy already
-    (``SeqSLAMResult.preview``), with ``shape`` the full matrix's. Matches and ground truth are
-    drawn in full-matrix coordinates either way.
-
-    Args:
-        matrix: ``(R, Q)`` reference rows by query columns (lower = more similar), dense or
-            sparse COO (candidate mode: blank where not evaluated), or a reduced ``(R', Q')``
-            copy of one (give ``shape``).
-        matches: the engine's matches (drawn as dots: green correct, red wrong).
-        gt: ``(R, Q)`` bool ground truth or :class:`torchseq.ground_truth.GroundTruthRanges`
-            (drawn as a faint band).
-        title: figure title.
-        shape: ``(R, Q)`` of the full matrix when ``matrix`` is a reduced copy; None: the
-            matrix is the full one.
-    """
-    m, n_ref, n_query = checked_matrix(matrix, gt, shape)
-    small = reduce_matrix(m)
-    extent = (-0.5, n_query - 0.5, n_ref - 0.5, -0.5)  # cell centres at full-matrix indices
-    fig, ax = _figure((6, 5))
-    finite = small[np.isfinite(small)]
-    lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0, 1))
-    ax.imshow(small, cmap="gray", aspect="auto", vmin=lo, vmax=hi, interpolation="nearest",
-              extent=extent)
-    if isinstance(gt, GroundTruthRanges):
-        q = np.arange(n_query)
-        ax.fill_between(q, gt.lo - 0.5, gt.hi - 0.5, where=gt.hi > gt.lo, step="mid",
-                        color="tab:blue", alpha=0.25, lw=0, label="ground truth")
-    elif gt is not None and gt.shape[0] * gt.shape[1] > PLOT_SIDE ** 2:
-        band = _any_pool(gt, small.shape)
-        ax.imshow(np.ma.masked_where(~band, band.astype(float)), cmap="Blues", vmin=0,
-                  vmax=1.5, alpha=0.4, aspect="auto", interpolation="nearest", extent=extent)
-        ax.fill_between([], [], [], color="tab:blue", alpha=0.25, label="ground truth")
-    elif gt is not None:
-        rows, cols = np.nonzero(gt)
-        ax.scatter(cols, rows, s=1, c="tab:blue", alpha=0.15, marker="s", label="ground truth")
-    if matches is not None:
-        q, r, ok = matched_points(matches, gt, n_ref, n_query)
-        ax.scatter(q[ok], r[ok], s=4, c="tab:green", label="correct match")
-        ax.scatter(q[~ok], r[~ok], s=4, c="tab:red", label="wrong match")
-    ax.set_xlim(extent[0], extent[1])
-    ax.set_ylim(extent[2], extent[3])
-    ax.set_xlabel("query frame")
-    ax.set_ylabel("reference frame")
-    ax.set_title(title)
-    if matches is not None or gt is not None:
-        ax.legend(loc="upper left", fontsize=7, markerscale=3)
-    fig.tight_layout()
-    return fig
-
-
-def plot_pr_curves(curves: dict[str, PRCurve]) -> Figure:
-    """Precision-recall curves, one line per engine, its AUC in the legend."""
-    fig, ax = _figure((5, 4))
-    for name, c in curves.items():
-        ax.plot(np.r_[0.0, c.recall], np.r_[c.precision[:1] if len(c.precision) else [1.0],
-                                            c.precision], label=f"{name} (AUC {auc(c):.3f})")
-    ax.set_xlabel("recall")
-    ax.set_ylabel("precision")
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1.02)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    ax.set_title("precision-recall")
-    fig.tight_layout()
-    return fig
-
-
 def plot_activity_raster(activity, winners=None, title: str = "output activity",
                          truth=None) -> Figure:
     """Output-unit activity over time with the winning unit marked (the seed's Figures 7 and 9).
@@ -237,7 +165,7 @@ def plot_activity_raster(activity, winners=None, title: str = "output activity",
     w = _np(winners) if winners is not None else a.argmax(1)
     n_frames, n_units = a.shape
     fig, ax = _figure((7, 4))
-    # long runs: area-reduced first (as plot_difference_matrix), drawn in frame/unit coordinates
+    # long runs: area-reduced first (as the difference matrix), drawn in frame/unit coordinates
     ax.imshow(reduce_matrix(a.T), cmap="magma", aspect="auto", origin="lower",
               interpolation="nearest", extent=(-0.5, n_frames - 0.5, -0.5, n_units - 0.5))
     if truth is not None:
@@ -295,37 +223,6 @@ def pick_pairs(idx: np.ndarray, n_ref: int, n: int, title: str) -> tuple[np.ndar
     pick = matched[np.linspace(0, len(matched) - 1, min(n, len(matched))).round().astype(int)] \
         if len(matched) else np.array([], int)
     return pick, title
-
-
-def plot_matched_pairs(reference, query, matches: Matches, gt: np.ndarray | None = None,
-                       n: int = 6, title: str = "matched frames") -> Figure:
-    """Query frames beside the reference frames they matched (the seed's Figure 10).
-
-    Args:
-        reference: ``(R, H, W)`` reference frames.
-        query: ``(Q, H, W)`` query frames.
-        matches: matches of the query traverse.
-        gt: ``(R, Q)`` ground truth (bool or ranges), to label pairs correct or wrong.
-        n: number of pairs, evenly spaced over the matched queries.
-        title: figure title.
-    """
-    ref, qry, idx = _np(reference), _np(query), _np(matches.reference)
-    pick, title = pick_pairs(idx, len(ref), n, title)
-    fig, axes = _figure((2 * max(len(pick), 1), 4.2), 2, max(len(pick), 1), squeeze=False)
-    for col, q in enumerate(pick):
-        r = int(idx[q])
-        good = bool(admits(gt, np.array([r]), np.array([q]))[0]) \
-            if gt is not None and r < gt.shape[0] else None
-        colour = {True: "green", False: "red", None: "black"}[good]
-        axes[0, col].imshow(qry[q], cmap="gray", **_grey_range(qry[q]))
-        axes[0, col].set_title(f"query {q}", fontsize=8)
-        axes[1, col].imshow(ref[r], cmap="gray", **_grey_range(ref[r]))
-        axes[1, col].set_title(f"reference {r}", fontsize=8, color=colour)
-    for ax in axes.ravel():
-        ax.axis("off")
-    fig.suptitle(title)
-    fig.tight_layout()
-    return fig
 
 
 def figure_to_array(fig: Figure) -> np.ndarray:

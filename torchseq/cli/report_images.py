@@ -6,10 +6,9 @@ precision-recall curves. Drawing them here costs milliseconds and imports nothin
 OpenCV, which reads the frames anyway; :mod:`torchseq.cli.plots` (matplotlib) stays for the
 neural activity raster and the training figures, and is imported only by runs that draw those.
 
-Each ``draw_*`` function shows what its :mod:`torchseq.cli.plots` counterpart shows (title, axis
-labels and ticks, legend, the same data, colours and display ranges) at the same pixel size,
-and returns an ``(H, W, 3)`` uint8 RGB image for :func:`torchseq.cli.plots.save_image` and
-TensorBoard.
+Each ``draw_*`` function draws a matplotlib-style figure (title, axis labels and ticks, legend,
+matplotlib's tab10 colours) and returns an ``(H, W, 3)`` uint8 RGB image for
+:func:`torchseq.cli.plots.save_image` and TensorBoard.
 """
 
 from __future__ import annotations
@@ -151,7 +150,7 @@ def _blend(colour, alpha: float, under=WHITE) -> tuple:
 def draw_difference_matrix(matrix, matches: Matches | None = None, gt=None,
                            title: str = "contrast-enhanced difference matrix",
                            shape: tuple[int, int] | None = None) -> np.ndarray:
-    """:func:`torchseq.cli.plots.plot_difference_matrix` as a ``(500, 600, 3)`` uint8 image.
+    """The difference matrix with its ground truth and matches, a ``(500, 600, 3)`` uint8 image.
 
     The matrix is area-reduced (:func:`torchseq.cli.plots.reduce_matrix`) and shown on a grey
     scale from its 1st to its 99th percentile, stretched over full-matrix coordinates;
@@ -213,7 +212,7 @@ def draw_difference_matrix(matrix, matches: Matches | None = None, gt=None,
 
 
 def draw_pr_curves(curves: dict[str, PRCurve]) -> np.ndarray:
-    """:func:`torchseq.cli.plots.plot_pr_curves` as a ``(400, 500, 3)`` uint8 image."""
+    """Each engine's precision-recall curve, its AUC in the legend: a ``(400, 500, 3)`` image."""
     img = np.full((400, 500, 3), 255, np.uint8)
     ax = _Axes(img, (58, 30, 488, 348), (0.0, 1.0), (0.0, 1.02))
     ax.frame("recall", "precision", "precision-recall", grid=True)
@@ -233,7 +232,7 @@ def draw_pr_curves(curves: dict[str, PRCurve]) -> np.ndarray:
 
 def draw_matched_pairs(reference, query, matches: Matches, gt=None, n: int = 6,
                        title: str = "matched frames") -> np.ndarray:
-    """:func:`torchseq.cli.plots.plot_matched_pairs` as a ``(420, 200 n, 3)`` uint8 image.
+    """Query frames above the reference frames they matched: a ``(420, 200 n, 3)`` image.
 
     Query frames (top row) above the reference frames they matched, ``n`` pairs evenly
     spaced over the matched queries, each reference's label green (correct), red (wrong) or
