@@ -21,6 +21,22 @@ DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="CUDA is not available on this machine"))]
 
 
+@pytest.fixture(scope="module")
+def memory_cap(request):
+    """Cap the address space at what the process uses now plus ``MEMORY_CAP_EXTRA`` bytes of
+    the module (2 GiB by default), so a huge allocation fails loudly instead of swapping."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    used = int(open("/proc/self/statm").read().split()[0]) * resource.getpagesize()
+    cap = used + getattr(request.module, "MEMORY_CAP_EXTRA", 2 << 30)
+    if hard != resource.RLIM_INFINITY:
+        cap = min(cap, hard)
+    resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
+    yield
+    resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+
 def shared_data(*parts: str) -> Path:
     """Path under ../shared/data, skipping the test with a clear reason when it is absent."""
     path = DATA.joinpath(*parts)

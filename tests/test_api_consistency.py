@@ -6,7 +6,6 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 
 
 def test_import_preprocess_gives_the_module():

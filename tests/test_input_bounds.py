@@ -8,7 +8,6 @@ declared-size allocation fails the test as a ``MemoryError`` instead of swapping
 """
 
 import json
-import resource
 import shutil
 
 import numpy as np
@@ -18,18 +17,7 @@ import torch
 from torchseq.seqslam import SeqSLAMConfig
 from torchseq.seqslam.search import velocities
 
-
-@pytest.fixture(scope="module", autouse=True)
-def memory_cap():
-    """Cap the address space at what the process uses now plus 2 GiB (every test here)."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
-    used = int(open("/proc/self/statm").read().split()[0]) * resource.getpagesize()
-    cap = used + (2 << 30)
-    if hard != resource.RLIM_INFINITY:
-        cap = min(cap, hard)
-    resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
-    yield
-    resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+pytestmark = pytest.mark.usefixtures("memory_cap")  # conftest: address space capped
 
 
 # ------------------------------------------------------------------ SeqSLAMConfig (item 1)

@@ -10,7 +10,6 @@ address-space cap of 2 GiB more than the process holds).
 
 import io
 import json
-import resource
 import shutil
 import zipfile
 
@@ -33,16 +32,7 @@ HOSTILE = st.one_of(
 )
 
 
-@pytest.fixture(scope="module", autouse=True)
-def memory_cap():
-    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
-    used = int(open("/proc/self/statm").read().split()[0]) * resource.getpagesize()
-    cap = used + (2 << 30)
-    if hard != resource.RLIM_INFINITY:
-        cap = min(cap, hard)
-    resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
-    yield
-    resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+pytestmark = pytest.mark.usefixtures("memory_cap")  # conftest: address space capped
 
 
 def mutate(data: bytes, edits, cut) -> bytes:

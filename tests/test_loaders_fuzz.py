@@ -7,7 +7,6 @@ checks that ``load_traverse`` / ``load_ground_truth`` either return well-formed 
 exception, never NaN frames, never a huge allocation (each example runs under a memory cap).
 """
 
-import resource
 from pathlib import Path
 
 import cv2
@@ -41,17 +40,8 @@ def mutate(data: bytes, mutation) -> bytes:
     return bytes(b)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def memory_cap():
-    """Fail loudly (MemoryError) instead of swapping if a loader tries a huge allocation."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
-    used = int(open("/proc/self/statm").read().split()[0]) * resource.getpagesize()
-    cap = used + (3 << 30)
-    if hard != resource.RLIM_INFINITY:
-        cap = min(cap, hard)
-    resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
-    yield
-    resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+MEMORY_CAP_EXTRA = 3 << 30  # bytes above what the process uses (conftest memory_cap)
+pytestmark = pytest.mark.usefixtures("memory_cap")  # conftest: address space capped
 
 
 def real_jpeg() -> bytes:
