@@ -213,11 +213,34 @@ def test_every_export_refuses_a_searching_model_by_name(tmp_path):
     import torchseq.cli.train as cli_train  # its remedies are train flags that exist
 
     said = str(err.value)
-    assert "torchseq train --neural-unit-search off, or --neural-n-output" in said
-    n = said.split("--neural-n-output ")[1].split(")")[0]
-    args = cli_train.build_parser().parse_args(["--neural-unit-search", "off",
-                                                "--neural-n-output", n])
-    assert (args.unit_search, args.n_output) == ("off", len(d.reference))
+    assert "(torchseq train --neural-unit-search off)" in said
+    args = cli_train.build_parser().parse_args(["--neural-unit-search", "off"])
+    assert args.unit_search == "off"
+
+
+@pytest.mark.parametrize("n_reference, n_output", [(120, 40), (420, None)])
+def test_the_export_remedy_gives_a_model_that_exports(tmp_path, n_reference, n_output):
+    # units of several frames, and a route long enough for "auto" to pick the search with
+    # one unit per frame: each remedy the refusal names must make the model exportable
+    import torchseq.cli.train as cli_train
+    from torchseq.export import ExportError, export_checkpoint
+    from torchseq.neural.search import refuse_export
+
+    d = make_demo(n_reference=n_reference, seed=3)
+    cfg = NeuralConfig(hidden=256, seed=0, **({} if n_output is None else {"n_output": n_output}))
+    m = _fit(d.reference, cfg)
+    m.save(tmp_path / "m.pt")
+    with pytest.raises(ExportError, match="unit search") as err:
+        export_checkpoint(tmp_path / "m.pt", tmp_path / "out", query=d.query)
+    flags = str(err.value).split("(torchseq train ")[1].rstrip(")").split(", or ")
+    assert flags
+    default = vars(cli_train.build_parser().parse_args([]))
+    for flag in flags:
+        given = vars(cli_train.build_parser().parse_args(flag.split()))
+        changed = {f.name: given[f.name] for f in dataclasses.fields(cfg)
+                   if given.get(f.name) != default.get(f.name)}
+        assert changed, flag
+        refuse_export(_fit(d.reference, dataclasses.replace(cfg, **changed)), "export")
 
 
 @pytest.mark.slow

@@ -178,9 +178,8 @@ def export_checkpoint(checkpoint_path, out_dir, query=None, ground_truth=None,
     model = _load_model(ckpt)
     from torchseq.neural.search import refuse_export
 
-    refuse_export(model, "torchseq export", ExportError, hint=(  # the flags that do it
-        f" (torchseq train --neural-unit-search off, or --neural-n-output "
-        f"{int(model.unit_to_reference[-1, 1])})"))
+    refuse_export(model, "torchseq export", ExportError,  # the flag that does it
+                  hint=" (torchseq train --neural-unit-search off)")
     rec = recorded_reference(model)
     if query is None:
         frames, own_gt, rec, source, gt_source = _own_reference(model, ckpt)

@@ -189,4 +189,4 @@ def refuse_export(model, form: str, error: type[Exception] = NeuralError,
     raise error(f"{form} refuses this model: it decides with the unit search (unit_search="
                 f"{model.config.unit_search!r}, a route of {n_frames} frames on {n_units} "
                 f"units), which has no form there yet; to export, fit with unit_search='off' "
-                f"(the ring alone) or n_output >= the route's frames{hint}")
+                f"(the ring alone){hint}")
