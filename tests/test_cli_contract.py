@@ -133,12 +133,11 @@ def eval_cases(d):
 
 def train_cases(d):
     return [
-        (["--eps", "nan"], "--eps"),
-        (["--ring-gain", "nan"], "--ring-gain"),
-        (["--ring-stay", "nan"], "--ring-stay"),
-        (["--ring-spread-decay", "inf"], "--ring-spread-decay"),
-        (["--hidden", "abc"], "--hidden"),
-        (["--hidden", str(2 ** 40)], "--neural-hidden"),  # eval's name; --hidden an alias
+        (["--neural-eps", "nan"], "--neural-eps"),
+        (["--neural-ring-gain", "nan"], "--neural-ring-gain"),
+        (["--neural-ring-stay", "nan"], "--neural-ring-stay"),
+        (["--neural-ring-spread-decay", "inf"], "--neural-ring-spread-decay"),
+        (["--neural-hidden", "abc"], "--neural-hidden"),
         (["--neural-hidden", str(2 ** 40)], "--neural-hidden must be in 1..1048576"),
         (["--demo-frames", "100000000000"], "--demo-frames"),
         (["--reference", str(d / "huge_frames.npy")], "huge_frames.npy"),

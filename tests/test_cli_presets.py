@@ -46,13 +46,13 @@ def test_typed_flags_win_over_the_preset_even_at_the_default_value():
     got = eval_neural("--neural-preset", "dense-readout", "--neural-ring-decay", "0.97",
                       "--neural-hidden", "512")
     assert got == NeuralConfig.dense_readout(ring_decay=0.97, hidden=512)
-    got = train_neural("--neural-preset", "table1", "--k-fraction", "0.1")
+    got = train_neural("--neural-preset", "table1", "--neural-k-fraction", "0.1")
     assert got == NeuralConfig.table1(k_fraction=0.1)
     got = eval_neural("--neural-preset", "adaptive-velocity", "--neural-ring-spread", "2",
                       "--seed", "7")
     assert got == NeuralConfig.adaptive_velocity(ring_spread=2, seed=7)
     # abbreviated flags count as typed too (argparse accepts unique prefixes)
-    got = train_neural("--neural-preset", "table1", "--density-o", "1.0")
+    got = train_neural("--neural-preset", "table1", "--neural-density-o", "1.0")
     assert got == NeuralConfig.table1(density_out=1.0)
 
 
@@ -110,8 +110,8 @@ def test_eval_records_the_preset_and_replay_reproduces_it(tmp_path, capsys):
 
 
 def test_train_records_the_preset_and_replay_reproduces_it(tmp_path):
-    cfg, ncfg = cli_train.parse_args(["--neural-preset", "dense-readout", "--hidden", "128",
-                                      "--ring-decay", "0.97"])
+    cfg, ncfg = cli_train.parse_args(["--neural-preset", "dense-readout", "--neural-hidden", "128",
+                                      "--neural-ring-decay", "0.97"])
     assert ncfg == NeuralConfig.dense_readout(hidden=128, ring_decay=0.97)
     path = tmp_path / "config.json"
     path.write_text(config_text({"train": cfg, "model": ncfg}))  # as train() writes it
@@ -124,7 +124,7 @@ def test_train_records_the_preset_and_replay_reproduces_it(tmp_path):
 def test_train_run_writes_the_preset(tmp_path, capsys):
     out = tmp_path / "t"
     code = run_main(cli_train.main, "train.py", [
-        "--neural-preset", "adaptive-velocity", "--hidden", "128", "--n-output", "30",
+        "--neural-preset", "adaptive-velocity", "--neural-hidden", "128", "--neural-n-output", "30",
         "--demo-frames", "30", "--no-tensorboard", "--no-progress", "--out", str(out)])
     assert code == 0, capsys.readouterr().err
     assert json.loads((out / "train.json").read_text())["neural_preset"] == "adaptive-velocity"

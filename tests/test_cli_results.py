@@ -48,7 +48,8 @@ def test_metrics_json_keeps_its_keys_and_the_report_gets_an_outcome(tmp_path, mo
     assert outcome.engines["neural"].reported()["model_bytes"] == written["neural"]["model_bytes"]
 
 
-# train.json of `torchseq train --demo-frames 40 --hidden 256 --n-output 40` on main (1427cd5)
+# train.json of `torchseq train --demo-frames 40 --neural-hidden 256 --neural-n-output 40` on
+# main (1427cd5)
 # before the train command handed its report a TrainRun: keys in order, and every value but the
 # timing and the git commit
 TRAIN_JSON = {
@@ -75,7 +76,7 @@ def test_train_json_is_unchanged_and_written_from_a_train_run(tmp_path, monkeypa
     monkeypatch.setattr(cli_train, "write_train_json", spy)
     out = tmp_path / "t"
     code = run_main(cli_train.main, "train.py", [
-        "--demo-frames", "40", "--hidden", "256", "--n-output", "40", "--no-progress",
+        "--demo-frames", "40", "--neural-hidden", "256", "--neural-n-output", "40", "--no-progress",
         "--no-tensorboard", "--out", str(out)])
     assert code == 0
     text = (out / "train.json").read_text()

@@ -36,8 +36,8 @@ def test_reader_warning_is_one_counted_line_and_in_metrics(tmp_path, capsys):
 def test_fit_warning_is_in_train_json(tmp_path, capsys):
     # 40 reference frames on 4 output units: fit warns that places are 10 frames wide
     out = tmp_path / "t"
-    code, err = run_inprocess("train", capsys, "--demo-frames", "40", "--hidden", "64",
-                              "--n-output", "4", "--no-tensorboard", "--out", str(out))
+    code, err = run_inprocess("train", capsys, "--demo-frames", "40", "--neural-hidden", "64",
+                              "--neural-n-output", "4", "--no-tensorboard", "--out", str(out))
     assert code == 0, err
     assert "train.py: warning: a route of 40 frames on 4 output units" in err
     assert "UserWarning" not in err

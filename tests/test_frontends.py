@@ -93,8 +93,8 @@ def test_train_then_eval_neural_checkpoint(tmp_path):
 
     from torchseq.neural import NeuralSeqSLAM
 
-    trained = run("train.py", "--demo-frames", "60", "--hidden", "512", "--n-output", "60",
-                  "--out", str(tmp_path / "train"), "--export")
+    trained = run("train.py", "--demo-frames", "60", "--neural-hidden", "512",
+                  "--neural-n-output", "60", "--out", str(tmp_path / "train"), "--export")
     # --export says what it validated on, the device input, and the verdict (main: silent)
     assert "export: validated on the checkpoint's own reference: demo" in trained.stdout
     assert "export: device input: uint8 96x128" in trained.stdout
@@ -125,8 +125,28 @@ def test_train_bad_input_is_one_line(tmp_path, capsys):
                               "--out", str(tmp_path))
     assert code == 2 and err.startswith("train.py: error: ")
     assert len(err.strip().splitlines()) == 1
-    code, err = run_inprocess("train", capsys, "--hidden", "-3", "--out", str(tmp_path))
+    code, err = run_inprocess("train", capsys, "--neural-hidden", "-3", "--out", str(tmp_path))
     assert code == 2 and "hidden" in err
+
+
+def test_train_takes_evals_neural_flag_names_and_no_others(capsys):
+    """The pre-release names (--hidden, ...) are refused; the --neural-* ones are eval's."""
+    import dataclasses
+
+    import torchseq.cli.eval as cli_eval
+    import torchseq.cli.train as cli_train
+    from torchseq.neural import NeuralConfig
+    for old in (["--hidden", "64"], ["--n-output", "9"], ["--eps", "0.1"], ["--chunk", "8"],
+                ["--no-rectify"], ["--seed", "3"]):
+        with pytest.raises(SystemExit):
+            cli_train.parse_args(old)
+        assert f"unrecognized arguments: {' '.join(old)}" in capsys.readouterr().err
+    dests = {"neural_" + f.name for f in dataclasses.fields(NeuralConfig)}
+
+    def neural_flags(parser):
+        return sorted(s for a in parser._actions if a.dest in dests for s in a.option_strings)
+    flags = neural_flags(cli_train.build_parser())
+    assert flags == neural_flags(cli_eval.build_parser()) and "--no-neural-rectify" in flags
 
 
 def test_eval_takes_event_files(tmp_path, capsys):
@@ -212,8 +232,9 @@ def test_neural_flags_place_resolution_and_recall_at_k(tmp_path, capsys):
 @pytest.mark.slow  # an end-to-end run (CI's slow pass runs it)
 def test_checkpoint_on_another_reference_is_said_plainly(tmp_path, capsys):
     ckpt_dir = tmp_path / "train"
-    assert run_inprocess("train", capsys, "--demo-frames", "40", "--hidden", "256",
-                         "--n-output", "40", "--no-tensorboard", "--out", str(ckpt_dir))[0] == 0
+    assert run_inprocess("train", capsys, "--demo-frames", "40", "--neural-hidden", "256",
+                         "--neural-n-output", "40", "--no-tensorboard",
+                         "--out", str(ckpt_dir))[0] == 0
     ckpt = str(ckpt_dir / "model.pt")
     code, err = run_inprocess("eval", capsys, "--engine", "neural", "--checkpoint", ckpt,
                               "--demo-frames", "40", "--no-tensorboard", "--out",
@@ -546,8 +567,8 @@ def test_checkpoint_of_other_event_settings_or_selection_is_said(tmp_path, capsy
     # same recording, same frame count and size: only the frames' making differs
     aedat = str(shared_data("events", "alex_walking_again.aedat"))
     events = ["--frame-size", "16", "--max-frames", "60"]
-    assert run_inprocess("train", capsys, "--reference", aedat, *events, "--hidden", "128",
-                         "--n-output", "60", "--no-tensorboard",
+    assert run_inprocess("train", capsys, "--reference", aedat, *events, "--neural-hidden", "128",
+                         "--neural-n-output", "60", "--no-tensorboard",
                          "--out", str(tmp_path / "t"))[0] == 0
     common = ["--engine", "neural", "--checkpoint", str(tmp_path / "t" / "model.pt"),
               "--reference", aedat, "--query", aedat, "--tolerance", "2", "--no-tensorboard"]
@@ -599,8 +620,9 @@ def test_train_export_reads_an_event_query_as_its_reference(tmp_path, capsys, mo
     aedat = str(shared_data("events", "alex_walking_again.aedat"))
     code, err = run_inprocess("train", capsys, "--reference", aedat, "--frame-size", "16",
                               "--window-ms", "20", "--event-mode", "signed", "--max-frames",
-                              "60", "--hidden", "64", "--n-output", "60", "--no-tensorboard",
-                              "--export", "--export-query", aedat, "--out", str(tmp_path / "t"))
+                              "60", "--neural-hidden", "64", "--neural-n-output", "60",
+                              "--no-tensorboard", "--export", "--export-query", aedat,
+                              "--out", str(tmp_path / "t"))
     assert code == 0, err
     from torchseq.sources import EventFrameOptions, load_traverse
 

@@ -77,7 +77,7 @@ def test_wheel_in_a_fresh_venv_runs_torchseq_eval(tmp_path):
                          capture_output=True, text=True, cwd=work, env=env, timeout=120)
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines() == [
-        "torchseq train: error: argument --neural-eps/--eps: must be a finite number, got 'nan'"]
+        "torchseq train: error: argument --neural-eps: must be a finite number, got 'nan'"]
 
 
 @pytest.mark.slow

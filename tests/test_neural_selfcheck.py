@@ -104,7 +104,7 @@ def test_train_and_eval_record_the_figure(tmp_path, capsys):
     from cli_helpers import run_inprocess
 
     out = tmp_path / "t"
-    code, err = run_inprocess("train", capsys, "--demo-frames", "40", "--hidden", "256",
+    code, err = run_inprocess("train", capsys, "--demo-frames", "40", "--neural-hidden", "256",
                               "--no-tensorboard", "--out", str(out))
     assert code == 0, err
     saved = json.loads((out / "train.json").read_text())

@@ -53,8 +53,8 @@ def test_every_run_file_records_versions(tmp_path, capsys):
     small = ["--engine", "seqslam", "--demo-frames", "40", "--ds", "6", *quiet]
     assert eval_cli([*small, "--out", str(tmp_path / "eval")]) == 0
     assert eval_cli([*small, "--sweep", "ds=4,6", "--out", str(tmp_path / "sweep")]) == 0
-    assert train_cli(["--demo-frames", "40", "--hidden", "256", "--n-output", "40", *quiet,
-                      "--out", str(tmp_path / "train")]) == 0
+    assert train_cli(["--demo-frames", "40", "--neural-hidden", "256", "--neural-n-output", "40",
+                      *quiet, "--out", str(tmp_path / "train")]) == 0
     capsys.readouterr()
     assert export_main([str(tmp_path / "train" / "model.pt"), "--out",
                         str(tmp_path / "export"), "--no-nir"]) == 0

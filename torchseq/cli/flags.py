@@ -132,15 +132,12 @@ def _plain(text: str) -> str:
 
 
 def add_config_flags(parser, config_cls: type, help: dict[str, str], prefix: str = "",
-                     skip: type | None = None, spelled: str | None = None) -> None:
+                     skip: type | None = None) -> None:
     """Add one ``--flag`` per dataclass field, defaulting to the dataclass default.
 
     Tuple fields (sizes) take ``HxW`` strings; booleans get ``--flag/--no-flag``; floats must
     be finite. ``prefix`` namespaces the flags (``--neural-patch-size`` for ``patch_size``);
     the fields of a base dataclass ``skip`` are left out (added in a group of their own).
-    ``spelled``: the prefix of the flag's name in ``--help`` and messages where it differs
-    from ``prefix``, which then stays an alias (train's ``--neural-n-output``, as eval spells
-    it, with ``--n-output`` still taken).
     """
     help = {**docstring_help(config_cls), **help}
     skipped = {f.name for f in dataclasses.fields(skip)} if skip is not None else set()
@@ -148,18 +145,17 @@ def add_config_flags(parser, config_cls: type, help: dict[str, str], prefix: str
         if f.name in skipped:
             continue
         flag = "--" + (prefix + f.name).replace("_", "-")
-        names = [flag] if spelled is None else ["--" + (spelled + f.name).replace("_", "-"), flag]
         default = f.default if f.default is not dataclasses.MISSING else None
         shown = "x".join(map(str, default)) if isinstance(default, tuple) else default
         text = help.get(f.name, f.name.replace("_", " "))
         kind = _flag_type(f.type, default)
         if kind is bool:  # BooleanOptionalAction states the default itself
-            parser.add_argument(*names, action=argparse.BooleanOptionalAction,
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction,
                                 default=default, dest=prefix + f.name, help=text)
             continue
         if default is not None and "(default" not in text:
             text += f" (default: {shown})"
-        parser.add_argument(*names, type=kind, default=default, dest=prefix + f.name,
+        parser.add_argument(flag, type=kind, default=default, dest=prefix + f.name,
                             help=text)
 
 

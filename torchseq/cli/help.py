@@ -117,7 +117,7 @@ TRAIN_EXAMPLES = """\
 examples:
   torchseq train                                 # learn the demo route
   torchseq train --reference ref/ --out runs/model --export   # then export and validate
-  torchseq train --reference ref/ --neural-preset adaptive-velocity --n-output 1000
+  torchseq train --reference ref/ --neural-preset adaptive-velocity --neural-n-output 1000
 
 Every flag: torchseq train --help-all. Guides: docs/guide/; flags: docs/reference/cli.md."""
 

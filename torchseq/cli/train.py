@@ -122,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(parser, TrainConfig, HELP, skip=EventFlags)
     add_config_flags(parser.add_argument_group("event files"), EventFlags, EVENT_HELP)
     add_config_flags(parser.add_argument_group("model (NeuralConfig)"), NeuralConfig, {},
-                     spelled="neural_")  # eval's names (--neural-n-output); --n-output too
+                     prefix="neural_")
     organise_help(parser, cli_help.TRAIN, cli_help.TRAIN_EXAMPLES)
     return parser
 
@@ -134,16 +134,17 @@ def parse_args(argv: list[str] | None) -> tuple[TrainConfig, NeuralConfig]:
     pre, _ = parser.parse_known_args(argv)
     replayed = frozenset()
     if pre.config:
-        replayed = config_file_defaults(parser, pre.config, {"train": "", "model": ""})
+        replayed = config_file_defaults(parser, pre.config, {"train": "", "model": "neural_"})
     args = parser.parse_args(argv)
     cfg = config_from_args(TrainConfig, args)
     check_ranges(cfg, LIMITS)
     parse_size(cfg.export_frame_size)
     if cfg.neural_preset is not None:
         cfg.neural_preset = preset_name(cfg.neural_preset)
-    neural = {f.name for f in dataclasses.fields(NeuralConfig)}
-    ncfg = apply_preset(config_from_args(NeuralConfig, args), cfg.neural_preset,
-                        given_flags(parser, argv, neural), replayed & neural,
+    neural = {"neural_" + f.name: f.name for f in dataclasses.fields(NeuralConfig)}
+    ncfg = apply_preset(config_from_args(NeuralConfig, args, "neural_"), cfg.neural_preset,
+                        frozenset(neural[d] for d in given_flags(parser, argv, set(neural))),
+                        frozenset(neural[d] for d in replayed if d in neural),
                         parser.get_default("neural_preset"))
     check_neural(ncfg, "neural_")
     return cfg, ncfg.validate()
