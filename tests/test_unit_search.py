@@ -214,8 +214,7 @@ def test_every_export_refuses_a_searching_model_by_name(tmp_path):
 
     said = str(err.value)
     assert "(torchseq train --neural-unit-search off)" in said
-    args = cli_train.build_parser().parse_args(["--neural-unit-search", "off"])
-    assert args.unit_search == "off"
+    assert cli_train.parse_args(["--neural-unit-search", "off"])[1].unit_search == "off"
 
 
 @pytest.mark.parametrize("n_reference, n_output", [(120, 40), (420, None)])
@@ -223,6 +222,7 @@ def test_the_export_remedy_gives_a_model_that_exports(tmp_path, n_reference, n_o
     # units of several frames, and a route long enough for "auto" to pick the search with
     # one unit per frame: each remedy the refusal names must make the model exportable
     import torchseq.cli.train as cli_train
+    from torchseq.cli.flags import changed_fields
     from torchseq.export import ExportError, export_checkpoint
     from torchseq.neural.search import refuse_export
 
@@ -234,11 +234,9 @@ def test_the_export_remedy_gives_a_model_that_exports(tmp_path, n_reference, n_o
         export_checkpoint(tmp_path / "m.pt", tmp_path / "out", query=d.query)
     flags = str(err.value).split("(torchseq train ")[1].rstrip(")").split(", or ")
     assert flags
-    default = vars(cli_train.build_parser().parse_args([]))
+    default = cli_train.parse_args([])[1]
     for flag in flags:
-        given = vars(cli_train.build_parser().parse_args(flag.split()))
-        changed = {f.name: given[f.name] for f in dataclasses.fields(cfg)
-                   if given.get(f.name) != default.get(f.name)}
+        changed = changed_fields(cli_train.parse_args(flag.split())[1], default)
         assert changed, flag
         refuse_export(_fit(d.reference, dataclasses.replace(cfg, **changed)), "export")
 
