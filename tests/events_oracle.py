@@ -3,6 +3,15 @@
 import numpy as np
 
 
+def add_event(frame: np.ndarray, e, mode: str) -> None:
+    """One event into a ``(H, W)`` frame by ``mode``: +-1 signed, 1 binary, +1 count."""
+    if mode == "signed":
+        frame[e["y"], e["x"]] += 1 if e["p"] else -1
+    elif mode == "binary":
+        frame[e["y"], e["x"]] = 1
+    else:
+        frame[e["y"], e["x"]] += 1
+
 def loop_frames(ev, w, h, window_us=None, event_count=None, mode="signed", origin=None):
     """Plain-Python reference: one event at a time into a list of frames."""
     t0 = int(ev["t"].min()) if origin is None else origin
@@ -12,13 +21,7 @@ def loop_frames(ev, w, h, window_us=None, event_count=None, mode="signed", origi
     for i, e in enumerate(ev):
         k = i // event_count if event_count else (int(e["t"]) - t0) // window_us
         f = frames.setdefault(k, np.zeros((chans, h, w)))
-        c = int(e["p"]) if chans == 2 else 0
-        if mode == "signed":
-            f[c, e["y"], e["x"]] += 1 if e["p"] else -1
-        elif mode == "binary":
-            f[c, e["y"], e["x"]] = 1
-        else:
-            f[c, e["y"], e["x"]] += 1
+        add_event(f[int(e["p"]) if chans == 2 else 0], e, mode)
     n = max(frames) + 1
     out = np.stack([frames.get(k, np.zeros((chans, h, w))) for k in range(n)])
     return out if chans == 2 else out[:, 0]

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import torch
+from events_oracle import add_event
 
 from torchseq.events import EventStream, accumulate, make_events
 from torchseq.events.ensemble import accumulate_ensemble, ensemble_base, match_ensemble
@@ -23,12 +24,7 @@ def loop_member(ev, w, h, origin, step, L, n_frames, mode):
         for e in ev:
             t = int(e["t"])
             if t >= origin and lo <= t < lo + L:
-                if mode == "signed":
-                    out[k, e["y"], e["x"]] += 1 if e["p"] else -1
-                elif mode == "binary":
-                    out[k, e["y"], e["x"]] = 1
-                else:
-                    out[k, e["y"], e["x"]] += 1
+                add_event(out[k], e, mode)
     return out
 
 
